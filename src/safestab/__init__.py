@@ -1,0 +1,59 @@
+"""safestab: safe stabilization of control-affine systems under model uncertainty.
+
+Importing safestab switches JAX to 64-bit floats (``jax_enable_x64``): every numerical routine
+here is written for float64.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from .errors import (  # noqa: E402
+    DimensionError,
+    InfeasibleError,
+    NonFiniteError,
+    NumericalError,
+    ParameterError,
+    SafeStabError,
+    ScenarioError,
+)
+from .formulas import (  # noqa: E402
+    Compatibility,
+    CompatibilityCase,
+    FormulaResult,
+    KKTResiduals,
+    Region,
+    cbf_universal,
+    clf_cbf,
+    clf_cbf_relaxed,
+    clf_sontag,
+    compatibility,
+    kkt_residuals,
+    project_box,
+    saturate_safety_first,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DimensionError",
+    "InfeasibleError",
+    "NonFiniteError",
+    "NumericalError",
+    "ParameterError",
+    "SafeStabError",
+    "ScenarioError",
+    "Compatibility",
+    "CompatibilityCase",
+    "FormulaResult",
+    "KKTResiduals",
+    "Region",
+    "cbf_universal",
+    "clf_cbf",
+    "clf_cbf_relaxed",
+    "clf_sontag",
+    "compatibility",
+    "kkt_residuals",
+    "project_box",
+    "saturate_safety_first",
+]

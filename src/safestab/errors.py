@@ -1,0 +1,45 @@
+"""Exception and warning classes of safestab.
+
+Every class also inherits the built-in exception a caller would catch without knowing
+safestab, so ``except ValueError`` keeps working.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "SafeStabError",
+    "DimensionError",
+    "ParameterError",
+    "NonFiniteError",
+    "NumericalError",
+    "ScenarioError",
+    "InfeasibleError",
+]
+
+
+class SafeStabError(Exception):
+    """Base class of every error raised by safestab."""
+
+
+class DimensionError(SafeStabError, ValueError):
+    """An array has the wrong shape or number of dimensions."""
+
+
+class ParameterError(SafeStabError, ValueError):
+    """A parameter is outside its admissible range."""
+
+
+class NonFiniteError(SafeStabError, ValueError):
+    """An input contains NaN or infinity."""
+
+
+class NumericalError(SafeStabError, ArithmeticError):
+    """A numerical procedure failed (for example a Cholesky factorisation)."""
+
+
+class ScenarioError(SafeStabError, ValueError):
+    """A scenario file is invalid; the message names the offending key."""
+
+
+class InfeasibleError(SafeStabError, RuntimeError):
+    """No input satisfies the requested conditions and ``strict=True`` was asked for."""

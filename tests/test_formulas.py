@@ -1,7 +1,6 @@
-"""The closed forms against a conic QP solver (Clarabel), their KKT certificates, and hand values."""
+"""Closed forms against a conic QP solver (Clarabel), their KKT certificates, hand values."""
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -84,7 +83,9 @@ def test_clf_cbf_matches_solver_and_kkt(case):
             # B itself carries the reference's cancellation error (1e-19 |c| / |B|), so
             # compare at KKT_RTOL; a wrong fallback would differ at O(1).
             expected = max(B, 0.0) / dd * d
-            assert np.linalg.norm(np.asarray(res.u) - expected) <= KKT_RTOL * np.linalg.norm(expected)
+            assert np.linalg.norm(np.asarray(res.u) - expected) <= KKT_RTOL * np.linalg.norm(
+                expected
+            )
 
 
 @settings(max_examples=1500)
@@ -107,6 +108,7 @@ def test_relaxed_matches_solver_and_kkt(case, slack_weight):
             z_cf = np.append(np.asarray(res.u), sq * float(res.slack))
             z_ref = np.append(ref.u, sq * ref.slack)
             assert _close(z_cf, z_ref), (z_cf, z_ref)
+
             # The objective is flat in chi when slack_weight is small, so the solver's chi is
             # only as good as its duality gap: compare objective values, not chi itself.
             def objective(u, chi):
@@ -185,7 +187,9 @@ def test_relaxed_scalar_by_hand():
     # Relaxed with weight s: min u^2/2 + s chi^2/2, u - chi <= -1, u >= 1. CBF active: u = 1,
     # then chi >= 2; optimum chi = 2 (lambda1 = 2 s, lambda2 = 1 + 2 s).
     s = 10.0
-    res = clf_cbf_relaxed(1.0, [1.0], -1.0, [1.0], kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, slack_weight=s)
+    res = clf_cbf_relaxed(
+        1.0, [1.0], -1.0, [1.0], kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, slack_weight=s
+    )
     np.testing.assert_allclose(res.u, [1.0], rtol=1e-14)
     np.testing.assert_allclose(res.slack, 2.0, rtol=1e-14)
     np.testing.assert_allclose(res.multipliers, [2 * s, 1 + 2 * s], rtol=1e-14)
@@ -238,7 +242,9 @@ def test_no_nan_for_extreme_finite_input():
 
 def test_project_box_is_clip():
     u = np.array([[-3.0, 0.5], [2.0, -0.1]])
-    np.testing.assert_array_equal(project_box(u, [-1.0, -1.0], [1.0, 0.0]), [[-1.0, 0.0], [1.0, -0.1]])
+    np.testing.assert_array_equal(
+        project_box(u, [-1.0, -1.0], [1.0, 0.0]), [[-1.0, 0.0], [1.0, -0.1]]
+    )
 
 
 @settings(max_examples=300)
@@ -253,7 +259,9 @@ def test_saturate_safety_first_against_grid(u, c, d, width, center):
     """The safety-first input is the closest box point meeting the CBF, checked on a dense grid."""
     lo, hi = center - width, center + width
     rho, varphi = 0.5, 1.0
-    u_sat, feasible = saturate_safety_first([u], c, [d], rho=rho, varphi=varphi, u_min=[lo], u_max=[hi])
+    u_sat, feasible = saturate_safety_first(
+        [u], c, [d], rho=rho, varphi=varphi, u_min=[lo], u_max=[hi]
+    )
     B = rho * np.sqrt(c**2 + varphi * d**4) - c
     grid = np.linspace(lo, hi, 20001)
     ok = d * grid >= B

@@ -8,6 +8,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from .certificates import CBF, CLF, LieTerms, lie_terms  # noqa: E402
+from .controllers import ControlOutput, UniversalController  # noqa: E402
 from .errors import (  # noqa: E402
     DimensionError,
     InfeasibleError,
@@ -32,10 +34,34 @@ from .formulas import (  # noqa: E402
     project_box,
     saturate_safety_first,
 )
+from .robust import (  # noqa: E402
+    ProbabilisticCompatibility,
+    RobustMargins,
+    UncertaintyModel,
+    joint_probability,
+    probabilistic_compatibility,
+    robust_lie_terms,
+    robust_margins,
+)
+from .systems import ControlAffineSystem  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "CBF",
+    "CLF",
+    "ControlAffineSystem",
+    "ControlOutput",
+    "LieTerms",
+    "UniversalController",
+    "lie_terms",
+    "ProbabilisticCompatibility",
+    "RobustMargins",
+    "UncertaintyModel",
+    "joint_probability",
+    "probabilistic_compatibility",
+    "robust_lie_terms",
+    "robust_margins",
     "DimensionError",
     "InfeasibleError",
     "NonFiniteError",

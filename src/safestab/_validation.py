@@ -24,7 +24,7 @@ def _describe(value: np.ndarray) -> str:
     if value.size == 1:
         return repr(float(value.reshape(())))
     bad = value[~np.isfinite(value)] if not np.all(np.isfinite(value)) else value
-    return f"an array of shape {value.shape} containing {bad.reshape(-1)[0]!r}"
+    return f"an array of shape {value.shape} containing {float(bad.reshape(-1)[0])!r}"
 
 
 def check_finite(name: str, value: Any) -> None:
@@ -74,7 +74,9 @@ def check_vector_last_axis(name: str, value: Any, size: int | None = None) -> No
     """Require at least one axis, and a last axis of `size` when given."""
     shape = np.shape(value)
     if len(shape) == 0:
-        raise DimensionError(f"{name} must have shape (..., m) with at least one axis, got a scalar")
+        raise DimensionError(
+            f"{name} must have shape (..., m) with at least one axis, got a scalar"
+        )
     if size is not None and shape[-1] != size:
         raise DimensionError(f"{name} must have shape (..., {size}), got shape {shape}")
 

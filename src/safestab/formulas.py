@@ -595,7 +595,11 @@ def _compatibility(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol):
     parallel = det <= parallel_rtol * bb * dd
     case = jnp.where(
         bb == 0,
-        jnp.where(A > 0, C.INCOMPATIBLE_B_ZERO, jnp.where((dd == 0) & (B > 0), C.INCOMPATIBLE_D_ZERO, C.B_ZERO)),
+        jnp.where(
+            A > 0,
+            C.INCOMPATIBLE_B_ZERO,
+            jnp.where((dd == 0) & (B > 0), C.INCOMPATIBLE_D_ZERO, C.B_ZERO),
+        ),
         jnp.where(
             dd == 0,
             jnp.where(B > 0, C.INCOMPATIBLE_D_ZERO, C.D_ZERO),
@@ -603,7 +607,9 @@ def _compatibility(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol):
                 ~parallel,
                 C.NOT_PARALLEL,
                 jnp.where(
-                    bd < 0, C.ANTIPARALLEL, jnp.where(v <= 0, C.PARALLEL_ORDERED, C.INCOMPATIBLE_PARALLEL)
+                    bd < 0,
+                    C.ANTIPARALLEL,
+                    jnp.where(v <= 0, C.PARALLEL_ORDERED, C.INCOMPATIBLE_PARALLEL),
                 ),
             ),
         ),
@@ -717,7 +723,9 @@ def _saturate_safety_first(u, c, d, rho, varphi, u_min, u_max):
     feasible = jnp.where(dj == 0, B <= 0, new_lo <= new_hi)
     best_effort = jnp.where(dj > 0, hi, lo)  # the box input that maximises d u
     clipped = jnp.clip(u[..., 0], new_lo, new_hi)
-    out = jnp.where(feasible | (dj == 0), jnp.where(dj == 0, jnp.clip(u[..., 0], lo, hi), clipped), best_effort)
+    out = jnp.where(
+        feasible | (dj == 0), jnp.where(dj == 0, jnp.clip(u[..., 0], lo, hi), clipped), best_effort
+    )
     return out[..., None], feasible
 
 

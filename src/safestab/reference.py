@@ -168,3 +168,50 @@ def solve_formula_qp(
         found=True,
         status=status,
     )
+
+
+class ReferenceController:
+    """Solve a :class:`~safestab.controllers.UniversalController`'s QP with a numerical solver.
+
+    Uses the controller's own (possibly GP-robust) Lie terms, so the two differ only in how
+    the QP is solved. Input limits, when the controller has them, are applied afterwards
+    exactly as the controller applies them (the projection of eq. (26)), so outputs are
+    comparable one to one.
+
+    Parameters
+    ----------
+    controller : UniversalController
+    solver : str
+        A qpsolvers name: ``"clarabel"`` (default), ``"osqp"``, ``"quadprog"``, ...
+    tight : bool
+        Tight tolerances for Clarabel and OSQP.
+    """
+
+    def __init__(self, controller: Any, solver: str = "clarabel", *, tight: bool = True) -> None:
+        import jax
+
+        self.controller = controller
+        self.solver = solver
+        self.tight = tight
+        self._terms = jax.jit(controller.terms_point)
+
+    def __call__(self, x: Any) -> np.ndarray:
+        """Input at one state ``x`` of shape (n,); NaN entries where the solver fails."""
+        c = self.controller
+        a, b, cc, d = (np.asarray(t) for t in self._terms(c.system.check_state(x)))
+        sol = solve_formula_qp(
+            float(a),
+            b,
+            float(cc),
+            d,
+            slack_weight=c.slack_weight,
+            solver=self.solver,
+            tight=self.tight,
+            **c.params,
+        )
+        if not sol.found or sol.u is None:
+            return np.full(c.system.n_inputs, np.nan)
+        u = sol.u
+        if c.u_min is not None and c.saturation == "project":
+            u = np.clip(u, c.u_min, c.u_max)
+        return u

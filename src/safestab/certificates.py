@@ -1,0 +1,209 @@
+"""Control Lyapunov and control barrier functions, and their Lie terms by autodiff.
+
+For a system ``xdot = f(x) + g(x) u``:
+
+* CLF ``V`` with rate ``lam``: ``a = L_f V + lam V`` and ``b = L_g V`` (Definition 1);
+* CBF ``h`` with rate ``beta``: ``c = L_f h + beta h`` and ``d = L_g h`` (Definition 2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ._batching import over_batch
+from ._validation import check_scalar_range
+from .errors import DimensionError
+from .systems import ControlAffineSystem
+
+__all__ = ["CLF", "CBF", "LieTerms", "lie_terms"]
+
+
+class LieTerms(NamedTuple):
+    """The four terms every formula works on.
+
+    Attributes
+    ----------
+    a : array of shape (...,)
+        ``L_f V + lam V``.
+    b : array of shape (..., m)
+        ``L_g V``.
+    c : array of shape (...,)
+        ``L_f h + beta h``.
+    d : array of shape (..., m)
+        ``L_g h``.
+    """
+
+    a: jax.Array
+    b: jax.Array
+    c: jax.Array
+    d: jax.Array
+
+
+class _Certificate:
+    """A scalar function of the state with a gradient (autodiff unless given)."""
+
+    _kind = "certificate"
+    _fn_name = "fn"
+    _rate_name = "rate"
+
+    def __init__(
+        self,
+        fn: Callable[[jax.Array], jax.Array],
+        rate: float,
+        grad: Callable[[jax.Array], jax.Array] | None = None,
+    ) -> None:
+        if not callable(fn):
+            raise TypeError(f"{self._fn_name} must be a callable taking a state of shape (n,)")
+        if grad is not None and not callable(grad):
+            raise TypeError("grad must be None or a callable returning shape (n,)")
+        check_scalar_range(self._rate_name, rate, lower=0.0)
+        self.fn = fn
+        self.rate = float(rate)
+        self.grad = grad if grad is not None else jax.grad(fn)
+        self.hand_gradient = grad is not None
+
+    def check(self, n_states: int) -> None:
+        """Check shapes against a state dimension by tracing once.
+
+        Raises
+        ------
+        DimensionError
+            If the function is not scalar-valued or the gradient has the wrong shape.
+        """
+        probe = jax.ShapeDtypeStruct((n_states,), jnp.float64)
+        shape = jax.eval_shape(self.fn, probe).shape
+        if shape != ():
+            raise DimensionError(f"{self._fn_name} must return a scalar, got shape {shape}")
+        gshape = jax.eval_shape(self.grad, probe).shape
+        if gshape != (n_states,):
+            raise DimensionError(
+                f"grad of {self._fn_name} must return shape ({n_states},), got {gshape}"
+            )
+
+    def value(self, x: jax.Array) -> jax.Array:
+        """The function's value: shape (..., n) to (...,)."""
+        return over_batch(self.fn, x)
+
+    def gradient(self, x: jax.Array) -> jax.Array:
+        """The gradient: shape (..., n) to (..., n)."""
+        return over_batch(self.grad, x)
+
+    def _lie_point(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        grad = self.grad(x)
+        return grad @ system.f(x) + self.rate * self.fn(x), grad @ system.g(x)
+
+    def lie(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """``(L_f + rate) value`` of shape (...,) and ``L_g value`` of shape (..., m)."""
+        return over_batch(lambda s: self._lie_point(system, s), x)
+
+
+class CLF(_Certificate):
+    """A control Lyapunov function ``V`` with rate ``lam`` (Definition 1).
+
+    Parameters
+    ----------
+    V : callable
+        A JAX function from a state of shape (n,) to a scalar; positive definite.
+    lam : float
+        The rate ``lambda >= 0`` in ``a = L_f V + lambda V``.
+    grad : callable, optional
+        A hand-written gradient, shape (n,) to (n,); autodiff is used when omitted.
+
+    Raises
+    ------
+    ParameterError
+        If ``lam < 0``.
+    NonFiniteError
+        If ``lam`` is NaN or inf.
+    """
+
+    _kind = "CLF"
+    _fn_name = "V"
+    _rate_name = "lam"
+
+    def __init__(self, V: Callable, lam: float, grad: Callable | None = None) -> None:
+        super().__init__(V, lam, grad)
+
+    @property
+    def V(self) -> Callable:
+        """The function ``V``."""
+        return self.fn
+
+    @property
+    def lam(self) -> float:
+        """The rate ``lambda``."""
+        return self.rate
+
+
+class CBF(_Certificate):
+    """A control barrier function ``h`` with rate ``beta`` (Definition 2).
+
+    Parameters
+    ----------
+    h : callable
+        A JAX function from a state of shape (n,) to a scalar; the safe set is ``h >= 0``.
+    beta : float
+        The rate ``beta >= 0`` in ``c = L_f h + beta h``.
+    grad : callable, optional
+        A hand-written gradient; autodiff is used when omitted.
+
+    Raises
+    ------
+    ParameterError
+        If ``beta < 0``.
+    NonFiniteError
+        If ``beta`` is NaN or inf.
+    """
+
+    _kind = "CBF"
+    _fn_name = "h"
+    _rate_name = "beta"
+
+    def __init__(self, h: Callable, beta: float, grad: Callable | None = None) -> None:
+        super().__init__(h, beta, grad)
+
+    @property
+    def h(self) -> Callable:
+        """The function ``h``."""
+        return self.fn
+
+    @property
+    def beta(self) -> float:
+        """The rate ``beta``."""
+        return self.rate
+
+
+def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTerms:
+    """Compute ``(a, b, c, d)`` at states ``x`` of shape (..., n).
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    clf : CLF
+    cbf : CBF
+    x : array of shape (..., n)
+
+    Returns
+    -------
+    LieTerms
+        ``a``, ``c`` of shape (...,); ``b``, ``d`` of shape (..., m).
+
+    Raises
+    ------
+    DimensionError
+        If ``x`` has the wrong last axis.
+    NonFiniteError
+        If ``x`` contains NaN or inf.
+    """
+    x = system.check_state(x)
+
+    def point(s):
+        a, b = clf._lie_point(system, s)
+        c, d = cbf._lie_point(system, s)
+        return LieTerms(a, b, c, d)
+
+    return over_batch(point, x)

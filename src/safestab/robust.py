@@ -1,0 +1,243 @@
+"""GP-robust Lie terms (Lemma 3) and probabilistic compatibility (Lemma 4, eq. (20)).
+
+Pure functions of arrays: they take the nominal Lie terms, the certificate gradients and a
+mean and standard deviation of the unknown dynamics ``omega(x)``, from any uncertainty model.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Protocol, runtime_checkable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._validation import check_scalar_range, is_concrete
+from .certificates import LieTerms
+from .errors import DimensionError, ParameterError
+from .formulas import DEFAULT_PARALLEL_RTOL, _compatibility, _gram
+
+__all__ = [
+    "UncertaintyModel",
+    "RobustMargins",
+    "robust_margins",
+    "robust_lie_terms",
+    "ProbabilisticCompatibility",
+    "probabilistic_compatibility",
+    "joint_probability",
+    "check_beta",
+]
+
+
+@runtime_checkable
+class UncertaintyModel(Protocol):
+    """What the robust controllers need from a model of ``omega(x)``.
+
+    ``mean_std`` must be a JAX-traceable function of one state of shape (n,) returning the
+    posterior mean and standard deviation of ``omega``, each of shape (n,). Components known to
+    be exact return mean 0 and standard deviation 0.
+    """
+
+    n_states: int
+
+    def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Mean and standard deviation of ``omega(x)`` at one state, each of shape (n,)."""
+        ...
+
+
+class RobustMargins(NamedTuple):
+    """``Delta_V`` and ``Delta_h`` of Lemma 3, each of shape (...,)."""
+
+    delta_V: jax.Array
+    delta_h: jax.Array
+
+
+def check_beta(beta: Any, n_states: int) -> jax.Array:
+    """Return ``beta`` broadcast to shape (n,), after checking it is finite and >= 0.
+
+    Raises
+    ------
+    ParameterError
+        If some entry is negative.
+    DimensionError
+        If ``beta`` is neither a scalar nor of shape (n,).
+    """
+    check_scalar_range("beta", beta, lower=0.0)
+    arr = np.asarray(beta, dtype=float) if is_concrete(beta) else beta
+    if np.ndim(arr) not in (0, 1) or (np.ndim(arr) == 1 and np.shape(arr)[0] != n_states):
+        raise DimensionError(
+            f"beta must be a scalar or have shape ({n_states},), got shape {np.shape(arr)}"
+        )
+    return jnp.broadcast_to(jnp.asarray(arr, dtype=float), (n_states,))
+
+
+def robust_margins(
+    grad_V: jax.Array, grad_h: jax.Array, mean: jax.Array, std: jax.Array, beta: jax.Array
+) -> RobustMargins:
+    """``Delta_V`` and ``Delta_h`` of Lemma 3 with the per-component bound.
+
+    ``Delta_V = dV/dx . m(x) + sum_i |dV/dx_i| beta_i sigma_i(x)`` and
+    ``Delta_h = dh/dx . m(x) - sum_i |dh/dx_i| beta_i sigma_i(x)``.
+
+    Parameters
+    ----------
+    grad_V, grad_h, mean, std : arrays of shape (..., n)
+    beta : array broadcastable to (..., n)
+
+    Returns
+    -------
+    RobustMargins
+
+    Notes
+    -----
+    The paper writes ``beta ||dV/dx|| sigma(x)``, a norm times a vector. If each component
+    satisfies ``|omega_i - m_i| <= beta_i sigma_i`` (Lemma 2), then
+    ``|dV/dx . (omega - m)| <= sum_i |dV/dx_i| beta_i sigma_i``, which is what is used here; it
+    is the tightest bound that follows from the per-component intervals (it is attained at a
+    corner of the box).
+    """
+    spread = beta * std
+    delta_V = jnp.sum(grad_V * mean, -1) + jnp.sum(jnp.abs(grad_V) * spread, -1)
+    delta_h = jnp.sum(grad_h * mean, -1) - jnp.sum(jnp.abs(grad_h) * spread, -1)
+    return RobustMargins(delta_V, delta_h)
+
+
+def robust_lie_terms(
+    terms: LieTerms,
+    grad_V: jax.Array,
+    grad_h: jax.Array,
+    mean: jax.Array,
+    std: jax.Array,
+    beta: jax.Array,
+) -> LieTerms:
+    """Return ``(a~, b, c~, d)`` with ``a~ = a + Delta_V`` and ``c~ = c + Delta_h``, eq. (17).
+
+    Parameters
+    ----------
+    terms : LieTerms
+        Nominal terms.
+    grad_V, grad_h, mean, std : arrays of shape (..., n)
+    beta : array broadcastable to (..., n)
+
+    Returns
+    -------
+    LieTerms
+        With ``sigma = 0`` these are the mean-corrected terms; ``b`` and ``d`` are unchanged
+        because ``omega`` does not depend on ``u``.
+    """
+    m = robust_margins(grad_V, grad_h, mean, std, beta)
+    return LieTerms(terms.a + m.delta_V, terms.b, terms.c + m.delta_h, terms.d)
+
+
+class ProbabilisticCompatibility(NamedTuple):
+    """Output of :func:`probabilistic_compatibility`, each of shape (...,).
+
+    Attributes
+    ----------
+    nominal_compatible : bool array
+        Compatibility for the nominal model, Lemma 1 (corrected).
+    parallel : bool array
+        Whether ``b`` and ``d`` are parallel (relative tolerance), either direction.
+    clf_condition : bool array
+        Eq. (18): ``Delta_V d.b - Delta_h |b|^2 >= 0``.
+    cbf_condition : bool array
+        Eq. (19): ``Delta_V |d|^2 - Delta_h b.d >= 0``.
+    lemma4 : bool array
+        Lemma 4's sufficient condition: nominal compatibility and eqs. (18), (19).
+    updated : bool array
+        Eq. (20), corrected: compatibility of the robust conditions (17) themselves.
+    probability : float
+        The probability ``(1 - delta)^n`` with which ``updated`` implies compatibility for the
+        true system (from the confidence level of ``beta``), or NaN when not given.
+    """
+
+    nominal_compatible: jax.Array
+    parallel: jax.Array
+    clf_condition: jax.Array
+    cbf_condition: jax.Array
+    lemma4: jax.Array
+    updated: jax.Array
+    probability: float
+
+
+def joint_probability(delta: float, n_components: int) -> float:
+    """Return ``(1 - delta)^n``, the probability of Lemma 2's joint bound.
+
+    Raises
+    ------
+    ParameterError
+        If ``delta`` is outside (0, 1) or ``n_components < 1``.
+    """
+    check_scalar_range("delta", delta, lower=0.0, strict_lower=True, upper=1.0, strict_upper=True)
+    if int(n_components) < 1:
+        raise ParameterError(f"n_components must be >= 1, got {n_components!r}")
+    return float((1.0 - delta) ** int(n_components))
+
+
+def probabilistic_compatibility(
+    terms: LieTerms,
+    margins: RobustMargins,
+    *,
+    kappa: Any,
+    rho: Any,
+    phi: Any,
+    varphi: Any,
+    delta: float | None = None,
+    n_components: int | None = None,
+    parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
+) -> ProbabilisticCompatibility:
+    """Where the GP-robust CLF and CBF conditions are compatible (Lemma 4, eqs. (18)-(20)).
+
+    Parameters
+    ----------
+    terms : LieTerms
+        Nominal terms ``(a, b, c, d)``, batched over (...).
+    margins : RobustMargins
+        ``Delta_V``, ``Delta_h`` at the same states.
+    kappa, rho, phi, varphi : float
+        Formula parameters.
+    delta : float, optional
+        Per-component confidence parameter of ``beta`` (in (0, 1)); with ``n_components``
+        gives the reported probability ``(1 - delta)^n``.
+    n_components : int, optional
+        Number of learned components ``n``.
+    parallel_rtol : float
+        Tolerance of the parallel test.
+
+    Returns
+    -------
+    ProbabilisticCompatibility
+
+    Notes
+    -----
+    ``updated`` evaluates the compatibility of ``a~ + b u <= -kappa zeta~`` and
+    ``c~ + d u >= rho Gamma~`` exactly, with the corrected parallel condition of
+    :func:`safestab.formulas.compatibility` (``v~ <= 0`` when ``b``, ``d`` point the same way;
+    the paper prints ``>= 0``). Lemma 4's conditions (18), (19) are reported as printed; with
+    the sign correction, Lemma 4's implication holds for anti-parallel and non-parallel
+    ``b, d`` (always compatible) but not in general for same-direction parallel ones, which is
+    why ``updated`` is the verdict to use. The margins ``zeta``, ``Gamma`` use the robust
+    ``a~``, ``c~`` (as Theorem 2 replaces ``a``, ``c`` everywhere).
+    """
+    a, b, c, d = terms
+    dV, dh = margins
+    bb, bd, dd, det = _gram(b, d)
+    nominal = _compatibility(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol)
+    robust = _compatibility(a + dV, b, c + dh, d, kappa, rho, phi, varphi, parallel_rtol)
+    parallel = (bb > 0) & (dd > 0) & (det <= parallel_rtol * bb * dd)
+    clf_cond = dV * bd - dh * bb >= 0
+    cbf_cond = dV * dd - dh * bd >= 0
+    prob = float("nan")
+    if delta is not None:
+        if n_components is None:
+            raise ParameterError("n_components is required with delta")
+        prob = joint_probability(delta, n_components)
+    return ProbabilisticCompatibility(
+        nominal_compatible=nominal.compatible,
+        parallel=parallel,
+        clf_condition=clf_cond,
+        cbf_condition=cbf_cond,
+        lemma4=nominal.compatible & clf_cond & cbf_cond,
+        updated=robust.compatible,
+        probability=prob,
+    )

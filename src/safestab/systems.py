@@ -1,0 +1,142 @@
+"""Control-affine systems ``xdot = f(x) + g(x) u``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._batching import as_float_array, over_batch
+from ._validation import check_finite, is_concrete
+from .errors import DimensionError
+
+__all__ = ["ControlAffineSystem"]
+
+
+class ControlAffineSystem:
+    """A control-affine system ``xdot = f(x) + g(x) u``, eq. (1).
+
+    Parameters
+    ----------
+    f : callable
+        Drift, a JAX function from a state of shape (n,) to shape (n,).
+    g : callable
+        Input matrix, a JAX function from a state of shape (n,) to shape (n, m).
+    n_states : int
+        State dimension ``n``.
+    name : str, optional
+        Used in messages and plots.
+
+    Attributes
+    ----------
+    n_states : int
+    n_inputs : int
+        Input dimension ``m``, read from the shape of ``g``.
+
+    Raises
+    ------
+    DimensionError
+        If ``n_states`` is not a positive integer, or ``f`` or ``g`` returns the wrong shape
+        (checked at construction by tracing them once, without evaluating numbers).
+
+    Notes
+    -----
+    ``f`` and ``g`` are written for one state; every method here also accepts a batch of
+    states of shape (..., n), mapped with ``jax.vmap``.
+    """
+
+    def __init__(
+        self,
+        f: Callable[[jax.Array], jax.Array],
+        g: Callable[[jax.Array], jax.Array],
+        n_states: int,
+        *,
+        name: str = "system",
+    ) -> None:
+        if not isinstance(n_states, int | np.integer) or n_states < 1:
+            raise DimensionError(f"n_states must be a positive integer, got {n_states!r}")
+        if not callable(f) or not callable(g):
+            raise TypeError("f and g must be callables taking a state of shape (n,)")
+        probe = jax.ShapeDtypeStruct((int(n_states),), jnp.float64)
+        f_shape = jax.eval_shape(f, probe).shape
+        if f_shape != (n_states,):
+            raise DimensionError(
+                f"f must return shape (n_states,) = ({n_states},), got shape {f_shape}"
+            )
+        g_shape = jax.eval_shape(g, probe).shape
+        if len(g_shape) != 2 or g_shape[0] != n_states or g_shape[1] < 1:
+            raise DimensionError(
+                f"g must return shape (n_states, n_inputs) = ({n_states}, m), got shape {g_shape}"
+            )
+        self.f = f
+        self.g = g
+        self.n_states = int(n_states)
+        self.n_inputs = int(g_shape[1])
+        self.name = name
+
+    def __repr__(self) -> str:
+        return (
+            f"ControlAffineSystem(name={self.name!r}, n_states={self.n_states}, "
+            f"n_inputs={self.n_inputs})"
+        )
+
+    def check_state(self, x: Any, name: str = "x") -> jax.Array:
+        """Return ``x`` as a float array after checking its last axis and finiteness.
+
+        Raises
+        ------
+        DimensionError
+            If the last axis is not ``n_states``.
+        NonFiniteError
+            If ``x`` contains NaN or inf.
+        """
+        x = as_float_array(x)
+        if x.ndim == 0 or x.shape[-1] != self.n_states:
+            raise DimensionError(
+                f"{name} must have shape (..., {self.n_states}), got shape {x.shape}"
+            )
+        if is_concrete(x):
+            check_finite(name, x)
+        return x
+
+    def check_input(self, u: Any, name: str = "u") -> jax.Array:
+        """Return ``u`` as a float array after checking its last axis and finiteness."""
+        u = as_float_array(u)
+        if u.ndim == 0 or u.shape[-1] != self.n_inputs:
+            raise DimensionError(
+                f"{name} must have shape (..., {self.n_inputs}), got shape {u.shape}"
+            )
+        if is_concrete(u):
+            check_finite(name, u)
+        return u
+
+    def drift(self, x: jax.Array) -> jax.Array:
+        """``f(x)``: shape (..., n) to (..., n)."""
+        return over_batch(self.f, x)
+
+    def input_matrix(self, x: jax.Array) -> jax.Array:
+        """``g(x)``: shape (..., n) to (..., n, m)."""
+        return over_batch(self.g, x)
+
+    def dynamics(self, x: jax.Array, u: jax.Array) -> jax.Array:
+        """``f(x) + g(x) u`` for ``x`` of shape (..., n) and ``u`` of shape (..., m)."""
+        return self.drift(x) + jnp.einsum("...ij,...j->...i", self.input_matrix(x), u)
+
+    def with_disturbance(
+        self, omega: Callable[[jax.Array], jax.Array], *, name: str | None = None
+    ) -> ControlAffineSystem:
+        """Return the system ``xdot = f(x) + g(x) u + omega(x)``, eq. (9).
+
+        Parameters
+        ----------
+        omega : callable
+            The unmodelled dynamics, a JAX function from shape (n,) to (n,).
+        name : str, optional
+        """
+        f = self.f
+        return ControlAffineSystem(
+            lambda x: f(x) + omega(x), self.g, self.n_states, name=name or f"{self.name}+omega"
+        )

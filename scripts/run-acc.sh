@@ -1,4 +1,6 @@
 #!/usr/bin/env bash
-# Set up .venv (if needed) and run the main job.
+# Set up .venv (if needed) and run the ACC study (paper preset and stress preset) into results/.
+# Extra arguments go to both runs, e.g. --seed 3.
 source "$(dirname "$0")/_venv.sh" test
-exec .venv/bin/python examples/quickstart.py "$@"
+.venv/bin/safestab acc --scenario paper --out results "$@"
+.venv/bin/safestab acc --scenario stress --out results "$@"

@@ -1,0 +1,26 @@
+"""Learning the unknown dynamics ``omega(x)``: data, GPs, confidence bounds."""
+
+from .confidence import (
+    Calibration,
+    ConfidenceReport,
+    beta_lemma2,
+    calibration,
+    confidence,
+    information_gain,
+)
+from .data import Dataset, collect_data
+from .gp import GaussianProcessModel
+from .sklearn_adapter import SklearnGPAdapter
+
+__all__ = [
+    "Calibration",
+    "ConfidenceReport",
+    "Dataset",
+    "GaussianProcessModel",
+    "SklearnGPAdapter",
+    "beta_lemma2",
+    "calibration",
+    "collect_data",
+    "confidence",
+    "information_gain",
+]

@@ -1,0 +1,241 @@
+"""Data collection for learning ``omega(x)`` (Assumption 1, eq. (11), and Section IV).
+
+Trajectories of the true system start from states drawn from ``X0`` and are excited by inputs
+that span the admissible range: random constants, steps, sinusoids, and (if a controller is
+given) the controller plus noise. States and inputs are sampled at a fixed rate and the
+targets are ``y = xdot - f(x) - g(x) u - e(t) + noise`` with the nominal ``f, g`` and the known
+exogenous term ``e(t)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._validation import check_finite, check_scalar_range
+from ..errors import DimensionError, ParameterError
+from ..simulate import rk4_step
+from ..systems import ControlAffineSystem
+
+__all__ = ["Dataset", "collect_data", "EXCITATIONS"]
+
+EXCITATIONS = ("constant", "step", "sine", "controller")
+
+
+@dataclasses.dataclass(frozen=True)
+class Dataset:
+    """Samples ``(x, u, xdot, y)`` of the unknown dynamics; ``Q`` rows.
+
+    Attributes
+    ----------
+    x : array of shape (Q, n)
+    u : array of shape (Q, m)
+    xdot : array of shape (Q, n)
+        Measured (or finite-difference) derivatives.
+    y : array of shape (Q, n)
+        Targets ``xdot - f(x) - g(x) u - e(t)`` plus measurement noise.
+    t : array of shape (Q,)
+        Sample times within each trajectory, s.
+    """
+
+    x: np.ndarray
+    u: np.ndarray
+    xdot: np.ndarray
+    y: np.ndarray
+    t: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def split(self, test_fraction: float, *, seed: int = 0) -> tuple[Dataset, Dataset]:
+        """Random train/test split (rows shuffled with ``seed``)."""
+        check_scalar_range("test_fraction", test_fraction, lower=0.0, strict_lower=True, upper=1.0, strict_upper=True)
+        perm = np.random.default_rng(seed).permutation(len(self))
+        n_test = max(1, int(round(test_fraction * len(self))))
+        te, tr = perm[:n_test], perm[n_test:]
+        return self._take(tr), self._take(te)
+
+    def _take(self, idx: np.ndarray) -> Dataset:
+        return Dataset(self.x[idx], self.u[idx], self.xdot[idx], self.y[idx], self.t[idx])
+
+
+def _x0_sampler(x0: Any, n_states: int) -> Callable[[jax.Array, int], jax.Array]:
+    if callable(x0):
+        return x0
+    try:
+        low, high = (np.broadcast_to(np.asarray(v, float), (n_states,)) for v in x0)
+    except (TypeError, ValueError):
+        raise DimensionError(
+            f"x0 must be a sampler (key, count) -> (count, {n_states}) or a pair (low, high) "
+            f"of arrays broadcastable to ({n_states},)"
+        ) from None
+    if np.any(low > high):
+        raise ParameterError(f"x0 low must be <= high, got low={low.tolist()}, high={high.tolist()}")
+    return lambda key, count: jax.random.uniform(key, (count, n_states), minval=low, maxval=high)
+
+
+def collect_data(
+    true_system: ControlAffineSystem,
+    nominal: ControlAffineSystem,
+    *,
+    x0: Any,
+    u_low: Any,
+    u_high: Any,
+    n_samples: int = 2000,
+    rate: float = 10.0,
+    horizon: float = 10.0,
+    noise_std: Any = 0.0,
+    excitations: tuple[str, ...] = ("constant", "step", "sine"),
+    controller: Callable[[jax.Array], jax.Array] | None = None,
+    controller_noise: float = 0.1,
+    derivative: Literal["exact", "finite_difference"] = "exact",
+    exogenous: Callable[[jax.Array], jax.Array] | None = None,
+    substeps: int = 10,
+    seed: int = 0,
+) -> Dataset:
+    """Simulate the true system under exciting inputs and return ``Q = n_samples`` samples.
+
+    Parameters
+    ----------
+    true_system : ControlAffineSystem
+        The real dynamics (a simulator), ``f + omega`` and ``g``.
+    nominal : ControlAffineSystem
+        The model ``f, g`` whose error ``omega`` is to be learned.
+    x0 : (low, high) or callable
+        The distribution ``X0`` of initial states: bounds of a uniform box, or a function
+        ``(key, count) -> (count, n)``.
+    u_low, u_high : arrays broadcastable to (m,)
+        The input range the excitation spans, in the system's input units.
+    n_samples : int
+        ``Q``, the number of samples returned.
+    rate : float
+        Sampling rate, Hz; the input is held between samples (zero-order hold).
+    horizon : float
+        Length of each trajectory, s; ``ceil(Q / (horizon * rate))`` trajectories are run.
+    noise_std : float or array of shape (n,)
+        Standard deviation ``sigma_epsilon`` of the Gaussian noise added to ``y``.
+    excitations : tuple of str
+        Input families drawn uniformly per trajectory, from ``"constant"``, ``"step"``
+        (two levels, random switch time), ``"sine"`` (random frequency 0.05-1 Hz and phase)
+        and ``"controller"`` (``controller(x)`` plus Gaussian noise of
+        ``controller_noise * (u_high - u_low)``, saturated to the range; needs ``controller``).
+    controller : callable, optional
+        A jittable map from one state (n,) to an input (m,).
+    controller_noise : float
+        Relative noise level of the controller excitation.
+    derivative : {"exact", "finite_difference"}
+        ``"exact"``: ``xdot`` from the simulator (Assumption 1). ``"finite_difference"``:
+        ``(x_{k+1} - x_k) * rate``, a forward difference within the interval where ``u_k`` is
+        held; its error is ``(1/(2 rate)) xddot + O(rate^-2)``, first order in the sampling
+        period (a central difference would straddle input jumps and err by O(1)).
+    exogenous : callable, optional
+        Known time-dependent term ``e(t)`` of shape (n,) in the true dynamics; subtracted from
+        ``y``.
+    substeps : int
+        RK4 steps per sampling period.
+    seed : int
+        Seeds everything (initial states, excitation parameters, noise).
+
+    Returns
+    -------
+    Dataset
+
+    Raises
+    ------
+    ParameterError
+        For non-positive ``n_samples``, ``rate``, ``horizon`` or ``substeps``, negative noise,
+        an unknown excitation, or ``"controller"`` without a controller.
+    DimensionError
+        If the two systems' dimensions differ.
+    """
+    n, m = nominal.n_states, nominal.n_inputs
+    if (true_system.n_states, true_system.n_inputs) != (n, m):
+        raise DimensionError(
+            f"true_system has (n, m) = ({true_system.n_states}, {true_system.n_inputs}), "
+            f"nominal has ({n}, {m})"
+        )
+    if int(n_samples) < 1:
+        raise ParameterError(f"n_samples must be >= 1, got {n_samples!r}")
+    check_scalar_range("rate", rate, lower=0.0, strict_lower=True)
+    check_scalar_range("horizon", horizon, lower=0.0, strict_lower=True)
+    check_scalar_range("noise_std", noise_std, lower=0.0)
+    check_scalar_range("controller_noise", controller_noise, lower=0.0)
+    if int(substeps) < 1:
+        raise ParameterError(f"substeps must be >= 1, got {substeps!r}")
+    unknown = [e for e in excitations if e not in EXCITATIONS]
+    if unknown or not excitations:
+        raise ParameterError(f"excitations must be a non-empty subset of {EXCITATIONS}, got {excitations!r}")
+    if "controller" in excitations and controller is None:
+        raise ParameterError("the 'controller' excitation needs controller=")
+    if derivative not in ("exact", "finite_difference"):
+        raise ParameterError(f"derivative must be 'exact' or 'finite_difference', got {derivative!r}")
+    low = np.broadcast_to(np.asarray(u_low, float), (m,))
+    high = np.broadcast_to(np.asarray(u_high, float), (m,))
+    check_finite("u_low", low)
+    check_finite("u_high", high)
+    if np.any(low > high):
+        raise ParameterError(f"u_low must be <= u_high, got {low.tolist()} and {high.tolist()}")
+
+    per_traj = max(1, int(round(horizon * rate)))
+    n_traj = -(-int(n_samples) // per_traj)
+    period = 1.0 / rate
+    h = period / substeps
+    sampler = _x0_sampler(x0, n)
+    kinds = jnp.array([EXCITATIONS.index(e) for e in excitations])
+    key = jax.random.PRNGKey(seed)
+    k_x0, k_kind, k_lv, k_sw, k_fr, k_ph, k_noise, k_y = jax.random.split(key, 8)
+    x0s = jnp.asarray(sampler(k_x0, n_traj), dtype=float)
+    if x0s.shape != (n_traj, n):
+        raise DimensionError(f"the x0 sampler must return shape ({n_traj}, {n}), got {x0s.shape}")
+    params = {
+        "kind": kinds[jax.random.randint(k_kind, (n_traj,), 0, len(kinds))],
+        "levels": jax.random.uniform(k_lv, (n_traj, 2, m), minval=low, maxval=high),
+        "switch": jax.random.uniform(k_sw, (n_traj,), minval=0.1, maxval=0.9) * horizon,
+        "freq": jax.random.uniform(k_fr, (n_traj, m), minval=0.05, maxval=1.0),
+        "phase": jax.random.uniform(k_ph, (n_traj, m), maxval=2 * np.pi),
+        "noise": jax.random.normal(k_noise, (n_traj, per_traj, m)),
+    }
+    mid, half = jnp.asarray((low + high) / 2), jnp.asarray((high - low) / 2)
+    ctrl = controller if controller is not None else (lambda x: jnp.zeros(m))
+
+    def u_of(p, k, t, x):
+        constant = p["levels"][0]
+        step = jnp.where(t < p["switch"], p["levels"][0], p["levels"][1])
+        sine = mid + half * jnp.sin(2 * jnp.pi * p["freq"] * t + p["phase"])
+        fb = jnp.clip(ctrl(x) + controller_noise * 2 * half * p["noise"][k], low, high)
+        return jnp.stack([constant, step, sine, fb])[p["kind"]]
+
+    def xdot_true(t, x, u):
+        out = true_system.f(x) + true_system.g(x) @ u
+        return out if exogenous is None else out + exogenous(t)
+
+    def trajectory(x0_, p):
+        def sample(x, k):
+            t = k * period
+            u = u_of(p, k, t, x)
+
+            def sub(y, j):
+                return rk4_step(lambda s, z: xdot_true(s, z, u), t + j * h, y, h), None
+
+            x_next, _ = jax.lax.scan(sub, x, jnp.arange(substeps))
+            return x_next, (x, u, xdot_true(t, x, u), t, x_next)
+
+        _, rec = jax.lax.scan(sample, x0_, jnp.arange(per_traj))
+        return rec
+
+    xs, us, xdots, ts, x_next = jax.jit(jax.vmap(trajectory))(x0s, params)
+    if derivative == "finite_difference":
+        xdots = (x_next - xs) / period
+    flat = [np.asarray(a).reshape((n_traj * per_traj,) + a.shape[2:])[:n_samples] for a in (xs, us, xdots, ts)]
+    x, u, xdot, t = flat
+    f_nom = np.asarray(nominal.drift(jnp.asarray(x)))
+    g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
+    e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
+    y = xdot - f_nom - np.einsum("qij,qj->qi", g_nom, u) - e
+    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(np.asarray(noise_std, float), (n,))
+    return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t)

@@ -33,7 +33,12 @@ _FORMAT = "safestab-gp-v1"
 
 
 def _kernel(kind: str, amplitude, lengthscale):
-    base = kernels.ExpSquared() if kind == "se" else kernels.Matern52()
+    # tinygp's Matern kernels default to the L1 distance, which is not positive definite in
+    # more than one dimension; the Matern 5/2 of GP regression (GPML, scikit-learn) is L2.
+    if kind == "se":
+        base = kernels.ExpSquared()
+    else:
+        base = kernels.Matern52(distance=kernels.distance.L2Distance())
     return amplitude**2 * transforms.Linear(1.0 / lengthscale, base)
 
 

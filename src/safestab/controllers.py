@@ -179,8 +179,11 @@ class UniversalController:
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta if uncertainty is not None else None
         self.parallel_rtol = parallel_rtol
-        #: The jitted step without argument checks, for use inside loops (``lax.scan``).
+        #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
+        #: for one state (n,) or a batch (..., n); for loops and benchmarks.
         self.step_fn = jax.jit(self._step)
+        #: Like ``step_fn`` but returning only ``u``, so XLA drops the diagnostics.
+        self.input_fn = jax.jit(lambda x: self._step(x).u)
 
     def __repr__(self) -> str:
         kind = "relaxed" if self.slack_weight is not None else "clf_cbf"

@@ -9,6 +9,7 @@ from .confidence import (
     information_gain,
 )
 from .data import Dataset, collect_data
+from .fast import FastGP
 from .gp import GaussianProcessModel
 from .sklearn_adapter import SklearnGPAdapter
 
@@ -16,6 +17,7 @@ __all__ = [
     "Calibration",
     "ConfidenceReport",
     "Dataset",
+    "FastGP",
     "GaussianProcessModel",
     "SklearnGPAdapter",
     "beta_lemma2",

@@ -51,11 +51,23 @@ def _paper_text():
         ("mass = 1650.0", 'mass = "heavy"', r"vehicle.mass must be float, got 'heavy'"),
         ("kappa = 0.2\n", "", r"missing key controller.kappa"),
         ("kappa = 0.2", "kappa = 0.2\nkapa = 1.0", r"unknown key controller.kapa"),
-        ('input_units = "newton"', 'input_units = "lbf"', r"controller.input_units must be 'newton' or 'normalized'"),
+        (
+            'input_units = "newton"',
+            'input_units = "lbf"',
+            r"controller.input_units must be 'newton' or 'normalized'",
+        ),
         ("rho = 0.1", "rho = -0.1", r"controller.rho must be >= 0, got -0.1"),
         ("n_samples = 2000", "n_samples = 2000.5", r"learning.n_samples must be int"),
-        ("profile = [[8.0, 0.0], [18.0", "profile = [[28.0, 0.0], [18.0", r"lead.profile end times must increase"),
-        ("x0_low = [10.0, 10.0, 20.0]", "x0_low = [10.0, 10.0]", r"learning.x0_low must be a list of 3 numbers"),
+        (
+            "profile = [[8.0, 0.0], [18.0",
+            "profile = [[28.0, 0.0], [18.0",
+            r"lead.profile end times must increase",
+        ),
+        (
+            "x0_low = [10.0, 10.0, 20.0]",
+            "x0_low = [10.0, 10.0]",
+            r"learning.x0_low must be a list of 3 numbers",
+        ),
         ("[simulation]", "[simulations]", r"unknown key 'simulations'"),
         ("[initial]", "[initial\n", r"invalid TOML"),
     ],
@@ -73,7 +85,12 @@ def test_unknown_scenario():
 
 
 def test_user_toml_runs(tmp_path):
-    path = _write(tmp_path, _paper_text().replace('name = "paper"', 'name = "mine"').replace("v_d = 22.0", "v_d = 20.0"))
+    path = _write(
+        tmp_path,
+        _paper_text()
+        .replace('name = "paper"', 'name = "mine"')
+        .replace("v_d = 22.0", "v_d = 20.0"),
+    )
     sc = load_scenario(path)
     assert sc.name == "mine" and sc.v_d == 20.0
 
@@ -85,7 +102,20 @@ def test_cli_smoke(tmp_path):
 
     out = tmp_path / "out"
     res = CliRunner().invoke(
-        app, ["acc", "--scenario", "stress", "--out", str(out), "--n-samples", "120", "--t-final", "5", "--seed", "1"]
+        app,
+        [
+            "acc",
+            "--scenario",
+            "stress",
+            "--out",
+            str(out),
+            "--n-samples",
+            "120",
+            "--t-final",
+            "5",
+            "--seed",
+            "1",
+        ],
     )
     assert res.exit_code == 0, res.output
     png = out / "acc_stress.png"
@@ -97,7 +127,13 @@ def test_cli_smoke(tmp_path):
     doc = json.loads((out / "acc_stress_metrics.json").read_text())
     assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-corrected"}
     for m in doc["controllers"].values():
-        for key in ("min_h_m", "time_h_negative_s", "rms_speed_error_mps", "region_fraction", "incompatible_steps"):
+        for key in (
+            "min_h_m",
+            "time_h_negative_s",
+            "rms_speed_error_mps",
+            "region_fraction",
+            "incompatible_steps",
+        ):
             assert key in m
         assert np.isfinite(m["min_h_m"]) and np.isfinite(m["rms_speed_error_mps"])
         assert abs(sum(m["region_fraction"].values()) - 1.0) < 1e-12

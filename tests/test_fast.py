@@ -78,4 +78,6 @@ def test_fused_step_equals_unfused(acc_gp):
     unfused = np.asarray(ss.project_box(res.u, [-0.3], [0.3]))
     np.testing.assert_allclose(fused, unfused, rtol=1e-12, atol=1e-14)
     for i in range(0, 50, 10):  # single state through the same compiled function family
-        np.testing.assert_allclose(ctrl.input_fn(jnp.asarray(xs[i])), unfused[i], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            ctrl.input_fn(jnp.asarray(xs[i])), unfused[i], rtol=1e-12, atol=1e-14
+        )

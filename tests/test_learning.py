@@ -66,7 +66,11 @@ def test_fitted_hyperparameters_maximise_likelihood(toy_data):
         K = np.array(_kernel("se", amp, jnp.asarray(ls))(jnp.asarray(x), jnp.asarray(x)))
         K += (nz**2 + gp.jitter * amp**2) * np.eye(len(x))
         sign, logdet = np.linalg.slogdet(K)
-        return -0.5 * y[:, 0] @ np.linalg.solve(K, y[:, 0]) - 0.5 * logdet - 0.5 * len(x) * np.log(2 * np.pi)
+        return (
+            -0.5 * y[:, 0] @ np.linalg.solve(K, y[:, 0])
+            - 0.5 * logdet
+            - 0.5 * len(x) * np.log(2 * np.pi)
+        )
 
     base = lml(gp.amplitude_[0], gp.lengthscale_[0], gp.noise_[0])
     np.testing.assert_allclose(base, gp.log_marginal_likelihood_[0], rtol=1e-6)
@@ -94,7 +98,9 @@ def test_recover_acc_drag_mismatch():
 
 
 def test_recover_nonlinear_function_of_two_states():
-    nom = ss.ControlAffineSystem(lambda x: jnp.array([x[1], -x[0]]), lambda x: jnp.array([[0.0], [1.0]]), 2)
+    nom = ss.ControlAffineSystem(
+        lambda x: jnp.array([x[1], -x[0]]), lambda x: jnp.array([[0.0], [1.0]]), 2
+    )
 
     def om(x):
         return jnp.array([0.3 * jnp.sin(x[0]) * x[1], 0.5 * jnp.cos(x[0]) - 0.2 * x[1] ** 2])
@@ -120,7 +126,9 @@ def test_collect_data_seeded_and_finite_difference_order():
     errs = []
     for rate in (10.0, 20.0):
         exact = collect_data(sc.system("true"), sc.system("nominal"), rate=rate, **kw)
-        fd = collect_data(sc.system("true"), sc.system("nominal"), rate=rate, derivative="finite_difference", **kw)
+        fd = collect_data(
+            sc.system("true"), sc.system("nominal"), rate=rate, derivative="finite_difference", **kw
+        )
         np.testing.assert_array_equal(exact.x, fd.x)
         errs.append(np.sqrt(np.mean((fd.xdot - exact.xdot) ** 2)))
     # forward difference within the hold interval: error ~ xddot / (2 rate), first order
@@ -150,7 +158,9 @@ def test_sklearn_adapter_matches_builtin(toy_data):
             amp, ls = gp.amplitude_[j], gp.lengthscale_[j]
             base = RBF(ls) if kind == "se" else Matern(ls, nu=2.5)
             reg = GaussianProcessRegressor(
-                ConstantKernel(amp**2) * base, alpha=gp.noise_[j] ** 2 + gp.jitter * amp**2, optimizer=None
+                ConstantKernel(amp**2) * base,
+                alpha=gp.noise_[j] ** 2 + gp.jitter * amp**2,
+                optimizer=None,
             )
             regs[j] = reg.fit(x, y[:, j])
         adapter = SklearnGPAdapter(regs, n_states=2)
@@ -186,7 +196,9 @@ def test_lemma2_beta_and_information_gain(toy_data):
     gamma_np = 0.5 * np.linalg.slogdet(np.eye(len(x)) + K / s2)[1]
     np.testing.assert_allclose(information_gain(gp), [gamma_np], rtol=1e-8)
     b = beta_lemma2(1.5, 2.0, 99, 0.01)
-    np.testing.assert_allclose(b, np.sqrt(2 * 1.5**2 + 300 * 2.0 * np.log(100 / 0.01) ** 3), rtol=1e-14)
+    np.testing.assert_allclose(
+        b, np.sqrt(2 * 1.5**2 + 300 * 2.0 * np.log(100 / 0.01) ** 3), rtol=1e-14
+    )
     rep = confidence(gp, rkhs_norm=1.0, delta=0.01)
     assert rep.method == "lemma2" and rep.beta[1] == 0.0
     np.testing.assert_allclose(rep.probability, 0.99, rtol=1e-15)  # one learned component
@@ -207,7 +219,9 @@ def test_learning_errors(toy_data):
         GaussianProcessModel().fit(x, y[:, :1])
     with pytest.raises(DimensionError, match=r"x must have shape \(Q, n\)"):
         GaussianProcessModel().fit(x[:, 0], y[:, 0])
-    with pytest.raises(ParameterError, match=r"too few samples to fit 4 hyperparameters per component: got 4"):
+    with pytest.raises(
+        ParameterError, match=r"too few samples to fit 4 hyperparameters per component: got 4"
+    ):
         GaussianProcessModel().fit(x[:4], y[:4])
     with pytest.raises(ParameterError, match=r"noise must be >= 0.0, got -0.1"):
         GaussianProcessModel(noise=-0.1)
@@ -222,6 +236,20 @@ def test_learning_errors(toy_data):
         GaussianProcessModel().predict(x)
     sc = load_scenario("stress")
     with pytest.raises(ParameterError, match=r"noise_std must be >= 0.0"):
-        collect_data(sc.system(), sc.system("nominal"), x0=(sc.x0_low, sc.x0_high), u_low=-1, u_high=1, noise_std=-1.0)
+        collect_data(
+            sc.system(),
+            sc.system("nominal"),
+            x0=(sc.x0_low, sc.x0_high),
+            u_low=-1,
+            u_high=1,
+            noise_std=-1.0,
+        )
     with pytest.raises(ParameterError, match=r"'controller' excitation needs controller="):
-        collect_data(sc.system(), sc.system("nominal"), x0=(sc.x0_low, sc.x0_high), u_low=-1, u_high=1, excitations=("controller",))
+        collect_data(
+            sc.system(),
+            sc.system("nominal"),
+            x0=(sc.x0_low, sc.x0_high),
+            u_low=-1,
+            u_high=1,
+            excitations=("controller",),
+        )

@@ -6,7 +6,11 @@ from pathlib import Path
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="safestab: safe stabilization with GP learning.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="safestab: safe stabilization with GP learning.",
+)
 
 
 @app.callback()
@@ -44,7 +48,11 @@ def acc(
         raise typer.Exit(code=2) from None
     out.mkdir(parents=True, exist_ok=True)
     with Progress(
-        TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console, transient=False
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
     ) as progress:
         task = progress.add_task("starting", total=1.0)
 

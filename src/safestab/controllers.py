@@ -224,9 +224,15 @@ class UniversalController:
         A, B = _margins(a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"])
         bu = jnp.sum(b * u, -1)
         du = jnp.sum(d * u, -1)
-        unorm = jnp.linalg.norm(u, axis=-1)
-        tol_v = SATISFIED_RTOL * (jnp.abs(A) + jnp.linalg.norm(b, axis=-1) * unorm)
-        tol_h = SATISFIED_RTOL * (jnp.abs(B) + jnp.linalg.norm(d, axis=-1) * unorm)
+        # u = -lambda1 b + lambda2 d is rounded relative to its terms, which in P3 can be far
+        # larger than |u|: the flags' tolerance scales with those terms.
+        bn, dn = jnp.linalg.norm(b, axis=-1), jnp.linalg.norm(d, axis=-1)
+        lam = res.multipliers
+        u_terms = (
+            jnp.linalg.norm(u, axis=-1) + jnp.abs(lam[..., 0]) * bn + jnp.abs(lam[..., 1]) * dn
+        )
+        tol_v = SATISFIED_RTOL * (jnp.abs(A) + bn * u_terms)
+        tol_h = SATISFIED_RTOL * (jnp.abs(B) + dn * u_terms)
         return ControlOutput(
             u=u,
             u_unconstrained=res.u,

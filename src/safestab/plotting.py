@@ -76,4 +76,3 @@ def plot_acc_study(result: Any, axes: Any = None) -> Any:
     ax_u.legend(fontsize=7, loc="best")
     fig.suptitle(f"ACC study: scenario '{sc.name}'", fontsize=10)
     return fig
-

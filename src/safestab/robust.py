@@ -38,7 +38,10 @@ class UncertaintyModel(Protocol):
     be exact return mean 0 and standard deviation 0.
     """
 
-    n_states: int
+    @property
+    def n_states(self) -> int:
+        """State dimension ``n``."""
+        ...
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and standard deviation of ``omega(x)`` at one state, each of shape (n,)."""

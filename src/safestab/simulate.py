@@ -187,6 +187,7 @@ def simulate(
     if strict and (traj.infeasible_steps or not bool(np.all(np.asarray(sats)))):
         raise InfeasibleError(
             f"{traj.infeasible_steps} infeasible steps and "
-            f"{int(np.sum(~np.asarray(sats)))} steps where the applied input broke the CBF condition"
+            f"{int(np.sum(~np.asarray(sats)))} steps where the applied input broke the CBF "
+            "condition"
         )
     return traj

@@ -12,7 +12,14 @@ from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, ParameterError
 from ..robust import joint_probability
 
-__all__ = ["information_gain", "beta_lemma2", "Calibration", "calibration", "ConfidenceReport", "confidence"]
+__all__ = [
+    "information_gain",
+    "beta_lemma2",
+    "Calibration",
+    "calibration",
+    "ConfidenceReport",
+    "confidence",
+]
 
 
 def information_gain(model: Any) -> np.ndarray:
@@ -136,7 +143,9 @@ def confidence(
     g = information_gain(model) if gamma is None else gamma
     b = np.zeros(n)
     b[comps] = beta_lemma2(rkhs_norm, g, model.x_train_.shape[0], delta)
-    return ConfidenceReport(beta=b, probability=joint_probability(delta, len(comps)), method="lemma2")
+    return ConfidenceReport(
+        beta=b, probability=joint_probability(delta, len(comps)), method="lemma2"
+    )
 
 
 @dataclasses.dataclass(frozen=True)

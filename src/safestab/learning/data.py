@@ -54,7 +54,14 @@ class Dataset:
 
     def split(self, test_fraction: float, *, seed: int = 0) -> tuple[Dataset, Dataset]:
         """Random train/test split (rows shuffled with ``seed``)."""
-        check_scalar_range("test_fraction", test_fraction, lower=0.0, strict_lower=True, upper=1.0, strict_upper=True)
+        check_scalar_range(
+            "test_fraction",
+            test_fraction,
+            lower=0.0,
+            strict_lower=True,
+            upper=1.0,
+            strict_upper=True,
+        )
         perm = np.random.default_rng(seed).permutation(len(self))
         n_test = max(1, int(round(test_fraction * len(self))))
         te, tr = perm[:n_test], perm[n_test:]
@@ -75,7 +82,9 @@ def _x0_sampler(x0: Any, n_states: int) -> Callable[[jax.Array, int], jax.Array]
             f"of arrays broadcastable to ({n_states},)"
         ) from None
     if np.any(low > high):
-        raise ParameterError(f"x0 low must be <= high, got low={low.tolist()}, high={high.tolist()}")
+        raise ParameterError(
+            f"x0 low must be <= high, got low={low.tolist()}, high={high.tolist()}"
+        )
     return lambda key, count: jax.random.uniform(key, (count, n_states), minval=low, maxval=high)
 
 
@@ -169,11 +178,15 @@ def collect_data(
         raise ParameterError(f"substeps must be >= 1, got {substeps!r}")
     unknown = [e for e in excitations if e not in EXCITATIONS]
     if unknown or not excitations:
-        raise ParameterError(f"excitations must be a non-empty subset of {EXCITATIONS}, got {excitations!r}")
+        raise ParameterError(
+            f"excitations must be a non-empty subset of {EXCITATIONS}, got {excitations!r}"
+        )
     if "controller" in excitations and controller is None:
         raise ParameterError("the 'controller' excitation needs controller=")
     if derivative not in ("exact", "finite_difference"):
-        raise ParameterError(f"derivative must be 'exact' or 'finite_difference', got {derivative!r}")
+        raise ParameterError(
+            f"derivative must be 'exact' or 'finite_difference', got {derivative!r}"
+        )
     low = np.broadcast_to(np.asarray(u_low, float), (m,))
     high = np.broadcast_to(np.asarray(u_high, float), (m,))
     check_finite("u_low", low)
@@ -231,11 +244,16 @@ def collect_data(
     xs, us, xdots, ts, x_next = jax.jit(jax.vmap(trajectory))(x0s, params)
     if derivative == "finite_difference":
         xdots = (x_next - xs) / period
-    flat = [np.asarray(a).reshape((n_traj * per_traj,) + a.shape[2:])[:n_samples] for a in (xs, us, xdots, ts)]
+    flat = [
+        np.asarray(a).reshape((n_traj * per_traj,) + a.shape[2:])[:n_samples]
+        for a in (xs, us, xdots, ts)
+    ]
     x, u, xdot, t = flat
     f_nom = np.asarray(nominal.drift(jnp.asarray(x)))
     g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
     e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
     y = xdot - f_nom - np.einsum("qij,qj->qi", g_nom, u) - e
-    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(np.asarray(noise_std, float), (n,))
+    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
+        np.asarray(noise_std, float), (n,)
+    )
     return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t)

@@ -78,7 +78,9 @@ class FastGP:
         Factors ``c_i >= 1`` applied to ``sigma~_i``; all 1 until :meth:`calibrate`.
     """
 
-    def __init__(self, model: GaussianProcessModel, n_inducing: int = 32, *, pivot_tol: float = 1e-12) -> None:
+    def __init__(
+        self, model: GaussianProcessModel, n_inducing: int = 32, *, pivot_tol: float = 1e-12
+    ) -> None:
         model._check_fitted()
         if int(n_inducing) < 1:
             raise ParameterError(f"n_inducing must be >= 1, got {n_inducing!r}")
@@ -100,7 +102,9 @@ class FastGP:
             a_train = np.linalg.solve(lz, kzx)  # (M, Q)
             w = a_train @ model.alpha_[j]
             wmat = np.asarray(
-                jax.scipy.linalg.solve_triangular(jnp.asarray(model.chol_[j]), jnp.asarray(a_train.T), lower=True)
+                jax.scipy.linalg.solve_triangular(
+                    jnp.asarray(model.chol_[j]), jnp.asarray(a_train.T), lower=True
+                )
             )  # (Q, M)
             t = np.eye(len(idx)) - wmat.T @ wmat
             evals, evecs = np.linalg.eigh(0.5 * (t + t.T))
@@ -150,7 +154,11 @@ class FastGP:
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and *widened* standard deviation at one state (n,), jittable, O(M^2)."""
         mean, std = self._mean_std_raw(x)
-        c = jnp.zeros(self.n_states).at[jnp.asarray(self.components_)].set(jnp.asarray(self.widening_))
+        c = (
+            jnp.zeros(self.n_states)
+            .at[jnp.asarray(self.components_)]
+            .set(jnp.asarray(self.widening_))
+        )
         return mean, c * std
 
     def calibrate(self, x_check: Any, beta: Any, *, margin: float = 1.05) -> np.ndarray:
@@ -175,7 +183,9 @@ class FastGP:
         """
         x_check = np.asarray(x_check, float)
         if x_check.ndim != 2 or x_check.shape[1] != self.n_states:
-            raise DimensionError(f"x_check must have shape (N, {self.n_states}), got {x_check.shape}")
+            raise DimensionError(
+                f"x_check must have shape (N, {self.n_states}), got {x_check.shape}"
+            )
         check_finite("x_check", x_check)
         check_scalar_range("beta", beta, lower=0.0, strict_lower=True)
         check_scalar_range("margin", margin, lower=1.0)
@@ -196,6 +206,10 @@ class FastGP:
         b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
         m_ex, v_ex = self.model.predict(x)
         m_fa, s_fa = jax.vmap(self.mean_std)(jnp.asarray(x))
-        lo_ok = (np.asarray(m_fa) - b * np.asarray(s_fa))[:, comps] <= (np.asarray(m_ex) - b * np.sqrt(np.asarray(v_ex)))[:, comps] + 1e-12
-        hi_ok = (np.asarray(m_fa) + b * np.asarray(s_fa))[:, comps] >= (np.asarray(m_ex) + b * np.sqrt(np.asarray(v_ex)))[:, comps] - 1e-12
+        lo_ok = (np.asarray(m_fa) - b * np.asarray(s_fa))[:, comps] <= (
+            np.asarray(m_ex) - b * np.sqrt(np.asarray(v_ex))
+        )[:, comps] + 1e-12
+        hi_ok = (np.asarray(m_fa) + b * np.asarray(s_fa))[:, comps] >= (
+            np.asarray(m_ex) + b * np.sqrt(np.asarray(v_ex))
+        )[:, comps] - 1e-12
         return (lo_ok & hi_ok).mean(0)

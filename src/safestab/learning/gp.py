@@ -35,6 +35,7 @@ _FORMAT = "safestab-gp-v1"
 def _kernel(kind: str, amplitude, lengthscale):
     # tinygp's Matern kernels default to the L1 distance, which is not positive definite in
     # more than one dimension; the Matern 5/2 of GP regression (GPML, scikit-learn) is L2.
+    base: kernels.Kernel
     if kind == "se":
         base = kernels.ExpSquared()
     else:
@@ -150,13 +151,17 @@ class GaussianProcessModel:
         if x.ndim != 2:
             raise DimensionError(f"x must have shape (Q, n), got shape {x.shape}")
         if y.shape != x.shape:
-            raise DimensionError(f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}")
+            raise DimensionError(
+                f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}"
+            )
         check_finite("x", x)
         check_finite("y", y)
         q, n = x.shape
         comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
         if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
-            raise DimensionError(f"components must be distinct indices in [0, {n}), got {components!r}")
+            raise DimensionError(
+                f"components must be distinct indices in [0, {n}), got {components!r}"
+            )
         n_hyper = n + 2 + (self.mean == "constant") - (self.noise is not None)
         n_fit = q if hyper_subset is None else min(int(hyper_subset), q)
         if n_fit <= n_hyper:
@@ -218,7 +223,14 @@ class GaussianProcessModel:
         n = xs.shape[1]
         sd = float(np.std(y)) or 1.0
         theta0 = np.concatenate(
-            [[np.log(sd), np.log(0.1 * sd), float(np.mean(y)) if self.mean == "constant" else 0.0], np.zeros(n)]
+            [
+                [
+                    np.log(sd),
+                    np.log(0.1 * sd),
+                    float(np.mean(y)) if self.mean == "constant" else 0.0,
+                ],
+                np.zeros(n),
+            ]
         )
         bounds = [
             (np.log(1e-6 * sd), np.log(1e3 * sd)),
@@ -236,7 +248,12 @@ class GaussianProcessModel:
             return float(v), np.asarray(g, dtype=float)
 
         res = scipy.optimize.minimize(
-            fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": self.max_iter}
+            fun,
+            theta0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxiter": self.max_iter},
         )
         if not np.isfinite(res.fun):
             raise NumericalError(
@@ -269,7 +286,11 @@ class GaussianProcessModel:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
         offset, scale = jnp.asarray(self.x_offset_), jnp.asarray(self.x_scale_)
         chol, alpha = jnp.asarray(self.chol_), jnp.asarray(self.alpha_)
-        amp, ls, mu = jnp.asarray(self.amplitude_), jnp.asarray(self._lengthscale_std), jnp.asarray(self.mean_)
+        amp, ls, mu = (
+            jnp.asarray(self.amplitude_),
+            jnp.asarray(self._lengthscale_std),
+            jnp.asarray(self.mean_),
+        )
         comps = jnp.asarray(self.components_)
         n, kind = self.n_states_, self.kernel
 
@@ -362,7 +383,9 @@ class GaussianProcessModel:
         with np.load(Path(path), allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             if meta.get("format") != _FORMAT:
-                raise ValueError(f"{path} is not a safestab GP file (format {meta.get('format')!r})")
+                raise ValueError(
+                    f"{path} is not a safestab GP file (format {meta.get('format')!r})"
+                )
             model = cls(kernel=meta["kernel"], mean=meta["mean"], jitter=meta["jitter"])
             model.n_states_ = int(meta["n_states"])
             model.components_ = tuple(meta["components"])

@@ -77,8 +77,8 @@ class ACCScenario:
     noise_std: float  # m/s^2
     gp_beta: float
     kernel: str
-    x0_low: tuple[float, float, float]
-    x0_high: tuple[float, float, float]
+    x0_low: tuple[float, ...]  # (v_f, v_l, D)
+    x0_high: tuple[float, ...]
     excitation_limit: float  # fraction of M g spanned by the excitation
     hyper_subset: int  # rows used to fit GP hyperparameters (then conditioned on all)
     seed: int
@@ -203,7 +203,8 @@ _SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
     },
 }
 _POSITIVE = {"vehicle.mass", "vehicle.gravity", "simulation.t_final", "simulation.dt",
-             "learning.n_samples", "learning.sample_rate", "learning.sample_horizon", "learning.hyper_subset",
+             "learning.n_samples", "learning.sample_rate", "learning.sample_horizon",
+             "learning.hyper_subset",
              "controller.slack_weight", "certificates.tau"}  # fmt: skip
 _NONNEGATIVE = {"certificates.lam", "certificates.beta", "controller.kappa", "controller.rho",
                 "controller.phi", "controller.varphi", "learning.noise_std", "learning.gp_beta",
@@ -223,7 +224,9 @@ def _parse(doc: dict, name: str, source: str) -> ACCScenario:
     known_top = {s.split(".")[0] for s in _SCHEMA} | {"name"}
     for key in doc:
         if key not in known_top:
-            raise ScenarioError(f"{source}: unknown key {key!r}; expected one of {sorted(known_top)}")
+            raise ScenarioError(
+                f"{source}: unknown key {key!r}; expected one of {sorted(known_top)}"
+            )
     values: dict[str, Any] = {}
     for section, fields in _SCHEMA.items():
         table = _get(doc, section, source)
@@ -242,7 +245,9 @@ def _parse(doc: dict, name: str, source: str) -> ACCScenario:
                 ok = val is False or (isinstance(val, int | float) and not isinstance(val, bool))
                 val = None if val is False else float(val)
             if not ok:
-                raise ScenarioError(f"{source}: {full} must be {getattr(typ, '__name__', typ)}, got {val!r}")
+                raise ScenarioError(
+                    f"{source}: {full} must be {getattr(typ, '__name__', typ)}, got {val!r}"
+                )
             if full in _POSITIVE and not val > 0:
                 raise ScenarioError(f"{source}: {full} must be > 0, got {val!r}")
             if full in _NONNEGATIVE and not val >= 0:
@@ -254,7 +259,10 @@ def _parse(doc: dict, name: str, source: str) -> ACCScenario:
             f"got {values['controller.input_units']!r}"
         )
     if values["learning.kernel"] not in ("se", "matern52"):
-        raise ScenarioError(f"{source}: learning.kernel must be 'se' or 'matern52', got {values['learning.kernel']!r}")
+        raise ScenarioError(
+            f"{source}: learning.kernel must be 'se' or 'matern52', "
+            f"got {values['learning.kernel']!r}"
+        )
     lim = values["controller.input_limit"]
     if lim is not None and not lim > 0:
         raise ScenarioError(f"{source}: controller.input_limit must be > 0 or false, got {lim!r}")
@@ -262,14 +270,21 @@ def _parse(doc: dict, name: str, source: str) -> ACCScenario:
     try:
         prof = tuple((float(e), float(a)) for e, a in profile)
     except (TypeError, ValueError):
-        raise ScenarioError(f"{source}: lead.profile must be a list of [end_time, acceleration] pairs") from None
+        raise ScenarioError(
+            f"{source}: lead.profile must be a list of [end_time, acceleration] pairs"
+        ) from None
     if any(b[0] <= a[0] for a, b in zip(prof, prof[1:], strict=False)):
         raise ScenarioError(f"{source}: lead.profile end times must increase")
     for key in ("learning.x0_low", "learning.x0_high"):
         v = values[key]
         if len(v) != 3 or not all(isinstance(e, int | float) for e in v):
-            raise ScenarioError(f"{source}: {key} must be a list of 3 numbers (v_f, v_l, D), got {v!r}")
-    if any(lo > hi for lo, hi in zip(values["learning.x0_low"], values["learning.x0_high"], strict=True)):
+            raise ScenarioError(
+                f"{source}: {key} must be a list of 3 numbers (v_f, v_l, D), got {v!r}"
+            )
+    if any(
+        lo > hi
+        for lo, hi in zip(values["learning.x0_low"], values["learning.x0_high"], strict=True)
+    ):
         raise ScenarioError(f"{source}: learning.x0_low must be <= learning.x0_high")
     v = values
     return ACCScenario(
@@ -326,7 +341,9 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
     else:
         path = Path(name_or_path)
         if not path.is_file():
-            raise ScenarioError(f"scenario {str(name_or_path)!r} is neither a preset {PRESETS} nor a file")
+            raise ScenarioError(
+                f"scenario {str(name_or_path)!r} is neither a preset {PRESETS} nor a file"
+            )
         text, name, source = path.read_text(), path.stem, str(path)
     try:
         doc = tomllib.loads(text)

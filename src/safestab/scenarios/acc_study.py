@@ -54,7 +54,9 @@ class StudyResult:
         Path(path).write_text(json.dumps(doc, indent=2))
 
 
-def trajectory_metrics(traj: Trajectory, scenario: ACCScenario, reference: Trajectory | None = None) -> dict[str, Any]:
+def trajectory_metrics(
+    traj: Trajectory, scenario: ACCScenario, reference: Trajectory | None = None
+) -> dict[str, Any]:
     """Summary statistics of one closed-loop run.
 
     Returns min h (m), time with h < 0 (s), RMS speed error to ``v_d`` (m/s), fraction of
@@ -74,7 +76,9 @@ def trajectory_metrics(traj: Trajectory, scenario: ACCScenario, reference: Traje
         "incompatible_steps": int(np.sum(~np.asarray(traj.compatible))),
         "cbf_violations_after_limits": int(np.sum(~np.asarray(traj.cbf_satisfied))),
         "max_abs_u_over_Mg": float(
-            np.max(np.abs(np.asarray(traj.u))) * scenario.input_scale / (scenario.mass * scenario.gravity)
+            np.max(np.abs(np.asarray(traj.u)))
+            * scenario.input_scale
+            / (scenario.mass * scenario.gravity)
         ),
     }
     if reference is not None:
@@ -140,15 +144,14 @@ def run_study(
 
     report(f"fitting the GP (Q = {q}, n = {true_sys.n_states})", 0.2)
     t0 = time.perf_counter()
-    gp = GaussianProcessModel(kernel=scenario.kernel).fit(
-        train.x, train.y, hyper_subset=min(scenario.hyper_subset, q), seed=seed
-    )
+    model = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
+    gp = model.fit(train.x, train.y, hyper_subset=min(scenario.hyper_subset, q), seed=seed)
     timings["fit_gp"] = time.perf_counter() - t0
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
     u_min, u_max = scenario.input_limits()
-    common = dict(
+    common: dict[str, Any] = dict(
         kappa=scenario.kappa,
         rho=scenario.rho,
         phi=scenario.phi,

@@ -118,12 +118,30 @@ def main():
     c_nom = ss.UniversalController(nominal, clf, cbf, **p)
     c_exact = ss.UniversalController(nominal, clf, cbf, uncertainty=gp, gp_beta=sc.gp_beta, **p)
     c_fast = ss.UniversalController(nominal, clf, cbf, uncertainty=fast, gp_beta=sc.gp_beta, **p)
+    # the ACC kinematics (v_l' = a_L, D' = v_l - v_f) are exact: learning only omega_1 is the
+    # practical set-up, measured as a second configuration of the same cache
+    gp1 = GaussianProcessModel(kernel=sc.kernel).fit(
+        train.x, train.y, components=[0], hyper_subset=500
+    )
+    fast1 = FastGP(gp1, n_inducing=32)
+    fast1.calibrate(test.x[:300], sc.gp_beta)
+    c_fast1 = ss.UniversalController(nominal, clf, cbf, uncertainty=fast1, gp_beta=sc.gp_beta, **p)
     states = [jnp.asarray(x) for x in test.x[:200]]
 
     print("single-step latency ...", flush=True)
     lat = {}
     lat["closed form, nominal terms"] = latency(block(c_nom.input_fn), states, args.repeat)
     lat["GP controller, fast cache"] = latency(block(c_fast.input_fn), states, args.repeat)
+    lat["GP controller, fast cache, omega_1 only"] = latency(
+        block(c_fast1.input_fn), states, args.repeat
+    )
+    # profile of the fast step: the dispatch floor and the cache on its own
+    lat["profile: empty jitted call (dispatch floor)"] = latency(
+        block(jax.jit(lambda x: 2.0 * x)), states, args.repeat
+    )
+    lat["profile: fast cache mean_std alone (3 GPs)"] = latency(
+        block(jax.jit(fast.mean_std)), states, args.repeat
+    )
     lat["GP controller, exact posterior"] = latency(
         block(c_exact.input_fn), states, max(200, args.repeat // 10)
     )
@@ -298,8 +316,10 @@ def write_markdown(r, path):
         f"band contains the exact band: {fc['coverage_of_exact_band_on_unseen_states']}.",
         "",
     ]
+    fast1_med = lat["GP controller, fast cache, omega_1 only"]["median_us"]
     targets = [
         ("fast GP step median < 20 us", fast_med < 20, f"{fast_med:.1f} us"),
+        ("(same, learning omega_1 only) < 20 us", fast1_med < 20, f"{fast1_med:.1f} us"),
         ("fast GP step >= 20x faster than OSQP", lat["QP via qpsolvers: osqp"]["median_us"] / fast_med >= 20,
          f"{lat['QP via qpsolvers: osqp']['median_us'] / fast_med:.0f}x"),
         ("fast GP step >= 50x faster than exact posterior", lat["GP controller, exact posterior"]["median_us"] / fast_med >= 50,

@@ -84,6 +84,25 @@ def test_unknown_scenario():
         load_scenario("nope")
 
 
+def test_input_limits_through_projection(tmp_path):
+    from safestab.simulate import simulate
+
+    text = _paper_text().replace('input_units = "newton"', 'input_units = "normalized"')
+    text = text.replace("input_limit = false", "input_limit = 0.3")
+    sc = load_scenario(_write(tmp_path, text))
+    u_min, u_max = sc.input_limits()
+    assert (u_min, u_max) == ([-0.3], [0.3])  # +-0.3 M g in units of M g
+    clf, cbf = sc.certificates()
+    ctrl = ss.UniversalController(
+        sc.system("true"), clf, cbf, kappa=1.0, rho=sc.rho, phi=1.0, varphi=0.0,
+        slack_weight=1e4, u_min=u_min, u_max=u_max,
+    )  # fmt: skip
+    tr = simulate(ctrl, np.array([10.0, 15.0, 150.0]), t_final=3.0, dt=0.01, exogenous=sc.exogenous)
+    u = np.asarray(tr.u)
+    assert np.max(np.abs(u)) <= 0.3 + 1e-15
+    assert np.isclose(np.max(u), 0.3)  # the limit is active: the CLF wants more than 0.3 M g
+
+
 def test_user_toml_runs(tmp_path):
     path = _write(
         tmp_path,

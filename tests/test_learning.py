@@ -253,3 +253,39 @@ def test_learning_errors(toy_data):
             u_high=1,
             excitations=("controller",),
         )
+
+
+def test_controller_excitation_stays_in_range_and_follows_controller():
+    sc = load_scenario("stress")
+    clf, cbf = sc.certificates()
+    ctrl = ss.UniversalController(
+        sc.system("nominal"), clf, cbf, kappa=0.2, rho=0.1, phi=1e-4, varphi=0.0, slack_weight=10.0
+    )
+    kw = dict(
+        x0=(sc.x0_low, sc.x0_high),
+        u_low=-0.3,
+        u_high=0.3,
+        n_samples=300,
+        horizon=5,
+        excitations=("controller",),
+    )
+    data = collect_data(
+        sc.system("true"),
+        sc.system("nominal"),
+        controller=ctrl.input_fn,
+        controller_noise=0.0,
+        **kw,
+    )
+    assert np.all(np.abs(data.u) <= 0.3)  # saturated to the excitation range, as documented
+    expected = np.clip(np.asarray(ctrl.input_fn(jnp.asarray(data.x))), -0.3, 0.3)
+    np.testing.assert_allclose(data.u, expected, rtol=1e-10, atol=1e-12)
+    noisy = collect_data(
+        sc.system("true"),
+        sc.system("nominal"),
+        controller=ctrl.input_fn,
+        controller_noise=0.1,
+        **kw,
+    )
+    assert 0.0 < np.std(
+        noisy.u - np.clip(np.asarray(ctrl.input_fn(jnp.asarray(noisy.x))), -0.3, 0.3)
+    )

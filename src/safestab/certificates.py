@@ -200,10 +200,11 @@ def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTer
         If ``x`` contains NaN or inf.
     """
     x = system.check_state(x)
+    return over_batch(lambda s: lie_terms_point(system, clf, cbf, s), x)
 
-    def point(s):
-        a, b = clf._lie_point(system, s)
-        c, d = cbf._lie_point(system, s)
-        return LieTerms(a, b, c, d)
 
-    return over_batch(point, x)
+def lie_terms_point(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: jax.Array) -> LieTerms:
+    """``(a, b, c, d)`` at one state of shape (n,), unchecked and jittable."""
+    a, b = clf._lie_point(system, x)
+    c, d = cbf._lie_point(system, x)
+    return LieTerms(a, b, c, d)

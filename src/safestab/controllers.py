@@ -15,7 +15,7 @@ import numpy as np
 
 from ._batching import over_batch
 from ._validation import check_scalar_range
-from .certificates import CBF, CLF, LieTerms
+from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import DimensionError, InfeasibleError, ParameterError
 from .formulas import (
     DEFAULT_PARALLEL_RTOL,
@@ -194,9 +194,7 @@ class UniversalController:
 
     def terms_point(self, x: jax.Array) -> LieTerms:
         """The (GP-robust when an uncertainty model is set) Lie terms at one state."""
-        a, b = self.clf._lie_point(self.system, x)
-        c, d = self.cbf._lie_point(self.system, x)
-        terms = LieTerms(a, b, c, d)
+        terms = lie_terms_point(self.system, self.clf, self.cbf, x)
         if self.uncertainty is None:
             return terms
         mean, std = self.uncertainty.mean_std(x)

@@ -93,25 +93,20 @@ class ControlAffineSystem:
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
-        x = as_float_array(x)
-        if x.ndim == 0 or x.shape[-1] != self.n_states:
-            raise DimensionError(
-                f"{name} must have shape (..., {self.n_states}), got shape {x.shape}"
-            )
-        if is_concrete(x):
-            check_finite(name, x)
-        return x
+        return self._check_last_axis(x, self.n_states, name)
 
     def check_input(self, u: Any, name: str = "u") -> jax.Array:
         """Return ``u`` as a float array after checking its last axis and finiteness."""
-        u = as_float_array(u)
-        if u.ndim == 0 or u.shape[-1] != self.n_inputs:
-            raise DimensionError(
-                f"{name} must have shape (..., {self.n_inputs}), got shape {u.shape}"
-            )
-        if is_concrete(u):
-            check_finite(name, u)
-        return u
+        return self._check_last_axis(u, self.n_inputs, name)
+
+    @staticmethod
+    def _check_last_axis(value: Any, size: int, name: str) -> jax.Array:
+        value = as_float_array(value)
+        if value.ndim == 0 or value.shape[-1] != size:
+            raise DimensionError(f"{name} must have shape (..., {size}), got shape {value.shape}")
+        if is_concrete(value):
+            check_finite(name, value)
+        return value
 
     def drift(self, x: jax.Array) -> jax.Array:
         """``f(x)``: shape (..., n) to (..., n)."""

@@ -14,13 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
-from ._validation import check_scalar_range
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import DimensionError, InfeasibleError, ParameterError
 from .formulas import (
     DEFAULT_PARALLEL_RTOL,
     Region,
     _check_box,
+    _check_params,
     _combined,
     _compatibility,
     _margins,
@@ -137,11 +137,9 @@ class UniversalController:
         gp_beta: Any = 2.0,
         parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
     ) -> None:
-        for name, value in dict(kappa=kappa, rho=rho, phi=phi, varphi=varphi).items():
-            check_scalar_range(name, value, lower=0.0)
+        _check_params(kappa=kappa, rho=rho, phi=phi, varphi=varphi, parallel_rtol=parallel_rtol)
         if slack_weight is not None:
-            check_scalar_range("slack_weight", slack_weight, lower=0.0, strict_lower=True)
-        check_scalar_range("parallel_rtol", parallel_rtol, lower=0.0, upper=1.0)
+            _check_params(slack_weight=slack_weight)
         clf.check(system.n_states)
         cbf.check(system.n_states)
         m = system.n_inputs

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -197,8 +198,6 @@ def calibration(
         raise DimensionError(f"x and y must both have shape (Q, n), got {x.shape} and {y.shape}")
     check_finite("x", x)
     check_finite("y", y)
-    import jax
-
     mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
     mean, std = np.asarray(mean), np.asarray(std)
     if observation_noise:

@@ -308,6 +308,8 @@ class GaussianProcessModel:
             return mean, var
 
         self._predict_one = one
+        # built once: a fresh jit(vmap(...)) per predict() call would re-trace and recompile
+        self._predict_batch = jax.jit(jax.vmap(one))
 
     # -------------------------------------------------------------------------- predict
 
@@ -335,7 +337,7 @@ class GaussianProcessModel:
         if x.ndim == 0 or x.shape[-1] != self.n_states_:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
         flat = x.reshape((-1, self.n_states_))
-        mean, var = jax.jit(jax.vmap(self._predict_one))(flat)
+        mean, var = self._predict_batch(flat)
         return mean.reshape(x.shape), var.reshape(x.shape)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:

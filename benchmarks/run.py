@@ -22,7 +22,7 @@ import safestab as ss
 from safestab.learning import FastGP, GaussianProcessModel, calibration, collect_data
 from safestab.reference import solve_formula_qp
 from safestab.scenarios import load_scenario
-from safestab.simulate import _closed_loop
+from safestab.simulation import _closed_loop
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -85,7 +85,7 @@ def test_unknown_scenario():
 
 
 def test_input_limits_through_projection(tmp_path):
-    from safestab.simulate import simulate
+    from safestab.simulation import simulate
 
     text = _paper_text().replace('input_units = "newton"', 'input_units = "normalized"')
     text = text.replace("input_limit = false", "input_limit = 0.3")

@@ -6,7 +6,7 @@ import pytest
 
 import safestab as ss
 from safestab.scenarios import load_scenario
-from safestab.simulate import rk4_step, simulate
+from safestab.simulation import rk4_step, simulate
 
 
 def test_rk4_fourth_order():

@@ -43,6 +43,7 @@ from .robust import (  # noqa: E402
     robust_lie_terms,
     robust_margins,
 )
+from .simulation import Trajectory, rk4_step, simulate  # noqa: E402
 from .systems import ControlAffineSystem  # noqa: E402
 
 __version__ = "0.1.0"
@@ -82,4 +83,7 @@ __all__ = [
     "kkt_residuals",
     "project_box",
     "saturate_safety_first",
+    "Trajectory",
+    "rk4_step",
+    "simulate",
 ]

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, ParameterError
-from ..simulate import rk4_step
+from ..simulation import rk4_step
 from ..systems import ControlAffineSystem
 
 __all__ = ["Dataset", "collect_data", "EXCITATIONS"]

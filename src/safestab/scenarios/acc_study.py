@@ -13,7 +13,7 @@ import numpy as np
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import Calibration, Dataset, GaussianProcessModel, calibration, collect_data
-from ..simulate import Trajectory, simulate
+from ..simulation import Trajectory, simulate
 from .acc import ACCScenario
 
 __all__ = ["CONTROLLERS", "StudyResult", "run_study", "trajectory_metrics"]

@@ -9,10 +9,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from .certificates import CBF, CLF, LieTerms, lie_terms  # noqa: E402
-from .controllers import ControlOutput, UniversalController  # noqa: E402
+from .controllers import ControlOutput, StepStatus, UniversalController  # noqa: E402
 from .errors import (  # noqa: E402
     DimensionError,
     InfeasibleError,
+    InputTypeError,
+    ModelError,
     NonFiniteError,
     NumericalError,
     ParameterError,
@@ -20,8 +22,11 @@ from .errors import (  # noqa: E402
     ScenarioError,
 )
 from .formulas import (  # noqa: E402
+    DEFAULT_PARALLEL_RTOL,
+    SATISFIED_RTOL,
     Compatibility,
     CompatibilityCase,
+    ConditionFlags,
     FormulaResult,
     KKTResiduals,
     Region,
@@ -30,9 +35,11 @@ from .formulas import (  # noqa: E402
     clf_cbf_relaxed,
     clf_sontag,
     compatibility,
+    conditions_satisfied,
     kkt_residuals,
     project_box,
     saturate_safety_first,
+    zeta,
 )
 from .robust import (  # noqa: E402
     ProbabilisticCompatibility,
@@ -53,6 +60,7 @@ __all__ = [
     "CLF",
     "ControlAffineSystem",
     "ControlOutput",
+    "StepStatus",
     "LieTerms",
     "UniversalController",
     "lie_terms",
@@ -65,13 +73,18 @@ __all__ = [
     "robust_margins",
     "DimensionError",
     "InfeasibleError",
+    "InputTypeError",
+    "ModelError",
     "NonFiniteError",
     "NumericalError",
     "ParameterError",
     "SafeStabError",
     "ScenarioError",
+    "DEFAULT_PARALLEL_RTOL",
+    "SATISFIED_RTOL",
     "Compatibility",
     "CompatibilityCase",
+    "ConditionFlags",
     "FormulaResult",
     "KKTResiduals",
     "Region",
@@ -80,9 +93,11 @@ __all__ = [
     "clf_cbf_relaxed",
     "clf_sontag",
     "compatibility",
+    "conditions_satisfied",
     "kkt_residuals",
     "project_box",
     "saturate_safety_first",
+    "zeta",
     "Trajectory",
     "rk4_step",
     "simulate",

@@ -12,7 +12,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from .errors import DimensionError, NonFiniteError, ParameterError
+from .errors import DimensionError, InputTypeError, NonFiniteError, ParameterError
 
 
 def is_concrete(*values: Any) -> bool:
@@ -88,3 +88,74 @@ def check_same_batch(names: tuple[str, ...], shapes: tuple[tuple[int, ...], ...]
     except ValueError:
         desc = ", ".join(f"{n} {s}" for n, s in zip(names, shapes, strict=True))
         raise DimensionError(f"batch shapes do not broadcast: {desc}") from None
+
+
+def check_real(name: str, value: Any) -> None:
+    """Require a real number or array of real numbers (not bool, complex, string or object).
+
+    Raises
+    ------
+    InputTypeError
+        If ``value`` (or, for a JAX tracer, its dtype) is not integer or floating point.
+    """
+    dtype = getattr(value, "dtype", None)
+    if dtype is None:
+        if isinstance(value, bool):
+            raise InputTypeError(f"{name} must be a real number or array, got a bool ({value!r})")
+        try:
+            dtype = np.asarray(value).dtype
+        except (ValueError, TypeError):
+            raise InputTypeError(
+                f"{name} must be a real number or array, got {type(value).__name__}"
+            ) from None
+    kind = np.dtype(dtype).kind
+    if kind not in "iuf":
+        what = {"b": "bool", "c": "complex", "U": "string", "S": "bytes", "O": "object"}.get(
+            kind, str(dtype)
+        )
+        raise InputTypeError(f"{name} must be a real number or array, got dtype {what}")
+
+
+def check_no_broadcast_growth(
+    names: tuple[str, ...], shapes: tuple[tuple[int, ...], ...]
+) -> tuple[int, ...]:
+    """Return the common batch shape, requiring it to be one of ``shapes``.
+
+    Batch shapes may broadcast (a scalar ``a`` with a batch of ``b``), but not into a batch
+    bigger than every argument's: ``a`` of shape (3, 1) with ``b`` of shape (3, 2) would
+    otherwise silently give 3 x 3 results.
+
+    Raises
+    ------
+    DimensionError
+        If the shapes do not broadcast, or broadcast into a bigger batch.
+    """
+    check_same_batch(names, shapes)
+    batch = tuple(np.broadcast_shapes(*shapes))
+    if batch not in [tuple(s) for s in shapes]:
+        desc = ", ".join(f"{n} {s}" for n, s in zip(names, shapes, strict=True))
+        raise DimensionError(
+            f"batch shapes broadcast into a bigger batch {batch} than any argument's: {desc}; "
+            "give every argument the same batch shape (or a scalar)"
+        )
+    return batch
+
+
+def check_fits_batch(name: str, value: Any, batch: tuple[int, ...], what: str = "batch") -> None:
+    """Require ``value`` to broadcast to ``batch`` without enlarging it.
+
+    Raises
+    ------
+    DimensionError
+        If it does not.
+    """
+    shape = tuple(np.shape(value))
+    try:
+        ok = tuple(np.broadcast_shapes(batch, shape)) == tuple(batch)
+    except ValueError:
+        ok = False
+    if not ok:
+        raise DimensionError(
+            f"{name} must be a scalar or broadcast to the {what} shape {tuple(batch)}, "
+            f"got shape {shape}"
+        )

@@ -13,9 +13,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._batching import over_batch
-from ._validation import check_scalar_range
+from ._validation import check_real, check_scalar_range
 from .errors import DimensionError
 from .systems import ControlAffineSystem
 
@@ -60,6 +61,11 @@ class _Certificate:
             raise TypeError(f"{self._fn_name} must be a callable taking a state of shape (n,)")
         if grad is not None and not callable(grad):
             raise TypeError("grad must be None or a callable returning shape (n,)")
+        check_real(self._rate_name, rate)
+        if np.ndim(rate) != 0:
+            raise DimensionError(
+                f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
+            )
         check_scalar_range(self._rate_name, rate, lower=0.0)
         self.fn = fn
         self.rate = float(rate)
@@ -75,10 +81,12 @@ class _Certificate:
             If the function is not scalar-valued or the gradient has the wrong shape.
         """
         probe = jax.ShapeDtypeStruct((n_states,), jnp.float64)
-        shape = jax.eval_shape(self.fn, probe).shape
-        if shape != ():
-            raise DimensionError(f"{self._fn_name} must return a scalar, got shape {shape}")
-        gshape = jax.eval_shape(self.grad, probe).shape
+        out = jax.eval_shape(self.fn, probe)
+        shape = getattr(out, "shape", None)
+        if not isinstance(out, jax.ShapeDtypeStruct) or shape != ():
+            got = f"shape {shape}" if shape is not None else type(out).__name__
+            raise DimensionError(f"{self._fn_name} must return a scalar, got {got}")
+        gshape = getattr(jax.eval_shape(self.grad, probe), "shape", None)
         if gshape != (n_states,):
             raise DimensionError(
                 f"grad of {self._fn_name} must return shape ({n_states},), got {gshape}"
@@ -194,12 +202,17 @@ def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTer
 
     Raises
     ------
+    InputTypeError
+        If ``x`` is bool, complex or a string.
     DimensionError
-        If ``x`` has the wrong last axis.
+        If ``x`` has the wrong last axis, or ``V`` or ``h`` does not return a scalar.
     NonFiniteError
         If ``x`` contains NaN or inf.
     """
+    check_real("x", x)
     x = system.check_state(x)
+    clf.check(system.n_states)
+    cbf.check(system.n_states)
     return over_batch(lambda s: lie_terms_point(system, clf, cbf, s), x)
 
 

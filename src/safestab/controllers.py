@@ -7,6 +7,7 @@ Data flows one way: system + certificates -> Lie terms ``(a, b, c, d)`` -> (GP-r
 from __future__ import annotations
 
 import dataclasses
+from enum import IntEnum
 from typing import Any, Literal
 
 import jax
@@ -14,27 +15,31 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._validation import check_real
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
-from .errors import DimensionError, InfeasibleError, ParameterError
-from .formulas import (
-    DEFAULT_PARALLEL_RTOL,
-    Region,
-    _check_box,
-    _check_params,
-    _combined,
-    _compatibility,
-    _margins,
-    _saturate_safety_first,
-)
+from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
+from .formulas import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL, Region
+from .formulas._checks import check_box, check_params
+from .formulas._kernels import condition_flags, margins, saturate_single, solve_two
 from .robust import UncertaintyModel, check_beta, robust_lie_terms
 from .systems import ControlAffineSystem
 
-__all__ = ["ControlOutput", "UniversalController"]
+__all__ = ["ControlOutput", "StepStatus", "UniversalController"]
 
-#: Relative tolerance of the ``cbf_satisfied`` / ``clf_satisfied`` flags: a condition that the
-#: formula makes hold with equality is still reported satisfied after rounding (float64
-#: rounding of ``c + d.u`` is a few 1e-16 of the magnitudes involved).
-SATISFIED_RTOL = 1e-9
+
+class StepStatus(IntEnum):
+    """Why a controller step could (``OK``) or could not compute a trustworthy input.
+
+    Any status other than ``OK`` comes with ``u = NaN`` and every flag False: the step did not
+    produce an input, and says why. The first failing stage is reported.
+    """
+
+    OK = 0
+    NONFINITE_STATE = 1  #: the state itself contains NaN or inf (a diverging plant, say)
+    NONFINITE_MODEL = 2  #: f, g, V, h or a gradient gave NaN or inf at a finite state
+    NONFINITE_UNCERTAINTY = 3  #: the uncertainty model's mean or std is NaN or inf
+    NEGATIVE_STD = 4  #: the uncertainty model returned a negative standard deviation
+    NONFINITE_INPUT = 5  #: the formula's exact input overflows float64 (rescale the problem)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,19 +49,24 @@ class ControlOutput:
     Attributes
     ----------
     u : array of shape (..., m)
-        The input applied (after input limits, if any).
+        The input applied (after input limits, if any); NaN where ``status`` is not OK.
     u_unconstrained : array of shape (..., m)
         The formula's input before limits.
     region : int array of shape (...,)
         :class:`~safestab.formulas.Region` of the formula.
     compatible : bool array of shape (...,)
-        Whether the (possibly GP-robust) CLF and CBF conditions are compatible at ``x``.
+        Whether the (possibly GP-robust) CLF and CBF conditions are compatible at ``x``
+        (Lemma 1, the same decision as the hard formula's region).
     cbf_satisfied : bool array of shape (...,)
-        Whether ``u`` (after limits) satisfies the CBF condition used by the formula.
+        Whether ``u`` (after limits) satisfies the CBF condition used by the formula, judged
+        against the condition's own magnitudes
+        (:func:`~safestab.formulas.conditions_satisfied`).
     clf_satisfied : bool array of shape (...,)
-        Whether ``u`` (after limits) satisfies the CLF condition (without slack).
+        Whether ``u`` (after limits) satisfies the CLF condition (without slack), likewise.
     slack : array of shape (...,)
         The CLF slack of the relaxed formula (0 otherwise).
+    status : int array of shape (...,)
+        A :class:`StepStatus` per state.
     terms : LieTerms
         The terms the formula used (GP-robust ones when an uncertainty model is given).
     """
@@ -68,6 +78,7 @@ class ControlOutput:
     cbf_satisfied: jax.Array
     clf_satisfied: jax.Array
     slack: jax.Array
+    status: jax.Array
     terms: LieTerms
 
 
@@ -76,6 +87,14 @@ jax.tree_util.register_dataclass(
     data_fields=[f.name for f in dataclasses.fields(ControlOutput)],
     meta_fields=[],
 )
+
+
+def _all_finite(*arrays: jax.Array) -> jax.Array:
+    ok = jnp.asarray(True)
+    for arr in arrays:
+        fin = jnp.isfinite(arr)
+        ok = ok & (fin if fin.ndim == 0 else jnp.all(fin))
+    return ok
 
 
 class UniversalController:
@@ -94,15 +113,16 @@ class UniversalController:
     slack_weight : float, optional
         When given, the relaxed formula (Theorem 3) with this weight; otherwise the combined
         formula (Theorem 1, or Theorem 2 with an uncertainty model).
-    u_min, u_max : array of shape (m,), optional
+    u_min, u_max : float or array of shape (m,), optional
         Input limits; both or neither.
     saturation : {"project", "safety_first"}
         How limits are enforced: ``"project"`` is the paper's projection, eq. (26);
         ``"safety_first"`` (single input only) keeps the CBF condition whenever some input in
         the box can (:func:`~safestab.formulas.saturate_safety_first`).
     uncertainty : UncertaintyModel, optional
-        A model of ``omega(x)`` (mean and standard deviation). With it the controller uses the
-        GP-robust terms of Lemma 3, i.e. Theorem 2 (or Theorem 3 with ``slack_weight``).
+        A model of ``omega(x)`` (mean and standard deviation, each of shape (n,) at one state).
+        With it the controller uses the GP-robust terms of Lemma 3, i.e. Theorem 2 (or
+        Theorem 3 with ``slack_weight``).
     gp_beta : float or array of shape (n,)
         Confidence scaling ``beta_i`` of the uncertainty model (Lemma 2); default 2.
     parallel_rtol : float
@@ -113,8 +133,10 @@ class UniversalController:
     ParameterError
         If a parameter is out of range, ``u_min > u_max``, or only one limit is given.
     DimensionError
-        If the certificates or limits do not fit the system, or ``saturation="safety_first"``
-        with more than one input.
+        If the certificates, limits or the uncertainty model's outputs do not fit the system,
+        a parameter is not a scalar, or ``saturation="safety_first"`` with more than one input.
+    InputTypeError
+        If a parameter or limit is bool, complex or a string.
     TypeError
         If ``uncertainty`` does not provide ``mean_std``.
     """
@@ -137,18 +159,20 @@ class UniversalController:
         gp_beta: Any = 2.0,
         parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
     ) -> None:
-        _check_params(kappa=kappa, rho=rho, phi=phi, varphi=varphi, parallel_rtol=parallel_rtol)
+        check_params(
+            (), kappa=kappa, rho=rho, phi=phi, varphi=varphi, parallel_rtol=parallel_rtol
+        )
         if slack_weight is not None:
-            _check_params(slack_weight=slack_weight)
+            check_params((), slack_weight=slack_weight)
         clf.check(system.n_states)
         cbf.check(system.n_states)
         m = system.n_inputs
         if (u_min is None) != (u_max is None):
             raise ParameterError("give both u_min and u_max, or neither")
         if u_min is not None:
-            u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
-            u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
-            _check_box(u_min, u_max)
+            u_min = self._limit("u_min", u_min, m)
+            u_max = self._limit("u_max", u_max, m)
+            check_box(u_min, u_max)
         if saturation not in ("project", "safety_first"):
             raise ParameterError(
                 f"saturation must be 'project' or 'safety_first', got {saturation!r}"
@@ -158,30 +182,61 @@ class UniversalController:
                 f"saturation='safety_first' needs a single-input system, got n_inputs={m}"
             )
         if uncertainty is not None:
-            if not hasattr(uncertainty, "mean_std"):
-                raise TypeError("uncertainty must provide mean_std(x) -> (mean, std)")
-            if getattr(uncertainty, "n_states", system.n_states) != system.n_states:
-                raise DimensionError(
-                    f"uncertainty.n_states must equal system.n_states = {system.n_states}, "
-                    f"got {uncertainty.n_states}"
-                )
+            self._check_uncertainty(uncertainty, system.n_states)
             gp_beta = check_beta(gp_beta, system.n_states)
         self.system = system
         self.clf = clf
         self.cbf = cbf
-        self.params = {"kappa": kappa, "rho": rho, "phi": phi, "varphi": varphi}
-        self.slack_weight = slack_weight
+        self.params = {
+            "kappa": float(kappa),
+            "rho": float(rho),
+            "phi": float(phi),
+            "varphi": float(varphi),
+        }
+        self.slack_weight = None if slack_weight is None else float(slack_weight)
         self.u_min = u_min
         self.u_max = u_max
         self.saturation = saturation
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta if uncertainty is not None else None
-        self.parallel_rtol = parallel_rtol
+        self.parallel_rtol = float(parallel_rtol)
         #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
         #: for one state (n,) or a batch (..., n); for loops and benchmarks.
         self.step_fn = jax.jit(self._step)
         #: Like ``step_fn`` but returning only ``u``, so XLA drops the diagnostics.
         self.input_fn = jax.jit(lambda x: self._step(x).u)
+
+    @staticmethod
+    def _limit(name: str, value: Any, m: int) -> np.ndarray:
+        check_real(name, value)
+        arr = np.asarray(value, dtype=float)
+        if arr.ndim == 0:
+            return np.full((m,), float(arr))
+        if arr.shape != (m,):
+            raise DimensionError(
+                f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape "
+                f"{arr.shape}"
+            )
+        return arr.copy()
+
+    @staticmethod
+    def _check_uncertainty(uncertainty: Any, n: int) -> None:
+        if not hasattr(uncertainty, "mean_std"):
+            raise TypeError("uncertainty must provide mean_std(x) -> (mean, std)")
+        if getattr(uncertainty, "n_states", n) != n:
+            raise DimensionError(
+                f"uncertainty.n_states must equal system.n_states = {n}, "
+                f"got {uncertainty.n_states}"
+            )
+        probe = jax.ShapeDtypeStruct((n,), jnp.float64)
+        out = jax.eval_shape(uncertainty.mean_std, probe)
+        shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple) else None
+        if shapes is None or len(shapes) != 2 or any(sh != (n,) for sh in shapes):
+            got = shapes if shapes is not None else type(out).__name__
+            raise DimensionError(
+                f"uncertainty.mean_std(x) must return (mean, std), each of shape ({n},), "
+                f"got {got}"
+            )
 
     def __repr__(self) -> str:
         kind = "relaxed" if self.slack_weight is not None else "clf_cbf"
@@ -192,55 +247,121 @@ class UniversalController:
 
     def terms_point(self, x: jax.Array) -> LieTerms:
         """The (GP-robust when an uncertainty model is set) Lie terms at one state."""
+        return self._terms_status_point(x)[0]
+
+    def _terms_status_point(self, x: jax.Array) -> tuple[LieTerms, jax.Array]:
         terms = lie_terms_point(self.system, self.clf, self.cbf, x)
-        if self.uncertainty is None:
-            return terms
-        mean, std = self.uncertainty.mean_std(x)
-        beta = jnp.asarray(self.gp_beta)
-        return robust_lie_terms(terms, self.clf.grad(x), self.cbf.grad(x), mean, std, beta)
+        S = StepStatus
+        model_ok = jnp.where(_all_finite(*terms), S.OK, S.NONFINITE_MODEL)
+        status = jnp.where(~_all_finite(x), S.NONFINITE_STATE, model_ok)
+        if self.uncertainty is not None:
+            mean, std = self.uncertainty.mean_std(x)
+            beta = jnp.asarray(self.gp_beta)
+            terms = robust_lie_terms(terms, self.clf.grad(x), self.cbf.grad(x), mean, std, beta)
+            status = jnp.where(
+                status != S.OK,
+                status,
+                jnp.where(
+                    ~_all_finite(mean, std),
+                    S.NONFINITE_UNCERTAINTY,
+                    jnp.where(jnp.any(std < 0), S.NEGATIVE_STD, S.OK),
+                ),
+            )
+        return terms, status.astype(jnp.int32)
 
     def _step(self, x: jax.Array) -> ControlOutput:
-        terms = over_batch(self.terms_point, x)
+        terms, status = over_batch(self._terms_status_point, x)
         a, b, c, d = terms
         p = self.params
-        inv_slack = 0.0 if self.slack_weight is None else 1.0 / self.slack_weight
-        res = _combined(
-            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], inv_slack, self.parallel_rtol
-        )
-        comp = _compatibility(
-            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], self.parallel_rtol
-        )
+        mg = margins(a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"])
+        hard = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, parallel_rtol=self.parallel_rtol)
+        if self.slack_weight is None:
+            res = hard
+        else:
+            s = 1.0 / np.sqrt(self.slack_weight)
+            res = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, inv_sqrt_slack=s)
         u = res.u
         if self.u_min is not None:
             lo, hi = jnp.asarray(self.u_min), jnp.asarray(self.u_max)
             if self.saturation == "safety_first":
-                u, _ = _saturate_safety_first(u, c, d, p["rho"], p["varphi"], lo, hi)
+                u, _ = saturate_single(u, mg.B, d, lo, hi)
             else:
                 u = jnp.clip(u, lo, hi)
-        A, B = _margins(a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"])
-        bu = jnp.sum(b * u, -1)
-        du = jnp.sum(d * u, -1)
-        # u = -lambda1 b + lambda2 d is rounded relative to its terms, which in P3 can be far
-        # larger than |u|: the flags' tolerance scales with those terms.
-        bn, dn = jnp.linalg.norm(b, axis=-1), jnp.linalg.norm(d, axis=-1)
-        lam = res.multipliers
-        u_terms = (
-            jnp.linalg.norm(u, axis=-1) + jnp.abs(lam[..., 0]) * bn + jnp.abs(lam[..., 1]) * dn
-        )
-        tol_v = SATISFIED_RTOL * (jnp.abs(A) + bn * u_terms)
-        tol_h = SATISFIED_RTOL * (jnp.abs(B) + dn * u_terms)
+        clf_ok, cbf_ok = condition_flags(a, b, c, d, u, mg, p["kappa"], p["rho"], SATISFIED_RTOL)
+        finite_out = jnp.all(jnp.isfinite(res.u), -1) & jnp.isfinite(res.slack)
+        status = jnp.where(
+            (status == StepStatus.OK) & ~finite_out, StepStatus.NONFINITE_INPUT, status
+        ).astype(jnp.int32)
+        ok = status == StepStatus.OK
+        nan = jnp.full_like(u, jnp.nan)
         return ControlOutput(
-            u=u,
-            u_unconstrained=res.u,
+            u=jnp.where(ok[..., None], u, nan),
+            u_unconstrained=jnp.where(ok[..., None], res.u, nan),
             region=res.region,
-            compatible=comp.compatible,
-            cbf_satisfied=du - B >= -tol_h,
-            clf_satisfied=bu + A <= tol_v,
+            compatible=ok & (hard.case > 0),
+            cbf_satisfied=ok & cbf_ok,
+            clf_satisfied=ok & clf_ok,
             slack=res.slack,
+            status=status,
             terms=terms,
         )
 
     # -- public, checked entry points ---------------------------------------------------
+
+    def diagnose(self, x: Any) -> str:
+        """Name the parts of the model that are not finite (or invalid) at one state ``x``.
+
+        Evaluates ``f``, ``g``, ``V``, ``h``, their gradients and the uncertainty model at
+        ``x`` (shape (n,)) eagerly; for messages and debugging.
+        """
+        x = jnp.asarray(x, dtype=float)
+        parts = {
+            "x": x,
+            "f(x)": self.system.f(x),
+            "g(x)": self.system.g(x),
+            "V(x)": self.clf.fn(x),
+            "grad V(x)": self.clf.grad(x),
+            "h(x)": self.cbf.fn(x),
+            "grad h(x)": self.cbf.grad(x),
+        }
+        if self.uncertainty is not None:
+            mean, std = self.uncertainty.mean_std(x)
+            parts["uncertainty mean"] = mean
+            parts["uncertainty std"] = std
+        bad = [name for name, val in parts.items() if not bool(np.all(np.isfinite(val)))]
+        if self.uncertainty is not None and bool(np.any(np.asarray(parts["uncertainty std"]) < 0)):
+            bad.append("uncertainty std (negative)")
+        return ", ".join(bad) if bad else "none"
+
+    def _raise_for_status(self, x: jax.Array, out: ControlOutput, strict: bool) -> None:
+        status = np.atleast_1d(np.asarray(out.status))
+        xs = np.asarray(x).reshape((-1, self.system.n_states))
+        flat = status.reshape(-1)
+        neg = np.flatnonzero(flat == StepStatus.NEGATIVE_STD)
+        if neg.size:
+            i = int(neg[0])
+            raise ModelError(
+                f"the uncertainty model returned a negative standard deviation at state index "
+                f"{i} (x = {xs[i].tolist()}); a standard deviation must be >= 0"
+            )
+        if not strict:
+            return
+        badi = np.flatnonzero(flat != StepStatus.OK)
+        if badi.size:
+            i = int(badi[0])
+            name = StepStatus(int(flat[i])).name
+            raise NonFiniteError(
+                f"controller step failed with status {name} at state index {i} "
+                f"(x = {xs[i].tolist()}); not finite: {self.diagnose(xs[i])}"
+            )
+        infeasible = np.asarray(out.region == Region.INCOMPATIBLE) | ~np.asarray(out.cbf_satisfied)
+        if np.any(infeasible):
+            idx = np.argwhere(np.atleast_1d(infeasible))[0].tolist()
+            region = Region(int(np.atleast_1d(np.asarray(out.region))[tuple(idx)])).name
+            raise InfeasibleError(
+                f"the CBF condition cannot be met at state index {idx} (region {region}); "
+                "use slack_weight for the relaxed formula or relax the input limits"
+            )
 
     def step(self, x: Any, *, strict: bool = False) -> ControlOutput:
         """Compute the input and its diagnostics at states ``x`` of shape (..., n).
@@ -249,8 +370,9 @@ class UniversalController:
         ----------
         x : array of shape (..., n)
         strict : bool
-            Raise :class:`~safestab.errors.InfeasibleError` if at some state the formula's
-            conditions are incompatible or the applied input violates the CBF condition.
+            Raise if at some state the step did not produce a finite input (naming the cause
+            and the non-finite parts of the model), the conditions are incompatible, or the
+            applied input violates the CBF condition.
 
         Returns
         -------
@@ -258,24 +380,22 @@ class UniversalController:
 
         Raises
         ------
+        InputTypeError
+            If ``x`` is bool, complex or a string.
         DimensionError
             If ``x`` has the wrong last axis.
         NonFiniteError
-            If ``x`` contains NaN or inf.
+            If ``x`` contains NaN or inf; with ``strict=True``, if a step's status is not OK.
+        ModelError
+            If the uncertainty model returns a negative standard deviation (always).
         InfeasibleError
-            With ``strict=True``, as above.
+            With ``strict=True``, if the conditions are incompatible or the CBF condition is
+            violated by the applied input.
         """
+        check_real("x", x)
         x = self.system.check_state(x)
         out = self.step_fn(x)
-        if strict:
-            bad = np.asarray(out.region == Region.INCOMPATIBLE) | ~np.asarray(out.cbf_satisfied)
-            if np.any(bad):
-                idx = np.argwhere(np.atleast_1d(bad))[0].tolist()
-                raise InfeasibleError(
-                    f"the CBF condition cannot be met at state index {idx} "
-                    f"(region {Region(int(np.atleast_1d(out.region)[tuple(idx)])).name}); "
-                    "use slack_weight for the relaxed formula or relax the input limits"
-                )
+        self._raise_for_status(x, out, strict)
         return out
 
     def __call__(self, x: Any) -> jax.Array:

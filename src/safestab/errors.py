@@ -14,6 +14,8 @@ __all__ = [
     "NumericalError",
     "ScenarioError",
     "InfeasibleError",
+    "InputTypeError",
+    "ModelError",
 ]
 
 
@@ -43,3 +45,11 @@ class ScenarioError(SafeStabError, ValueError):
 
 class InfeasibleError(SafeStabError, RuntimeError):
     """No input satisfies the requested conditions and ``strict=True`` was asked for."""
+
+
+class InputTypeError(SafeStabError, TypeError):
+    """An argument has the wrong type: a bool, complex or string array, or a list for an array."""
+
+
+class ModelError(SafeStabError, ValueError):
+    """A user-supplied model returned an invalid value (a negative standard deviation, say)."""

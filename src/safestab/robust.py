@@ -15,7 +15,8 @@ import numpy as np
 from ._validation import check_scalar_range, is_concrete
 from .certificates import LieTerms
 from .errors import DimensionError, ParameterError
-from .formulas import DEFAULT_PARALLEL_RTOL, _compatibility, _gram
+from .formulas import DEFAULT_PARALLEL_RTOL
+from .formulas._kernels import compatibility_case, parallel
 
 __all__ = [
     "UncertaintyModel",
@@ -224,10 +225,12 @@ def probabilistic_compatibility(
     """
     a, b, c, d = terms
     dV, dh = margins
-    bb, bd, dd, det = _gram(b, d)
-    nominal = _compatibility(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol)
-    robust = _compatibility(a + dV, b, c + dh, d, kappa, rho, phi, varphi, parallel_rtol)
-    parallel = (bb > 0) & (dd > 0) & (det <= parallel_rtol * bb * dd)
+    bb = jnp.sum(b * b, -1)
+    dd = jnp.sum(d * d, -1)
+    bd = jnp.sum(b * d, -1)
+    nominal = compatibility_case(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol) > 0
+    robust = compatibility_case(a + dV, b, c + dh, d, kappa, rho, phi, varphi, parallel_rtol) > 0
+    is_parallel = parallel(b, d, parallel_rtol)
     clf_cond = dV * bd - dh * bb >= 0
     cbf_cond = dV * dd - dh * bd >= 0
     prob = float("nan")
@@ -236,11 +239,11 @@ def probabilistic_compatibility(
             raise ParameterError("n_components is required with delta")
         prob = joint_probability(delta, n_components)
     return ProbabilisticCompatibility(
-        nominal_compatible=nominal.compatible,
-        parallel=parallel,
+        nominal_compatible=nominal,
+        parallel=is_parallel,
         clf_condition=clf_cond,
         cbf_condition=cbf_cond,
-        lemma4=nominal.compatible & clf_cond & cbf_cond,
-        updated=robust.compatible,
+        lemma4=nominal & clf_cond & cbf_cond,
+        updated=robust,
         probability=prob,
     )

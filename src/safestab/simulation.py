@@ -10,13 +10,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._validation import check_scalar_range
-from .controllers import UniversalController
-from .errors import DimensionError, InfeasibleError
+from ._validation import check_real, check_scalar_range
+from .controllers import StepStatus, UniversalController
+from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import Region
 from .systems import ControlAffineSystem
 
-__all__ = ["Trajectory", "rk4_step", "simulate"]
+__all__ = ["Trajectory", "rk4_step", "simulate", "MAX_STEPS"]
+
+#: The most steps one call of :func:`simulate` takes (``t_final / dt``); beyond it the request is
+#: almost certainly a unit mistake, and the history would not fit in memory with a batch.
+MAX_STEPS = 10_000_000
+#: The largest history :func:`simulate` allocates (states, inputs and diagnostics), bytes.
+MAX_HISTORY_BYTES = 8 * 2**30
 
 Exogenous = Callable[[jax.Array], jax.Array]
 
@@ -53,6 +59,9 @@ class Trajectory:
         Compatibility of the conditions the controller used, per step.
     cbf_satisfied : bool array of shape (..., T)
         Whether the applied input met the controller's CBF condition.
+    status : int array of shape (..., T)
+        :class:`~safestab.controllers.StepStatus` per step: ``NONFINITE_STATE`` from the first
+        step whose state is not finite (a diverging plant), or the controller's own status.
     """
 
     t: jax.Array
@@ -63,11 +72,43 @@ class Trajectory:
     region: jax.Array
     compatible: jax.Array
     cbf_satisfied: jax.Array
+    status: jax.Array
 
     @property
     def infeasible_steps(self) -> int:
         """Number of steps where the formula met no compatible conditions (all batches)."""
         return int(np.sum(np.asarray(self.region) == Region.INCOMPATIBLE))
+
+    @property
+    def ok(self) -> bool:
+        """True when every step of every trajectory has status ``OK``."""
+        return bool(np.all(np.asarray(self.status) == StepStatus.OK))
+
+    @property
+    def first_failure_index(self) -> np.ndarray:
+        """Index of the first step whose status is not OK, per trajectory (-1 if none).
+
+        An int array of the batch shape (a 0-d array for a single trajectory).
+        """
+        bad = np.asarray(self.status) != StepStatus.OK
+        first = np.argmax(bad, axis=-1)
+        return np.where(np.any(bad, axis=-1), first, -1)
+
+    def failure_summary(self) -> str:
+        """One line naming the first failing step (status and time), or ``"ok"``."""
+        status = np.asarray(self.status)
+        bad = status != StepStatus.OK
+        if not np.any(bad):
+            return "ok"
+        flat = status.reshape(-1, status.shape[-1])
+        badf = bad.reshape(-1, status.shape[-1])
+        # the earliest failure over the batch
+        firsts = np.where(badf.any(-1), badf.argmax(-1), status.shape[-1])
+        traj = int(np.argmin(firsts))
+        k = int(firsts[traj])
+        t = float(np.asarray(self.t)[k])
+        where = f"trajectory {traj}, " if status.ndim > 1 else ""
+        return f"{StepStatus(int(flat[traj, k])).name} first at {where}step {k} (t = {t:g} s)"
 
 
 jax.tree_util.register_dataclass(
@@ -90,12 +131,13 @@ def _closed_loop(controller, plant, exogenous, n_steps, dt):
         t = k * dt
         out, vals = record(x)
         x_next = rk4_step(lambda s, y: rhs(s, y, out.u), t, x, dt)
-        return x_next, (x, out.u, vals, out.region, out.compatible, out.cbf_satisfied)
+        hist = (x, out.u, vals, out.region, out.compatible, out.cbf_satisfied, out.status)
+        return x_next, hist
 
     def run(x0):
         x_final, hist = jax.lax.scan(body, x0, jnp.arange(n_steps))
         out, vals = record(x_final)
-        xs, us, (Vs, hs), regions, comps, sats = hist
+        xs, us, (Vs, hs), regions, comps, sats, stats = hist
 
         def cat(a, b):
             return jnp.concatenate([a, b[None]], 0)
@@ -108,6 +150,7 @@ def _closed_loop(controller, plant, exogenous, n_steps, dt):
             cat(regions, out.region),
             cat(comps, out.compatible),
             cat(sats, out.cbf_satisfied),
+            cat(stats, out.status),
         )
 
     return run
@@ -134,17 +177,18 @@ def simulate(
     controller : UniversalController
     x0 : array of shape (n,) or (batch, n)
     t_final : float
-        Horizon, s; ``round(t_final / dt)`` steps.
+        Horizon, s, at least ``dt``; ``round(t_final / dt)`` steps, at most :data:`MAX_STEPS`.
     dt : float
         Step, s (default 0.01).
     plant : ControlAffineSystem, optional
         The true system to integrate; defaults to the controller's own model.
     exogenous : callable, optional
         A known time-dependent term ``e(t)`` of shape (n,) added to the plant's dynamics (for
-        example the lead vehicle's acceleration in the ACC study).
+        example the lead vehicle's acceleration in the ACC study); ``t`` is a scalar, s.
     strict : bool
-        Raise :class:`~safestab.errors.InfeasibleError` if some step was infeasible or lost
-        the CBF condition, instead of only recording it.
+        Raise if some step was not finite (:class:`~safestab.errors.NonFiniteError`, naming
+        the status and the time it first occurred), infeasible or lost the CBF condition
+        (:class:`~safestab.errors.InfeasibleError`), instead of only recording it.
 
     Returns
     -------
@@ -153,27 +197,67 @@ def simulate(
     Raises
     ------
     ParameterError
-        If ``t_final`` or ``dt`` is not positive.
+        If ``t_final`` or ``dt`` is not positive, ``t_final < dt``, or the step count or the
+        history's size is absurd.
     DimensionError, NonFiniteError
-        If ``x0`` has the wrong shape or is not finite.
-    InfeasibleError
+        If ``x0`` has the wrong shape or is not finite, or ``exogenous`` does not return
+        shape (n,).
+    ModelError
+        If the uncertainty model returned a negative standard deviation during the run.
+    NonFiniteError, InfeasibleError
         With ``strict=True``, as above.
+
+    Notes
+    -----
+    A state that stops being finite (a diverging plant) is not an error: the trajectory
+    records status ``NONFINITE_STATE`` from that step on, and :meth:`Trajectory.failure_summary`
+    names the first one.
     """
+    for name, value in (("t_final", t_final), ("dt", dt)):
+        check_real(name, value)
+        if np.ndim(value) != 0:
+            raise DimensionError(f"{name} must be a scalar, got shape {np.shape(value)}")
     check_scalar_range("t_final", t_final, lower=0.0, strict_lower=True)
     check_scalar_range("dt", dt, lower=0.0, strict_lower=True)
+    if t_final < dt:
+        raise ParameterError(
+            f"t_final must be >= dt (at least one step), got t_final={t_final!r} and dt={dt!r}"
+        )
+    n_steps_float = float(t_final) / float(dt)
+    if n_steps_float > MAX_STEPS:
+        raise ParameterError(
+            f"t_final / dt must be <= {MAX_STEPS} steps, got {n_steps_float:.3g} "
+            f"(t_final={t_final!r} s, dt={dt!r} s); check the units"
+        )
     plant = plant or controller.system
     if plant.n_states != controller.system.n_states or plant.n_inputs != controller.system.n_inputs:
         raise DimensionError(
             f"plant dimensions (n={plant.n_states}, m={plant.n_inputs}) differ from the "
             f"controller's model (n={controller.system.n_states}, m={controller.system.n_inputs})"
         )
+    check_real("x0", x0)
     x0 = controller.system.check_state(x0, "x0")
     if x0.ndim > 2:
         raise DimensionError(f"x0 must have shape (n,) or (batch, n), got shape {x0.shape}")
-    n_steps = int(round(t_final / dt))
+    n = controller.system.n_states
+    if exogenous is not None:
+        if not callable(exogenous):
+            raise TypeError("exogenous must be a callable e(t) returning shape (n,)")
+        probe = jax.ShapeDtypeStruct((), jnp.float64)
+        shape = getattr(jax.eval_shape(exogenous, probe), "shape", None)
+        if shape != (n,):
+            raise DimensionError(f"exogenous(t) must return shape ({n},), got {shape}")
+    n_steps = int(round(n_steps_float))
+    batch = x0.shape[0] if x0.ndim == 2 else 1
+    history = (n_steps + 1) * batch * (2 * n + 2 * controller.system.n_inputs + 8) * 8
+    if history > MAX_HISTORY_BYTES:
+        raise ParameterError(
+            f"the history would take {history / 2**30:.1f} GiB (> {MAX_HISTORY_BYTES / 2**30:.0f}"
+            f" GiB): {n_steps} steps x {batch} trajectories; use fewer steps or a smaller batch"
+        )
     run = _closed_loop(controller, plant, exogenous, n_steps, float(dt))
     fn = jax.jit(jax.vmap(run) if x0.ndim == 2 else run)
-    xs, us, Vs, hs, regions, comps, sats = fn(x0)
+    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0)
     traj = Trajectory(
         t=jnp.arange(n_steps + 1) * dt,
         x=xs,
@@ -183,7 +267,15 @@ def simulate(
         region=regions,
         compatible=comps,
         cbf_satisfied=sats,
+        status=stats,
     )
+    if np.any(np.asarray(stats) == StepStatus.NEGATIVE_STD):
+        raise ModelError(
+            "the uncertainty model returned a negative standard deviation during the run: "
+            f"{traj.failure_summary()}"
+        )
+    if strict and not traj.ok:
+        raise NonFiniteError(f"the closed loop stopped being finite: {traj.failure_summary()}")
     if strict and (traj.infeasible_steps or not bool(np.all(np.asarray(sats)))):
         raise InfeasibleError(
             f"{traj.infeasible_steps} infeasible steps and "

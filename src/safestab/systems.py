@@ -11,9 +11,28 @@ import numpy as np
 
 from ._batching import as_float_array, over_batch
 from ._validation import check_finite, is_concrete
-from .errors import DimensionError
+from .errors import DimensionError, InputTypeError
 
 __all__ = ["ControlAffineSystem"]
+
+
+def _traced_array_shape(name: str, fn: Callable, probe: jax.ShapeDtypeStruct) -> tuple[int, ...]:
+    """Trace ``fn`` on ``probe`` and return its output shape, requiring one real array.
+
+    Raises
+    ------
+    InputTypeError
+        If ``fn`` returns a list, tuple or other container, or a non-real dtype.
+    """
+    out = jax.eval_shape(fn, probe)
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        raise InputTypeError(
+            f"{name} must return one JAX array (use jnp.array([...]) or jnp.stack), "
+            f"got {type(out).__name__}"
+        )
+    if np.dtype(out.dtype).kind not in "iuf":
+        raise InputTypeError(f"{name} must return a real array, got dtype {out.dtype}")
+    return tuple(out.shape)
 
 
 class ControlAffineSystem:
@@ -61,12 +80,12 @@ class ControlAffineSystem:
         if not callable(f) or not callable(g):
             raise TypeError("f and g must be callables taking a state of shape (n,)")
         probe = jax.ShapeDtypeStruct((int(n_states),), jnp.float64)
-        f_shape = jax.eval_shape(f, probe).shape
+        f_shape = _traced_array_shape("f", f, probe)
         if f_shape != (n_states,):
             raise DimensionError(
                 f"f must return shape (n_states,) = ({n_states},), got shape {f_shape}"
             )
-        g_shape = jax.eval_shape(g, probe).shape
+        g_shape = _traced_array_shape("g", g, probe)
         if len(g_shape) != 2 or g_shape[0] != n_states or g_shape[1] < 1:
             raise DimensionError(
                 f"g must return shape (n_states, n_inputs) = ({n_states}, m), got shape {g_shape}"

@@ -1,0 +1,58 @@
+"""Closed-form universal formulas over the Lie terms ``(a, b, c, d)``.
+
+Every formula here is a pure, jittable function of batched arrays. Nothing here knows about
+systems, certificates or Gaussian processes: callers compute
+
+* ``a = L_f V + lambda V`` and ``b = L_g V`` (CLF side), shapes ``(...,)`` and ``(..., m)``,
+* ``c = L_f h + beta h`` and ``d = L_g h`` (CBF side), shapes ``(...,)`` and ``(..., m)``,
+
+and pass them in. See ``docs/theory.md`` for the derivations.
+
+Notation used throughout (the paper's, with the corrections listed in ``docs/theory.md``)::
+
+    zeta  = sqrt(a^2 + phi |b|^4)        Gamma = sqrt(c^2 + varphi |d|^4)
+    A     = a + kappa zeta               B     = rho Gamma - c
+    CLF condition:  b u <= -A            CBF condition:  d u >= B
+
+The package has one idea per module: ``single`` (Sontag's CLF formula and the CBF formula),
+``two_constraint`` (the combined and relaxed formulas), ``compat`` (Lemma 1), ``limits``
+(input limits), ``certificate`` (KKT residuals and the condition flags) and ``results`` (the
+result types). The public functions check their arguments and call the unchecked kernels of
+the internal module ``_kernels``, which the controllers call as well.
+"""
+
+from ._kernels import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL
+from .certificate import conditions_satisfied, kkt_residuals
+from .compat import compatibility
+from .limits import project_box, saturate_safety_first
+from .results import (
+    Compatibility,
+    CompatibilityCase,
+    ConditionFlags,
+    FormulaResult,
+    KKTResiduals,
+    Region,
+)
+from .single import cbf_universal, clf_sontag, zeta
+from .two_constraint import clf_cbf, clf_cbf_relaxed
+
+__all__ = [
+    "DEFAULT_PARALLEL_RTOL",
+    "SATISFIED_RTOL",
+    "Region",
+    "CompatibilityCase",
+    "FormulaResult",
+    "Compatibility",
+    "KKTResiduals",
+    "ConditionFlags",
+    "zeta",
+    "clf_sontag",
+    "cbf_universal",
+    "clf_cbf",
+    "clf_cbf_relaxed",
+    "compatibility",
+    "project_box",
+    "saturate_safety_first",
+    "kkt_residuals",
+    "conditions_satisfied",
+]

@@ -1,0 +1,136 @@
+"""Argument checks of the public formulas (run eagerly, before anything is traced)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._validation import (
+    check_finite,
+    check_fits_batch,
+    check_no_broadcast_growth,
+    check_real,
+    check_scalar_range,
+    is_concrete,
+)
+from ..errors import DimensionError, NumericalError, ParameterError
+
+__all__ = ["check_lie_terms", "check_params", "check_box", "as_float", "check_output_finite"]
+
+
+def check_lie_terms(
+    a: Any, b: Any, c: Any = None, d: Any = None, names: tuple[str, ...] = ("a", "b", "c", "d")
+) -> tuple[int, ...]:
+    """Check the Lie terms and return their common batch shape.
+
+    ``names`` are used in messages (``("c", "d")`` when only the CBF pair is passed as
+    ``a, b``).
+
+    Raises
+    ------
+    InputTypeError
+        If a term is bool, complex, a string or not an array.
+    DimensionError
+        If ``b`` or ``d`` is a scalar, their last axes differ, or the batch shapes do not
+        broadcast or broadcast into a bigger batch.
+    NonFiniteError
+        If a term contains NaN or inf.
+    """
+    pairs = [(names[0], a, names[1], b)]
+    if c is not None:
+        pairs.append((names[2], c, names[3], d))
+    arg_names: list[str] = []
+    shapes: list[tuple[int, ...]] = []
+    for sname, s, vname, v in pairs:
+        check_real(sname, s)
+        check_real(vname, v)
+        vshape = np.shape(v)
+        if len(vshape) == 0:
+            raise DimensionError(f"{vname} must have shape (..., m), got a scalar")
+        arg_names += [sname, vname]
+        shapes += [tuple(np.shape(s)), tuple(vshape[:-1])]
+    if c is not None and np.shape(b)[-1] != np.shape(d)[-1]:
+        raise DimensionError(
+            f"{names[1]} and {names[3]} must have the same last axis (the input dimension m), "
+            f"got {names[1]} shape {np.shape(b)} and {names[3]} shape {np.shape(d)}"
+        )
+    batch = check_no_broadcast_growth(tuple(arg_names), tuple(shapes))
+    for sname, s, vname, v in pairs:
+        check_finite(sname, s)
+        check_finite(vname, v)
+    return batch
+
+
+def check_params(batch: tuple[int, ...] | None = None, **params: Any) -> None:
+    """Check formula parameters: real, finite, in range, and (given ``batch``) shaped to fit.
+
+    ``slack_weight`` must be > 0, ``parallel_rtol`` in [0, 1], every other parameter >= 0.
+
+    Raises
+    ------
+    InputTypeError, NonFiniteError, ParameterError, DimensionError
+    """
+    for name, value in params.items():
+        check_real(name, value)
+        if name == "slack_weight":
+            check_scalar_range(name, value, lower=0.0, strict_lower=True)
+        elif name == "parallel_rtol":
+            check_scalar_range(name, value, lower=0.0, upper=1.0)
+            if np.ndim(value) != 0:
+                raise DimensionError(f"parallel_rtol must be a scalar, got shape {np.shape(value)}")
+        else:
+            check_scalar_range(name, value, lower=0.0)
+        if batch is not None:
+            check_fits_batch(name, value, batch)
+
+
+def check_box(u_min: Any, u_max: Any, shape: tuple[int, ...] | None = None) -> None:
+    """Check input bounds: real, finite, ``u_min <= u_max``, and (given) fitting ``shape``.
+
+    Raises
+    ------
+    InputTypeError, NonFiniteError, ParameterError, DimensionError
+    """
+    for name, value in (("u_min", u_min), ("u_max", u_max)):
+        check_real(name, value)
+        check_finite(name, value)
+        if shape is not None:
+            check_fits_batch(name, value, shape, what="input u")
+    if is_concrete(u_min, u_max):
+        lo, hi = np.asarray(u_min, float), np.asarray(u_max, float)
+        try:
+            bad = lo > hi
+        except ValueError:
+            raise DimensionError(
+                f"u_min and u_max must broadcast, got shapes {lo.shape} and {hi.shape}"
+            ) from None
+        if np.any(bad):
+            raise ParameterError(
+                f"u_min must be <= u_max elementwise, got u_min={lo.tolist()} "
+                f"and u_max={hi.tolist()}"
+            )
+
+
+def as_float(*xs: Any) -> tuple[Any, ...]:
+    """Return the arguments as float64 JAX arrays."""
+    return tuple(jnp.asarray(x, dtype=float) for x in xs)
+
+
+def check_output_finite(function: str, **outputs: Any) -> None:
+    """Raise if a formula produced NaN or inf from finite input (its exact value overflows).
+
+    Raises
+    ------
+    NumericalError
+        Naming the output and the remedy (rescale the problem).
+    """
+    for name, value in outputs.items():
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            raise NumericalError(
+                f"{function}: the exact {name} is not representable in float64 (it overflows "
+                f"at {int(np.sum(~np.isfinite(arr)))} entries) although every input is finite; "
+                "rescale the problem (units of a, b, c, d or of the input)"
+            )

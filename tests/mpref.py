@@ -1,0 +1,172 @@
+"""A high-precision (mpmath) active-set reference for the two-constraint QPs.
+
+Independent of the library's algebra: it enumerates the four active sets of
+
+    min 1/2 |z|^2   s.t.   p.z <= -A,   q.z >= B
+
+in 80-digit arithmetic (z = (u, sqrt(m) chi), p = (b, -1/sqrt(m)), q = (d, 0) for the relaxed
+problem; p = b, q = d for the hard one) and returns the one whose KKT conditions hold exactly.
+The hard problem's parallel tolerance is part of its specification (``parallel_rtol``): a
+same-direction pair within it is compatible iff ``v <= 0``, and is otherwise reported
+incompatible with the safety-first fallback, as documented in safestab.formulas.
+"""
+
+from __future__ import annotations
+
+import mpmath as mp
+import numpy as np
+
+DPS = 80
+
+
+def _mp(x):
+    """Exact conversion of a float (or an mp number, kept as it is)."""
+    return x if isinstance(x, mp.mpf) else mp.mpf(float(x))
+
+
+def _seq(v):
+    return list(v) if isinstance(v, list) else list(np.atleast_1d(np.asarray(v, float)))
+
+
+def _dot(x, y):
+    return mp.fsum(xi * yi for xi, yi in zip(x, y, strict=True))
+
+
+def margins(a, b, c, d, kappa, rho, phi, varphi):
+    """Exact A = a + kappa zeta, B = rho Gamma - c, zeta, Gamma (mp numbers)."""
+    with mp.workdps(DPS):
+        a, c = _mp(a), _mp(c)
+        b = [_mp(x) for x in _seq(b)]
+        d = [_mp(x) for x in _seq(d)]
+        bb, dd = _dot(b, b), _dot(d, d)
+        zeta = mp.sqrt(a * a + _mp(phi) * bb * bb)
+        gamma = mp.sqrt(c * c + _mp(varphi) * dd * dd)
+        return a + _mp(kappa) * zeta, _mp(rho) * gamma - c, zeta, gamma
+
+
+def solve(a, b, c, d, *, kappa, rho, phi, varphi, slack_weight=None, parallel_rtol=1e-12):
+    """Return (u as mp list, chi, region, ratio) for the formula's QP; region as in Region.
+
+    ``ratio`` is ``det / (|p|^2 |q|^2)`` of the rows (to skip cases on the tolerance's edge).
+    """
+    with mp.workdps(DPS):
+        A, B, _, _ = margins(a, b, c, d, kappa, rho, phi, varphi)
+        bu = [_mp(x) for x in _seq(b)]
+        du = [_mp(x) for x in _seq(d)]
+        m = len(bu)
+        if slack_weight is None:
+            p, q = bu, du
+        else:
+            s = 1 / mp.sqrt(_mp(slack_weight))
+            p, q = bu + [-s], du + [mp.mpf(0)]
+        pp, qq, pq = _dot(p, p), _dot(q, q), _dot(p, q)
+        det = pp * qq - pq * pq
+        ratio = det / (pp * qq) if pp > 0 and qq > 0 else mp.mpf(1)
+        zero = [mp.mpf(0)] * len(p)
+
+        tiny = mp.mpf(10) ** (20 - DPS)  # 80-digit rounding of the active rows, with room
+
+        norm_p, norm_q = mp.sqrt(pp), mp.sqrt(qq)
+
+        def feasible(z, mag):
+            # z was assembled from terms of size mag (|mu1||p| + |mu2||q|): its 80-digit
+            # rounding is relative to those, not to z itself
+            scale = abs(A) + abs(B) + mag * (norm_p + norm_q)
+            return _dot(p, z) + A <= tiny * scale and _dot(q, z) - B >= -tiny * scale
+
+        candidates = []
+        candidates.append((4, zero, mp.mpf(0), mp.mpf(0)))
+        if pp > 0 and A >= 0:
+            candidates.append((1, [-A / pp * x for x in p], A / pp, abs(A) / norm_p))
+        if qq > 0 and B >= 0:
+            candidates.append((2, [B / qq * x for x in q], mp.mpf(0), abs(B) / norm_q))
+        if det > 0:
+            mu1 = (A * qq + B * pq) / det
+            mu2 = (A * pq + B * pp) / det
+            if mu1 >= 0 and mu2 >= 0:
+                z3 = [-mu1 * x + mu2 * y for x, y in zip(p, q, strict=True)]
+                candidates.append((3, z3, mu1, mu1 * norm_p + mu2 * norm_q))
+        region, z, mu1 = 0, None, mp.mpf(0)
+        for reg, cand, mu, mag in candidates:
+            if feasible(cand, mag):
+                region, z, mu1 = reg, cand, mu
+                break
+        same_parallel = slack_weight is None and pq > 0 and det <= parallel_rtol * pp * qq
+        if same_parallel and A * pq + B * pp > 0:
+            region, z = 0, None  # the documented tolerance decision
+        if z is None:  # safety-first fallback
+            if qq > 0:
+                z = [max(B, 0) / qq * y for y in q]
+                mu1 = mp.mpf(0)
+            elif pp > 0:
+                mu1 = max(A, 0) / pp
+                z = [-mu1 * x for x in p]
+            else:
+                z = zero
+        u = z[:m]
+        chi = mu1 / _mp(slack_weight) if slack_weight is not None else mp.mpf(0)
+        return u, chi, region, ratio
+
+
+def rel_error(u_float, u_ref):
+    """|u - u_ref| / |u_ref| in high precision (absolute when u_ref = 0)."""
+    with mp.workdps(DPS):
+        diff = mp.sqrt(mp.fsum((_mp(x) - y) ** 2 for x, y in zip(u_float, u_ref, strict=True)))
+        nref = mp.sqrt(mp.fsum(y * y for y in u_ref))
+        return float(diff / nref) if nref > 0 else float(diff)
+
+
+def condition_estimate(a, b, c, d, params, slack_weight=None, parallel_rtol=1e-12, samples=6,
+                       seed=0):
+    """Relative condition number of u, estimated by random relative perturbations of size 1e-30.
+
+    Every scalar of the problem (a, b, c, d, the parameters and the slack weight) is perturbed
+    by ``(1 + 1e-30 r)`` with independent signs ``r``; the estimate is the largest
+    ``|du| / (1e-30 |u|)`` over ``samples`` draws (at least 1).
+    """
+    rng = np.random.default_rng(seed)
+    eps = mp.mpf("1e-30")
+    with mp.workdps(DPS):
+        u0, _, _, _ = solve(a, b, c, d, slack_weight=slack_weight, parallel_rtol=parallel_rtol,
+                            **params)
+        n0 = mp.sqrt(mp.fsum(x * x for x in u0))
+        best = mp.mpf(1)
+        b = np.atleast_1d(np.asarray(b, float))
+        d = np.atleast_1d(np.asarray(d, float))
+        for _ in range(samples):
+
+            def pert(x):
+                return _mp(x) * (1 + eps * int(rng.choice([-1, 1])))
+
+            args = dict(
+                a=pert(a), b=[pert(x) for x in b], c=pert(c), d=[pert(x) for x in d],
+            )
+            par = {k: pert(v) for k, v in params.items()}
+            sw = None if slack_weight is None else pert(slack_weight)
+            u1, _, _, _ = solve(**args, slack_weight=sw, parallel_rtol=parallel_rtol, **par)
+            du = mp.sqrt(mp.fsum((x - y) ** 2 for x, y in zip(u1, u0, strict=True)))
+            if n0 > 0:
+                best = max(best, du / (eps * n0))
+        return float(best)
+
+
+def cbf_residual(c, d, u, rho, varphi):
+    """Exact ``c + d.u - rho Gamma`` and the scale ``|c| + rho Gamma + sum |d_i u_i|``."""
+    with mp.workdps(DPS):
+        du = [_mp(x) * _mp(y) for x, y in zip(np.atleast_1d(d), np.atleast_1d(u), strict=True)]
+        dd = mp.fsum(_mp(x) ** 2 for x in np.atleast_1d(d))
+        gamma = mp.sqrt(_mp(c) ** 2 + _mp(varphi) * dd * dd)
+        res = _mp(c) + mp.fsum(du) - _mp(rho) * gamma
+        scale = abs(_mp(c)) + _mp(rho) * gamma + mp.fsum(abs(x) for x in du)
+        return float(res), float(scale)
+
+
+def clf_residual(a, b, u, kappa, phi):
+    """Exact ``a + b.u + kappa zeta`` and the scale ``|a| + kappa zeta + sum |b_i u_i|``."""
+    with mp.workdps(DPS):
+        bu = [_mp(x) * _mp(y) for x, y in zip(np.atleast_1d(b), np.atleast_1d(u), strict=True)]
+        bb = mp.fsum(_mp(x) ** 2 for x in np.atleast_1d(b))
+        zeta = mp.sqrt(_mp(a) ** 2 + _mp(phi) * bb * bb)
+        res = _mp(a) + mp.fsum(bu) + _mp(kappa) * zeta
+        scale = abs(_mp(a)) + _mp(kappa) * zeta + mp.fsum(abs(x) for x in bu)
+        return float(res), float(scale)

@@ -14,6 +14,7 @@ __all__ = [
     "NumericalError",
     "ScenarioError",
     "InfeasibleError",
+    "OutputError",
 ]
 
 
@@ -43,3 +44,7 @@ class ScenarioError(SafeStabError, ValueError):
 
 class InfeasibleError(SafeStabError, RuntimeError):
     """No input satisfies the requested conditions and ``strict=True`` was asked for."""
+
+
+class OutputError(SafeStabError, OSError):
+    """An output cannot be written: the folder is missing, not a folder, or not writable."""

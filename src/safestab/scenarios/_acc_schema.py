@@ -28,12 +28,15 @@ class ScenarioLimits:
     ----------
     max_steps : int
         Most simulation steps ``round(t_final / dt)``, and most samples per excitation
-        trajectory ``round(sample_horizon * sample_rate)``. A million steps of the three
-        controllers take seconds to minutes and about 0.5 GB of trajectory history.
+        trajectory ``round(sample_horizon * sample_rate)``. A trajectory's history takes about
+        70 bytes per step (0.2 GB for the study's three runs at the limit); the GP-corrected
+        run costs about 5 ms per step at ``Q = 2000`` on 2 cores (docs/acc.md), so the limit
+        allows runs of an hour or more but not the absurd ones (``t_final = 1e12``).
     max_n_samples : int
         Most GP samples ``Q`` (and ``hyper_subset``). The exact GP keeps a ``Q x Q`` Cholesky
-        factor per state component (3 for ACC, 0.8 GB each at ``Q = 10,000``) and builds a
-        ``Q x Q`` kernel matrix while factoring: about 3 GB in all at the limit.
+        factor per state component (3 for ACC, 0.8 GB each at ``Q = 10,000``): collecting
+        10,000 samples and fitting the GP peaked at 8.3 GB resident memory (about 5 minutes
+        on 2 cores). Before this limit ``n_samples = 10**12`` aborted the interpreter.
     min_gp_rows : int
         Fewest GP samples (and ``hyper_subset``): the GP fits ``n + 2 = 5`` hyperparameters
         per component and needs more rows than that; 10 leaves a small margin.

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import safestab as ss
-from safestab import ScenarioError
 from safestab.scenarios import load_scenario
 from safestab.scenarios.acc_study import run_study
 
@@ -42,46 +41,6 @@ def _paper_text():
     from importlib import resources
 
     return resources.files("safestab.scenarios").joinpath("paper.toml").read_text()
-
-
-@pytest.mark.parametrize(
-    "old, new, match",
-    [
-        ("mass = 1650.0", "mass = -1.0", r"vehicle.mass must be > 0, got -1.0"),
-        ("mass = 1650.0", 'mass = "heavy"', r"vehicle.mass must be float, got 'heavy'"),
-        ("kappa = 0.2\n", "", r"missing key controller.kappa"),
-        ("kappa = 0.2", "kappa = 0.2\nkapa = 1.0", r"unknown key controller.kapa"),
-        (
-            'input_units = "newton"',
-            'input_units = "lbf"',
-            r"controller.input_units must be 'newton' or 'normalized'",
-        ),
-        ("rho = 0.1", "rho = -0.1", r"controller.rho must be >= 0, got -0.1"),
-        ("n_samples = 2000", "n_samples = 2000.5", r"learning.n_samples must be int"),
-        (
-            "profile = [[8.0, 0.0], [18.0",
-            "profile = [[28.0, 0.0], [18.0",
-            r"lead.profile end times must increase",
-        ),
-        (
-            "x0_low = [10.0, 10.0, 20.0]",
-            "x0_low = [10.0, 10.0]",
-            r"learning.x0_low must be a list of 3 numbers",
-        ),
-        ("[simulation]", "[simulations]", r"unknown key 'simulations'"),
-        ("[initial]", "[initial\n", r"invalid TOML"),
-    ],
-)
-def test_toml_validation_names_the_key(tmp_path, old, new, match):
-    text = _paper_text()
-    assert old in text
-    with pytest.raises(ScenarioError, match=match):
-        load_scenario(_write(tmp_path, text.replace(old, new, 1)))
-
-
-def test_unknown_scenario():
-    with pytest.raises(ScenarioError, match=r"neither a preset"):
-        load_scenario("nope")
 
 
 def test_input_limits_through_projection(tmp_path):
@@ -143,7 +102,15 @@ def test_cli_smoke(tmp_path):
 
     img = matplotlib.image.imread(png)
     assert img.std() > 0.05  # not a blank canvas
-    doc = json.loads((out / "acc_stress_metrics.json").read_text())
+    def refuse(token):
+        raise AssertionError(f"JSON must not contain {token}")
+
+    doc = json.loads((out / "acc_stress_metrics.json").read_text(), parse_constant=refuse)
+    assert doc["status"] == "ok" and doc["non_finite"] == {}
+    assert doc["settings"] == {"seed": 1, "n_samples": 120, "t_final_s": 5.0, "dt_s": 0.01}
+    assert sorted(p.name for p in out.iterdir()) == [
+        "acc_stress.pdf", "acc_stress.png", "acc_stress_metrics.json",
+    ]  # fmt: skip  (no temporaries or probe files left behind)
     assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-corrected"}
     for m in doc["controllers"].values():
         for key in (
@@ -157,15 +124,6 @@ def test_cli_smoke(tmp_path):
         assert np.isfinite(m["min_h_m"]) and np.isfinite(m["rms_speed_error_mps"])
         assert abs(sum(m["region_fraction"].values()) - 1.0) < 1e-12
     assert "min h" in res.output and "GP held-out coverage" in res.output
-
-
-def test_cli_reports_bad_scenario(tmp_path):
-    from typer.testing import CliRunner
-
-    from safestab.cli import app
-
-    res = CliRunner().invoke(app, ["acc", "--scenario", str(tmp_path / "missing.toml")])
-    assert res.exit_code == 2 and "neither a preset" in res.output
 
 
 @pytest.mark.slow

@@ -1,8 +1,19 @@
-"""Command line: a thin front end over the public functions."""
+"""Command line: a thin front end over the public functions.
+
+Every command checks its inputs before any work: the scenario (every key, when the file is
+loaded), the command-line overrides (checked like the file) and the output folder (created if
+missing, and proved writable by creating and removing a probe file). Outputs are written all
+or none, each atomically (``safestab._io.write_all``): a failed run leaves the output folder
+as it was. An error prints one line, ``error: <class>: <message>``, to stderr and exits
+non-zero (2 for bad input, 1 for a failure during the run); ``--debug`` adds the traceback.
+"""
 
 from __future__ import annotations
 
+import traceback
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import typer
 
@@ -12,10 +23,35 @@ app = typer.Typer(
     help="safestab: safe stabilization with GP learning.",
 )
 
+T = TypeVar("T")
+
+#: Exit codes: bad input (scenario, options, output folder) and a failure during the run.
+EXIT_BAD_INPUT, EXIT_RUN_FAILED = 2, 1
+_MAX_MESSAGE = 400  # characters of an error message on the one line
+
 
 @app.callback()
 def _main() -> None:
     """Safe stabilization with closed-form CLF-CBF formulas and GP learning."""
+
+
+def _one_line(exc: BaseException) -> str:
+    """``<class>: <message>`` on one line (whitespace collapsed, long messages cut)."""
+    message = " ".join(str(exc).split())
+    if len(message) > _MAX_MESSAGE:
+        message = message[: _MAX_MESSAGE - 40] + " ... (cut; --debug shows all)"
+    return f"error: {type(exc).__name__}: {message}" if message else f"error: {type(exc).__name__}"
+
+
+def _guard(step: Callable[[], T], *, debug: bool, code: int) -> T:
+    """Run one step of a command; on an exception print one line (or the traceback) and exit."""
+    try:
+        return step()
+    except Exception as exc:
+        if debug:
+            typer.echo(traceback.format_exc().rstrip(), err=True)
+        typer.echo(_one_line(exc), err=True)
+        raise typer.Exit(code=code) from None
 
 
 @app.command()
@@ -25,8 +61,12 @@ def acc(
     seed: int | None = typer.Option(None, help="Seed for data collection and GP fitting."),
     n_samples: int | None = typer.Option(None, help="Override the number of GP samples Q."),
     t_final: float | None = typer.Option(None, help="Override the simulated horizon, s."),
+    debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
 ) -> None:
-    """Run the ACC study: collect data, fit the GP, simulate three controllers, write outputs."""
+    """Run the ACC study: collect data, fit the GP, simulate three controllers, write outputs.
+
+    Writes OUT/acc_<name>.png, .pdf and _metrics.json, all or none.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -35,36 +75,58 @@ def acc(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from .errors import ScenarioError
+    from ._io import ensure_writable_dir, figure_writer, json_writer, write_all
     from .plotting import plot_acc_study
-    from .scenarios import load_scenario
-    from .scenarios.acc_study import run_study
+    from .scenarios import acc_study, load_scenario
 
+    # -- checks, before any work ----------------------------------------------------------
+    def check_inputs():
+        overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
+        sc = load_scenario(scenario).replace(
+            **{k: v for k, v in overrides.items() if v is not None}
+        )
+        return sc, ensure_writable_dir(out, name="--out")
+
+    sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
+
+    # -- the study --------------------------------------------------------------------------
     console = Console(width=max(100, Console().width))
-    try:
-        sc = load_scenario(scenario)
-    except ScenarioError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(code=2) from None
-    out.mkdir(parents=True, exist_ok=True)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=False,
-    ) as progress:
-        task = progress.add_task("starting", total=1.0)
 
-        def report(message: str, fraction: float) -> None:
-            progress.update(task, description=message, completed=fraction)
+    def run():
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        ) as progress:
+            task = progress.add_task("starting", total=1.0)
 
-        result = run_study(sc, seed=seed, progress=report, n_samples=n_samples, t_final=t_final)
-    fig = plot_acc_study(result)
-    for ext in ("png", "pdf"):
-        fig.savefig(out / f"acc_{sc.name}.{ext}", dpi=200)
-    plt.close(fig)
-    result.write_metrics(out / f"acc_{sc.name}_metrics.json")
+            def report(message: str, fraction: float) -> None:
+                progress.update(task, description=message, completed=fraction)
+
+            return acc_study.run_study(sc, progress=report)
+
+    result = _guard(run, debug=debug, code=EXIT_RUN_FAILED)
+
+    # -- outputs, all or none ---------------------------------------------------------------
+    png, pdf = out_dir / f"acc_{sc.name}.png", out_dir / f"acc_{sc.name}.pdf"
+    metrics = out_dir / f"acc_{sc.name}_metrics.json"
+
+    def write():
+        fig = plot_acc_study(result)
+        try:
+            return write_all(
+                {
+                    png: figure_writer(fig, png, dpi=200),
+                    pdf: figure_writer(fig, pdf, dpi=200),
+                    metrics: json_writer(result.metrics_document()),
+                }
+            )
+        finally:
+            plt.close(fig)
+
+    written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
 
     table = Table(title=f"ACC study '{sc.name}' (Q = {len(result.dataset)})")
     columns = ("controller", "min h [m]", "h<0 [s]", "rms v_f-v_d", "max|h-h_true|", "incompat.")
@@ -86,7 +148,7 @@ def acc(
         f"{[round(float(c), 3) for c in cal.per_component]}, joint {cal.joint:.3f}; "
         f"RMSE {[float(f'{r:.2e}') for r in cal.rmse]} m/s^2"
     )
-    console.print(f"wrote {out}/acc_{sc.name}.png, .pdf and _metrics.json")
+    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
 
 
 if __name__ == "__main__":

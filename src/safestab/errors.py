@@ -16,6 +16,7 @@ __all__ = [
     "InfeasibleError",
     "InputTypeError",
     "ModelError",
+    "OutputError",
 ]
 
 
@@ -53,3 +54,7 @@ class InputTypeError(SafeStabError, TypeError):
 
 class ModelError(SafeStabError, ValueError):
     """A user-supplied model returned an invalid value (a negative standard deviation, say)."""
+
+
+class OutputError(SafeStabError, OSError):
+    """An output cannot be written: the folder is missing, not a folder, or not writable."""

@@ -27,8 +27,9 @@ import jax.numpy as jnp
 from ..certificates import CBF, CLF, LieTerms
 from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
+from ._acc_schema import FIELDS, LIMITS, ScenarioLimits, check_structure, check_values
 
-__all__ = ["ACCScenario", "load_scenario", "PRESETS"]
+__all__ = ["ACCScenario", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits"]
 
 PRESETS = ("paper", "stress")
 
@@ -46,7 +47,16 @@ class Drag:
 class ACCScenario:
     """All parameters of one ACC study; built from a TOML file by :func:`load_scenario`.
 
-    Units: masses kg, speeds m/s, distances m, times s, forces N.
+    Units: masses kg, speeds m/s, distances m, times s, forces N. Every field is checked
+    when the object is made (by the loader, the constructor or :meth:`replace`), with the
+    bounds of docs/acc.md ("Scenario files") and :data:`LIMITS`.
+
+    Raises
+    ------
+    ScenarioError
+        If a field has the wrong type, is not finite or is out of range; the message names
+        the key with its table path as in the TOML file (``learning.seed``), what was
+        received and what was expected.
     """
 
     name: str
@@ -82,6 +92,24 @@ class ACCScenario:
     excitation_limit: float  # fraction of M g spanned by the excitation
     hyper_subset: int  # rows used to fit GP hyperparameters (then conditioned on all)
     seed: int
+
+    def __post_init__(self) -> None:
+        check_values(_flatten(self), f"scenario {self.name!r}")
+
+    def replace(self, **changes: Any) -> ACCScenario:
+        """A copy with some fields changed, checked like a loaded file.
+
+        Parameters
+        ----------
+        **changes
+            Field names and new values, e.g. ``seed=3, n_samples=200, t_final=5.0``.
+
+        Raises
+        ------
+        ScenarioError
+            If a new value is invalid (the message names its TOML key).
+        """
+        return dataclasses.replace(self, **changes)
 
     # -- model ------------------------------------------------------------------------
 
@@ -171,172 +199,70 @@ class ACCScenario:
 
 # -- TOML -------------------------------------------------------------------------------
 
-_SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
-    "vehicle": {"mass": float, "gravity": float},
-    "drag.true": {"f0": float, "f1": float, "f2": float},
-    "drag.nominal": {"f0": float, "f1": float, "f2": float},
-    "initial": {"v_f": float, "v_l": float, "D": float},
-    "lead": {"profile": list},
-    "certificates": {"v_d": float, "tau": float, "lam": float, "beta": float},
-    "controller": {
-        "kappa": float,
-        "rho": float,
-        "phi": float,
-        "varphi": float,
-        "slack_weight": float,
-        "input_units": str,
-        "input_limit": (float, bool),
+# dataclass field -> TOML key, for the fields stored as they are in the file
+_KEYS = {
+    "mass": "vehicle.mass",
+    "gravity": "vehicle.gravity",
+    "v_f0": "initial.v_f",
+    "v_l0": "initial.v_l",
+    "D0": "initial.D",
+    "lead_profile": "lead.profile",
+    **{k: f"certificates.{k}" for k in ("v_d", "tau", "lam", "beta")},
+    **{
+        k: f"controller.{k}"
+        for k in ("kappa", "rho", "phi", "varphi", "slack_weight", "input_units", "input_limit")
     },
-    "simulation": {"t_final": float, "dt": float},
-    "learning": {
-        "n_samples": int,
-        "sample_rate": float,
-        "sample_horizon": float,
-        "noise_std": float,
-        "gp_beta": float,
-        "kernel": str,
-        "x0_low": list,
-        "x0_high": list,
-        "excitation_limit": float,
-        "hyper_subset": int,
-        "seed": int,
-    },
+    **{k: f"simulation.{k}" for k in ("t_final", "dt")},
+    **{
+        k: f"learning.{k}"
+        for k in (
+            "n_samples", "sample_rate", "sample_horizon", "noise_std", "gp_beta", "kernel",
+            "x0_low", "x0_high", "excitation_limit", "hyper_subset", "seed",
+        )
+    },  # fmt: skip
 }
-_POSITIVE = {"vehicle.mass", "vehicle.gravity", "simulation.t_final", "simulation.dt",
-             "learning.n_samples", "learning.sample_rate", "learning.sample_horizon",
-             "learning.hyper_subset",
-             "controller.slack_weight", "certificates.tau"}  # fmt: skip
-_NONNEGATIVE = {"certificates.lam", "certificates.beta", "controller.kappa", "controller.rho",
-                "controller.phi", "controller.varphi", "learning.noise_std", "learning.gp_beta",
-                "learning.excitation_limit"}  # fmt: skip
 
 
-def _get(doc: dict, section: str, source: str) -> dict:
-    node: Any = doc
-    for part in section.split("."):
-        if not isinstance(node, dict) or part not in node:
-            raise ScenarioError(f"{source}: missing table [{section}]")
-        node = node[part]
-    return node
+def _flatten(sc: ACCScenario) -> dict[str, Any]:
+    """The scenario as ``{"table.key": value}``, the form the schema checks."""
+    flat = {key: getattr(sc, attr) for attr, key in _KEYS.items()}
+    flat["name"] = sc.name
+    for which in ("true", "nominal"):
+        drag = getattr(sc, f"drag_{which}")
+        for k in ("f0", "f1", "f2"):
+            flat[f"drag.{which}.{k}"] = getattr(drag, k)
+    return flat
 
 
-def _parse(doc: dict, name: str, source: str) -> ACCScenario:
-    known_top = {s.split(".")[0] for s in _SCHEMA} | {"name"}
-    for key in doc:
-        if key not in known_top:
-            raise ScenarioError(
-                f"{source}: unknown key {key!r}; expected one of {sorted(known_top)}"
-            )
-    values: dict[str, Any] = {}
-    for section, fields in _SCHEMA.items():
-        table = _get(doc, section, source)
-        extra = set(table) - set(fields)
-        if extra:
-            raise ScenarioError(f"{source}: unknown key {section}.{sorted(extra)[0]}")
-        for key, typ in fields.items():
-            full = f"{section}.{key}"
-            if key not in table:
-                raise ScenarioError(f"{source}: missing key {full}")
-            val = table[key]
-            if typ is float and isinstance(val, int) and not isinstance(val, bool):
-                val = float(val)
-            ok = isinstance(val, typ) and not (typ in (int, float) and isinstance(val, bool))
-            if typ == (float, bool):
-                ok = val is False or (isinstance(val, int | float) and not isinstance(val, bool))
-                val = None if val is False else float(val)
-            if not ok:
-                raise ScenarioError(
-                    f"{source}: {full} must be {getattr(typ, '__name__', typ)}, got {val!r}"
-                )
-            if full in _POSITIVE and not val > 0:
-                raise ScenarioError(f"{source}: {full} must be > 0, got {val!r}")
-            if full in _NONNEGATIVE and not val >= 0:
-                raise ScenarioError(f"{source}: {full} must be >= 0, got {val!r}")
-            values[full] = val
-    if values["controller.input_units"] not in ("newton", "normalized"):
-        raise ScenarioError(
-            f"{source}: controller.input_units must be 'newton' or 'normalized', "
-            f"got {values['controller.input_units']!r}"
-        )
-    if values["learning.kernel"] not in ("se", "matern52"):
-        raise ScenarioError(
-            f"{source}: learning.kernel must be 'se' or 'matern52', "
-            f"got {values['learning.kernel']!r}"
-        )
-    lim = values["controller.input_limit"]
-    if lim is not None and not lim > 0:
-        raise ScenarioError(f"{source}: controller.input_limit must be > 0 or false, got {lim!r}")
-    profile = values["lead.profile"]
-    try:
-        prof = tuple((float(e), float(a)) for e, a in profile)
-    except (TypeError, ValueError):
-        raise ScenarioError(
-            f"{source}: lead.profile must be a list of [end_time, acceleration] pairs"
-        ) from None
-    if any(b[0] <= a[0] for a, b in zip(prof, prof[1:], strict=False)):
-        raise ScenarioError(f"{source}: lead.profile end times must increase")
-    for key in ("learning.x0_low", "learning.x0_high"):
-        v = values[key]
-        if len(v) != 3 or not all(isinstance(e, int | float) for e in v):
-            raise ScenarioError(
-                f"{source}: {key} must be a list of 3 numbers (v_f, v_l, D), got {v!r}"
-            )
-    if any(
-        lo > hi
-        for lo, hi in zip(values["learning.x0_low"], values["learning.x0_high"], strict=True)
-    ):
-        raise ScenarioError(f"{source}: learning.x0_low must be <= learning.x0_high")
-    v = values
+def _build(v: dict[str, Any]) -> ACCScenario:
+    fields = {attr: v[key] for attr, key in _KEYS.items()}
+    drag = {
+        which: Drag(*(v[f"drag.{which}.{k}"] for k in ("f0", "f1", "f2")))
+        for which in ("true", "nominal")
+    }
     return ACCScenario(
-        name=str(doc.get("name", name)),
-        mass=v["vehicle.mass"],
-        gravity=v["vehicle.gravity"],
-        drag_true=Drag(v["drag.true.f0"], v["drag.true.f1"], v["drag.true.f2"]),
-        drag_nominal=Drag(v["drag.nominal.f0"], v["drag.nominal.f1"], v["drag.nominal.f2"]),
-        v_f0=v["initial.v_f"],
-        v_l0=v["initial.v_l"],
-        D0=v["initial.D"],
-        lead_profile=prof,
-        v_d=v["certificates.v_d"],
-        tau=v["certificates.tau"],
-        lam=v["certificates.lam"],
-        beta=v["certificates.beta"],
-        kappa=v["controller.kappa"],
-        rho=v["controller.rho"],
-        phi=v["controller.phi"],
-        varphi=v["controller.varphi"],
-        slack_weight=v["controller.slack_weight"],
-        input_units=v["controller.input_units"],
-        input_limit=lim,
-        t_final=v["simulation.t_final"],
-        dt=v["simulation.dt"],
-        n_samples=v["learning.n_samples"],
-        sample_rate=v["learning.sample_rate"],
-        sample_horizon=v["learning.sample_horizon"],
-        noise_std=v["learning.noise_std"],
-        gp_beta=v["learning.gp_beta"],
-        kernel=v["learning.kernel"],
-        x0_low=tuple(float(e) for e in v["learning.x0_low"]),
-        x0_high=tuple(float(e) for e in v["learning.x0_high"]),
-        excitation_limit=v["learning.excitation_limit"],
-        hyper_subset=v["learning.hyper_subset"],
-        seed=v["learning.seed"],
+        name=v["name"], drag_true=drag["true"], drag_nominal=drag["nominal"], **fields
     )
 
 
 def load_scenario(name_or_path: str | Path) -> ACCScenario:
     """Load a preset by name (``"paper"``, ``"stress"``) or a TOML file by path.
 
+    Every key is checked for type, finiteness and range here, before any data collection,
+    GP fit or simulation (bounds in docs/acc.md, "Scenario files", and :data:`LIMITS`).
+    ``name`` is optional and defaults to the preset name or the file's stem.
+
     Raises
     ------
     ScenarioError
-        If the file does not exist, is not valid TOML, or a key is missing, unknown, of the
-        wrong type or out of range; the message names the key.
+        If the file does not exist, cannot be read, is not UTF-8, is not valid TOML, or a key
+        or table is missing, unknown (sub-tables included), of the wrong type, not finite or
+        out of range. The message names the file and the key with its table path, what was
+        received and what was expected.
     """
-    text: str
     if str(name_or_path) in PRESETS:
         name = str(name_or_path)
-        text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
+        data = resources.files(__package__).joinpath(f"{name}.toml").read_bytes()
         source = f"preset {name!r}"
     else:
         path = Path(name_or_path)
@@ -344,9 +270,28 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
             raise ScenarioError(
                 f"scenario {str(name_or_path)!r} is neither a preset {PRESETS} nor a file"
             )
-        text, name, source = path.read_text(), path.stem, str(path)
+        name, source = path.stem, str(path)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise ScenarioError(f"{source}: cannot read the file ({exc.strerror})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(
+            f"{source}: a scenario file must be UTF-8 text (TOML), got byte "
+            f"{data[exc.start]:#04x} at offset {exc.start}, which is not UTF-8"
+        ) from None
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: invalid TOML: {exc}") from None
-    return _parse(doc, name, source)
+    flat = check_structure(doc, source)
+    if "name" not in flat:
+        try:
+            flat["name"] = FIELDS["name"]("name", name, source)
+        except ScenarioError as exc:
+            raise ScenarioError(
+                f"{exc} (the file has no name key, so its stem was used; add name = \"...\")"
+            ) from None
+    return _build(check_values(flat, source))

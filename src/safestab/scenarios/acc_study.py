@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._io import atomic_write_json, replace_non_finite
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import Calibration, Dataset, GaussianProcessModel, calibration, collect_data
@@ -36,22 +36,38 @@ class StudyResult:
     metrics: dict[str, dict[str, Any]]
     timings: dict[str, float]
 
-    def write_metrics(self, path: str | Path) -> None:
-        """Write the metrics of every controller, the GP calibration and timings as JSON."""
+    def metrics_document(self) -> dict[str, Any]:
+        """The metrics of every controller, the GP calibration and timings, as strict JSON data.
+
+        Non-finite numbers (a diverged run) become ``None`` (JSON ``null``); ``status`` is
+        ``"ok"`` or ``"non-finite"``, and ``non_finite`` maps the JSON Pointer of each replaced
+        value to what it was (``"nan"``, ``"inf"``, ``"-inf"``).
+        """
         doc = {
             "scenario": self.scenario.name,
+            "settings": {
+                "seed": self.scenario.seed,
+                "n_samples": self.scenario.n_samples,
+                "t_final_s": self.scenario.t_final,
+                "dt_s": self.scenario.dt,
+            },
             "controllers": self.metrics,
             "gp": {
                 "n_samples": len(self.dataset),
                 "components": list(self.gp.components_),
-                "held_out_coverage": self.calibration.per_component.tolist(),
+                "held_out_coverage": self.calibration.per_component,
                 "held_out_joint_coverage": self.calibration.joint,
-                "held_out_rmse": self.calibration.rmse.tolist(),
+                "held_out_rmse": self.calibration.rmse,
                 "beta": self.scenario.gp_beta,
             },
             "timings_s": self.timings,
         }
-        Path(path).write_text(json.dumps(doc, indent=2))
+        clean, found = replace_non_finite(doc)
+        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+
+    def write_metrics(self, path: str | Path) -> None:
+        """Write :meth:`metrics_document` as JSON, atomically (no NaN or Infinity tokens)."""
+        atomic_write_json(path, self.metrics_document())
 
 
 def trajectory_metrics(
@@ -107,21 +123,45 @@ def run_study(
     progress : callable, optional
         Called as ``progress(message, fraction_done)``.
     n_samples, t_final : optional
-        Override ``Q`` and the horizon (for quick runs).
+        Override ``Q`` and the horizon (for quick runs). Overrides are checked like the file
+        (:meth:`ACCScenario.replace`) and recorded in the result's ``scenario``. The GP's
+        hyperparameters come from ``min(hyper_subset, n_samples)`` rows.
 
     Returns
     -------
     StudyResult
+
+    Raises
+    ------
+    ScenarioError
+        If an override is invalid; raised before any data collection.
     """
     import time
 
     report = progress or (lambda msg, frac: None)
-    seed = scenario.seed if seed is None else int(seed)
-    q = scenario.n_samples if n_samples is None else int(n_samples)
-    horizon = scenario.t_final if t_final is None else float(t_final)
+    overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
+    # checked like the file (ScenarioError), before any work
+    scenario = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
+    seed, q, horizon = scenario.seed, scenario.n_samples, scenario.t_final
     true_sys, nominal = scenario.system("true"), scenario.system("nominal")
     clf, cbf = scenario.certificates()
     timings: dict[str, float] = {}
+
+    u_min, u_max = scenario.input_limits()
+    common: dict[str, Any] = dict(
+        kappa=scenario.kappa,
+        rho=scenario.rho,
+        phi=scenario.phi,
+        varphi=scenario.varphi,
+        slack_weight=scenario.slack_weight,
+        u_min=u_min,
+        u_max=u_max,
+    )
+    # built first, so that the formulas' own parameter checks also run before any work
+    controllers = {
+        "true model": UniversalController(true_sys, clf, cbf, **common),
+        "mismatched model": UniversalController(nominal, clf, cbf, **common),
+    }
 
     report("collecting data", 0.0)
     t0 = time.perf_counter()
@@ -150,23 +190,9 @@ def run_study(
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
-    u_min, u_max = scenario.input_limits()
-    common: dict[str, Any] = dict(
-        kappa=scenario.kappa,
-        rho=scenario.rho,
-        phi=scenario.phi,
-        varphi=scenario.varphi,
-        slack_weight=scenario.slack_weight,
-        u_min=u_min,
-        u_max=u_max,
+    controllers["GP-corrected"] = UniversalController(
+        nominal, clf, cbf, uncertainty=gp, gp_beta=scenario.gp_beta, **common
     )
-    controllers = {
-        "true model": UniversalController(true_sys, clf, cbf, **common),
-        "mismatched model": UniversalController(nominal, clf, cbf, **common),
-        "GP-corrected": UniversalController(
-            nominal, clf, cbf, uncertainty=gp, gp_beta=scenario.gp_beta, **common
-        ),
-    }
     trajectories: dict[str, Trajectory] = {}
     for i, (name, ctrl) in enumerate(controllers.items()):
         report(f"simulating: {name}", 0.4 + 0.2 * i)

@@ -1,0 +1,293 @@
+"""The command line: checks before work, all-or-none outputs, strict JSON, one-line errors.
+
+The study itself is replaced by a stub here (a real run takes about 15 s; the end-to-end run
+is ``tests/test_acc.py::test_cli_smoke``): these tests are about what the CLI does around it.
+"""
+
+import json
+import os
+from types import SimpleNamespace
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+from typer.testing import CliRunner
+
+import safestab.plotting
+from safestab import NumericalError
+from safestab.scenarios import acc_study, load_scenario
+from safestab.scenarios.acc_study import StudyResult
+
+OUTPUTS = ["acc_stress.pdf", "acc_stress.png", "acc_stress_metrics.json"]
+
+
+def _metrics(min_h):
+    return {
+        "min_h_m": min_h,
+        "time_h_negative_s": 0.0,
+        "rms_speed_error_mps": 1.5,
+        "region_fraction": {"P1": 1.0},
+        "incompatible_steps": 0,
+    }
+
+
+def _result(scenario, metrics=None):
+    """A StudyResult with the fields the CLI reads, standing in for a 15 s run."""
+    metrics = metrics or {name: _metrics(1.0) for name in acc_study.CONTROLLERS}
+    return StudyResult(
+        scenario=scenario,
+        dataset=[None] * scenario.n_samples,
+        gp=SimpleNamespace(components_=(0, 1, 2)),
+        calibration=SimpleNamespace(
+            per_component=np.array([0.99, 1.0, 1.0]), joint=0.99, rmse=np.array([1e-3, 0, 0])
+        ),
+        trajectories={},
+        metrics=metrics,
+        timings={"fit_gp": 0.1},
+    )
+
+
+@pytest.fixture
+def study(monkeypatch):
+    """Replace the study and its figure by stubs; record the calls."""
+    calls = []
+    state = {"metrics": None, "error": None}
+
+    def fake_run_study(scenario, **kwargs):
+        calls.append(scenario)
+        if state["error"] is not None:
+            raise state["error"]
+        return _result(scenario, state["metrics"])
+
+    def fake_plot(result):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [0, 1])
+        return fig
+
+    monkeypatch.setattr(acc_study, "run_study", fake_run_study)
+    monkeypatch.setattr(safestab.plotting, "plot_acc_study", fake_plot)
+    return SimpleNamespace(calls=calls, state=state)
+
+
+def _invoke(*args):
+    from safestab.cli import app
+
+    return CliRunner().invoke(app, ["acc", "--scenario", "stress", *map(str, args)])
+
+
+def _one_error_line(res, expected_start):
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith(expected_start), lines[0]
+    assert "Traceback" not in res.output
+    return lines[0]
+
+
+def _listing(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+# -- checks before any work -------------------------------------------------------------
+
+
+def test_out_below_a_regular_file_fails_before_any_work(tmp_path, study):
+    (tmp_path / "file").write_text("x")
+    res = _invoke("--out", tmp_path / "file" / "sub")
+    assert res.exit_code == 2
+    line = _one_error_line(res, "error: OutputError: --out must be a writable folder")
+    assert line.endswith(f"its parent {str(tmp_path / 'file')!r} is not a folder")
+    assert study.calls == []  # the study never started
+
+
+def test_out_that_is_a_regular_file_fails_before_any_work(tmp_path, study):
+    (tmp_path / "file").write_text("x")
+    res = _invoke("--out", tmp_path / "file")
+    assert res.exit_code == 2
+    _one_error_line(res, "error: OutputError: --out must be a writable folder")
+    assert study.calls == [] and (tmp_path / "file").read_text() == "x"
+
+
+def test_unwritable_out_fails_before_any_work(tmp_path, study, monkeypatch):
+    # Tests run as root, which ignores permission bits: the refusal is simulated at the
+    # creation of the probe file, the operation a read-only or foreign folder refuses.
+    real_open = os.open
+
+    def fake_open(path, flags, *args, **kwargs):
+        if ".safestab-probe-" in os.fspath(path):
+            raise OSError(30, "Read-only file system")
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", fake_open)
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 2
+    line = _one_error_line(res, "error: OutputError: --out must be a writable folder")
+    assert line.endswith("cannot create a file in it (Read-only file system)")
+    assert study.calls == []
+
+
+def test_nan_scenario_rejected_at_load(tmp_path, study):
+    from importlib import resources
+
+    text = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
+    path = tmp_path / "nan.toml"
+    path.write_text(text.replace("v_d = 22.0", "v_d = nan"))
+    from safestab.cli import app
+
+    res = CliRunner().invoke(app, ["acc", "--scenario", str(path), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2
+    _one_error_line(
+        res,
+        f"error: ScenarioError: {path}: certificates.v_d must be a finite number in [0, 1e9], "
+        "got nan",
+    )
+    assert study.calls == [] and not (tmp_path / "o").exists()  # nothing made, not even --out
+
+
+@pytest.mark.parametrize(
+    "option, match",
+    [
+        (("--seed", "-1"), "learning.seed must be an integer in [0, 4294967295], got -1"),
+        (("--n-samples", "10" + "0" * 11), "learning.n_samples must be an integer in [10, 10000]"),
+        (
+            ("--t-final", "nan"),
+            "simulation.t_final must be a finite number in [1e-9, 1e9], got nan",
+        ),
+    ],
+)
+def test_bad_overrides_rejected_before_any_work(tmp_path, study, option, match):
+    res = _invoke(*option, "--out", tmp_path / "o")
+    assert res.exit_code == 2
+    assert match in _one_error_line(res, "error: ScenarioError: scenario 'stress': ")
+    assert study.calls == [] and not (tmp_path / "o").exists()
+
+
+def test_overrides_reach_the_study(tmp_path, study):
+    res = _invoke("--seed", 7, "--n-samples", 120, "--t-final", 5, "--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    (sc,) = study.calls
+    assert (sc.seed, sc.n_samples, sc.t_final) == (7, 120, 5.0)
+
+
+# -- outputs ----------------------------------------------------------------------------
+
+
+def test_success_writes_the_whole_set(tmp_path, study):
+    for name in OUTPUTS:
+        (tmp_path / name).write_bytes(b"stale")
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    files = _listing(tmp_path)
+    assert sorted(files) == OUTPUTS  # no temporaries or probes left
+    assert files["acc_stress.png"].startswith(b"\x89PNG")
+    assert files["acc_stress.pdf"].startswith(b"%PDF")
+    assert json.loads(files["acc_stress_metrics.json"])["status"] == "ok"
+    assert "wrote " in res.stdout and "acc_stress_metrics.json" in res.stdout
+
+
+@pytest.mark.parametrize("stale", [True, False])
+def test_failed_write_leaves_no_partial_set(tmp_path, study, monkeypatch, stale):
+    """The PDF (second file) fails after the PNG was written: nothing new may appear."""
+    if stale:
+        for name in OUTPUTS:
+            (tmp_path / name).write_bytes(b"stale " + name.encode())
+    before = _listing(tmp_path)
+    real_savefig = Figure.savefig
+
+    def savefig(self, fname, *args, **kwargs):
+        if kwargs.get("format") == "pdf":
+            raise RuntimeError("disk on fire")
+        return real_savefig(self, fname, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", savefig)
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 1
+    _one_error_line(res, "error: RuntimeError: disk on fire")
+    assert len(study.calls) == 1  # the study ran; only the writing failed
+    assert _listing(tmp_path) == before  # stale set intact (or still empty), no temporaries
+
+
+@pytest.mark.parametrize("stale", [True, False])
+def test_failed_rename_rolls_back_the_set(tmp_path, study, monkeypatch, stale):
+    """The JSON's rename (the last) fails after PNG and PDF were moved into place."""
+    if stale:
+        for name in OUTPUTS:
+            (tmp_path / name).write_bytes(b"stale " + name.encode())
+    before = _listing(tmp_path)
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst).endswith("_metrics.json"):
+            raise OSError(5, "Input/output error")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 1
+    _one_error_line(res, "error: OutputError: cannot write ")
+    assert _listing(tmp_path) == before
+
+
+def test_json_has_no_nan_tokens_when_a_metric_is_not_finite(tmp_path, study):
+    metrics = {name: _metrics(1.0) for name in acc_study.CONTROLLERS}
+    metrics["GP-corrected"]["min_h_m"] = float("nan")
+    metrics["mismatched model"]["rms_speed_error_mps"] = float("inf")
+    study.state["metrics"] = metrics
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "acc_stress_metrics.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+
+    def refuse(token):
+        raise AssertionError(f"JSON must not contain {token}")
+
+    doc = json.loads(text, parse_constant=refuse)
+    assert doc["status"] == "non-finite"
+    assert doc["non_finite"] == {
+        "/controllers/GP-corrected/min_h_m": "nan",
+        "/controllers/mismatched model/rms_speed_error_mps": "inf",
+    }
+    assert doc["controllers"]["GP-corrected"]["min_h_m"] is None
+    assert doc["controllers"]["mismatched model"]["rms_speed_error_mps"] is None
+    assert doc["controllers"]["true model"]["min_h_m"] == 1.0
+
+
+# -- error reporting --------------------------------------------------------------------
+
+
+def test_run_time_error_is_one_line_without_debug(tmp_path, study):
+    study.state["error"] = NumericalError("Cholesky failed\n  try more noise")
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 1
+    line = _one_error_line(res, "error: NumericalError: ")
+    assert line == "error: NumericalError: Cholesky failed try more noise"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_debug_shows_the_traceback(tmp_path, study):
+    study.state["error"] = NumericalError("Cholesky failed")
+    res = _invoke("--out", tmp_path, "--debug")
+    assert res.exit_code == 1
+    assert res.stderr.startswith("Traceback (most recent call last):")
+    assert "fake_run_study" in res.stderr  # the frame where it was raised
+    assert res.stderr.rstrip().endswith("error: NumericalError: Cholesky failed")
+
+
+def test_debug_shows_the_traceback_of_a_bad_input(tmp_path, study):
+    res = _invoke("--seed", "-1", "--out", tmp_path, "--debug")
+    assert res.exit_code == 2
+    assert "Traceback (most recent call last):" in res.stderr and "check_values" in res.stderr
+
+
+def test_long_messages_are_cut_on_the_one_line(tmp_path, study):
+    study.state["error"] = RuntimeError("x" * 5000)
+    res = _invoke("--out", tmp_path)
+    line = _one_error_line(res, "error: RuntimeError: xxx")
+    assert len(line) < 450 and line.endswith("(cut; --debug shows all)")
+
+
+def test_real_scenario_objects_are_used(study, tmp_path):
+    """The CLI passes the loaded, checked scenario itself (not a re-parsed copy)."""
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    assert study.calls == [load_scenario("stress")]

@@ -116,8 +116,9 @@ def rel_error(u_float, u_ref):
         return float(diff / nref) if nref > 0 else float(diff)
 
 
-def condition_estimate(a, b, c, d, params, slack_weight=None, parallel_rtol=1e-12, samples=6,
-                       seed=0):
+def condition_estimate(
+    a, b, c, d, params, slack_weight=None, parallel_rtol=1e-12, samples=6, seed=0
+):
     """Relative condition number of u, estimated by random relative perturbations of size 1e-30.
 
     Every scalar of the problem (a, b, c, d, the parameters and the slack weight) is perturbed
@@ -127,8 +128,9 @@ def condition_estimate(a, b, c, d, params, slack_weight=None, parallel_rtol=1e-1
     rng = np.random.default_rng(seed)
     eps = mp.mpf("1e-30")
     with mp.workdps(DPS):
-        u0, _, _, _ = solve(a, b, c, d, slack_weight=slack_weight, parallel_rtol=parallel_rtol,
-                            **params)
+        u0, _, _, _ = solve(
+            a, b, c, d, slack_weight=slack_weight, parallel_rtol=parallel_rtol, **params
+        )
         n0 = mp.sqrt(mp.fsum(x * x for x in u0))
         best = mp.mpf(1)
         b = np.atleast_1d(np.asarray(b, float))
@@ -139,7 +141,10 @@ def condition_estimate(a, b, c, d, params, slack_weight=None, parallel_rtol=1e-1
                 return _mp(x) * (1 + eps * int(rng.choice([-1, 1])))
 
             args = dict(
-                a=pert(a), b=[pert(x) for x in b], c=pert(c), d=[pert(x) for x in d],
+                a=pert(a),
+                b=[pert(x) for x in b],
+                c=pert(c),
+                d=[pert(x) for x in d],
             )
             par = {k: pert(v) for k, v in params.items()}
             sw = None if slack_weight is None else pert(slack_weight)

@@ -109,9 +109,7 @@ def _on_tolerance_edge(ratio, rtol=1e-12):
 
 
 def _check_accuracy(a, b, c, d, params, res, slack_weight=None):
-    u_ref, chi_ref, region_ref, ratio = mpref.solve(
-        a, b, c, d, slack_weight=slack_weight, **params
-    )
+    u_ref, chi_ref, region_ref, ratio = mpref.solve(a, b, c, d, slack_weight=slack_weight, **params)
     if slack_weight is None and _on_tolerance_edge(ratio):
         return
     u = np.asarray(res.u)

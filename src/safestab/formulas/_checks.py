@@ -17,6 +17,8 @@ from .._validation import (
 )
 from ..errors import DimensionError, NumericalError, ParameterError
 
+_TINY = float(np.finfo(float).tiny)
+
 __all__ = ["check_lie_terms", "check_params", "check_box", "as_float", "check_output_finite"]
 
 
@@ -76,6 +78,11 @@ def check_params(batch: tuple[int, ...] | None = None, **params: Any) -> None:
         check_real(name, value)
         if name == "slack_weight":
             check_scalar_range(name, value, lower=0.0, strict_lower=True)
+            if is_concrete(value) and np.any(np.asarray(value, float) < _TINY):
+                raise ParameterError(
+                    f"slack_weight must be >= {_TINY!r} (the smallest normal float64; XLA "
+                    f"flushes smaller numbers to zero), got {np.min(np.asarray(value, float))!r}"
+                )
         elif name == "parallel_rtol":
             check_scalar_range(name, value, lower=0.0, upper=1.0)
             if np.ndim(value) != 0:

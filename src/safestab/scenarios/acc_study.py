@@ -77,7 +77,9 @@ def trajectory_metrics(
 
     Returns min h (m), time with h < 0 (s), RMS speed error to ``v_d`` (m/s), fraction of
     steps per formula region, steps where the conditions were incompatible or the applied
-    input broke the CBF condition, and, given a ``reference`` run, the largest gap in ``h``
+    input broke the CBF condition, the step status (``"ok"`` or the first non-finite step,
+    :meth:`~safestab.simulation.Trajectory.failure_summary`), and, given a ``reference`` run,
+    the largest gap in ``h``
     (m) and the RMS gap in ``v_f`` (m/s) between the two.
     """
     h = np.asarray(traj.h)
@@ -91,6 +93,7 @@ def trajectory_metrics(
         "region_fraction": {r.name: float(np.mean(region == r)) for r in Region},
         "incompatible_steps": int(np.sum(~np.asarray(traj.compatible))),
         "cbf_violations_after_limits": int(np.sum(~np.asarray(traj.cbf_satisfied))),
+        "status": traj.failure_summary(),
         "max_abs_u_over_Mg": float(
             np.max(np.abs(np.asarray(traj.u)))
             * scenario.input_scale

@@ -1,0 +1,278 @@
+"""Issue 8, points 4 and 5: named statuses for non-finite values, and validation gaps."""
+
+import re
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from safestab import (
+    CBF,
+    CLF,
+    ControlAffineSystem,
+    DimensionError,
+    FormulaResult,
+    InputTypeError,
+    ModelError,
+    NonFiniteError,
+    ParameterError,
+    StepStatus,
+    UniversalController,
+    clf_cbf,
+    clf_cbf_relaxed,
+    kkt_residuals,
+    lie_terms,
+    project_box,
+    simulate,
+)
+
+from . import mpref
+
+P = {"kappa": 0.1, "rho": 0.1, "phi": 1.0, "varphi": 1.0}
+
+
+def _integrator(f=None, g=None, V=None, h=None):
+    """A 2-state, 1-input system whose parts can be replaced by faulty ones."""
+    system = ControlAffineSystem(
+        f or (lambda x: jnp.array([x[1], -x[0]])),
+        g or (lambda x: jnp.array([[0.0], [1.0]])),
+        2,
+    )
+    clf = CLF(V or (lambda x: x @ x), lam=1.0)
+    cbf = CBF(h or (lambda x: 4.0 - x[0] ** 2 - x[1] ** 2), beta=1.0)
+    return system, clf, cbf
+
+
+# NaN only where x[0] > 1, so construction (which traces, not evaluates) succeeds
+def _nan_above_one(value):
+    return lambda x: jnp.where(x[0] > 1.0, jnp.nan, 1.0) * value(x)
+
+
+FAULTS = {
+    "f(x)": {"f": _nan_above_one(lambda x: jnp.array([x[1], -x[0]]))},
+    "g(x)": {"g": _nan_above_one(lambda x: jnp.array([[0.0], [1.0]]))},
+    "V(x)": {"V": _nan_above_one(lambda x: x @ x)},
+    "h(x)": {"h": _nan_above_one(lambda x: 4.0 - x[0] ** 2 - x[1] ** 2)},
+}
+
+
+@pytest.mark.parametrize("part", list(FAULTS))
+def test_nan_from_the_model_is_a_named_status(part):
+    system, clf, cbf = _integrator(**FAULTS[part])
+    ctrl = UniversalController(system, clf, cbf, **P)
+    x = np.array([[0.5, 0.2], [1.5, 0.2]])  # the second state triggers the NaN
+    out = ctrl.step(x)
+    assert out.status.tolist() == [StepStatus.OK, StepStatus.NONFINITE_MODEL]
+    assert np.all(np.isfinite(np.asarray(out.u[0])))
+    assert np.all(np.isnan(np.asarray(out.u[1])))
+    # the old d = 0 branch read NaN as zero and said compatible: no flag may claim anything
+    assert not bool(out.compatible[1])
+    assert not bool(out.cbf_satisfied[1]) and not bool(out.clf_satisfied[1])
+    with pytest.raises(
+        NonFiniteError, match=rf"NONFINITE_MODEL at state index 1 .*{re.escape(part)}"
+    ):
+        ctrl.step(x, strict=True)
+
+
+class _Uncertainty:
+    """A hand-made uncertainty model with a fault at x[0] > 1."""
+
+    n_states = 2
+
+    def __init__(self, kind):
+        self.kind = kind
+
+    def mean_std(self, x):
+        bad = x[0] > 1.0
+        mean = jnp.zeros(2)
+        std = jnp.full(2, 0.1)
+        if self.kind == "nan_mean":
+            mean = jnp.where(bad, jnp.nan, mean)
+        elif self.kind == "negative_std":
+            std = jnp.where(bad, -0.1, std)
+        return mean, std
+
+
+def test_nan_from_the_uncertainty_model_is_a_named_status():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, uncertainty=_Uncertainty("nan_mean"), **P)
+    out = ctrl.step(np.array([[0.5, 0.0], [1.5, 0.0]]))
+    assert out.status.tolist() == [StepStatus.OK, StepStatus.NONFINITE_UNCERTAINTY]
+    with pytest.raises(NonFiniteError, match=r"NONFINITE_UNCERTAINTY .*uncertainty mean"):
+        ctrl.step(np.array([1.5, 0.0]), strict=True)
+
+
+def test_negative_std_is_an_error():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, uncertainty=_Uncertainty("negative_std"), **P)
+    assert int(ctrl.step(np.array([0.5, 0.0])).status) == StepStatus.OK
+    with pytest.raises(ModelError, match=r"negative standard deviation at state index 1"):
+        ctrl.step(np.array([[0.5, 0.0], [1.5, 0.0]]))
+    with pytest.raises(ModelError, match=r"negative standard deviation during the run"):
+        simulate(ctrl, np.array([1.5, 0.0]), t_final=0.05, dt=0.01)
+
+
+def test_diverging_plant_gets_a_status_and_the_first_time():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, **P)
+    # the plant's drift x0' = x0^3 blows up in finite time from x0 = 1 (t* = 0.5 s)
+    plant = ControlAffineSystem(
+        lambda x: jnp.array([x[0] ** 3, 0.0]), lambda x: jnp.array([[0.0], [1.0]]), 2
+    )
+    traj = simulate(ctrl, np.array([1.0, 0.0]), t_final=1.0, dt=0.01, plant=plant)
+    x = np.asarray(traj.x)
+    first_bad = int(np.argmax(~np.all(np.isfinite(x), axis=-1)))  # independent: from x itself
+    assert first_bad > 0 and not traj.ok
+    assert int(traj.first_failure_index) == first_bad
+    assert np.asarray(traj.status)[first_bad] == StepStatus.NONFINITE_STATE
+    assert np.all(np.asarray(traj.status)[:first_bad] == StepStatus.OK)
+    assert f"step {first_bad}" in traj.failure_summary()
+    with pytest.raises(NonFiniteError, match=r"NONFINITE_STATE first at step"):
+        simulate(ctrl, np.array([1.0, 0.0]), t_final=1.0, dt=0.01, plant=plant, strict=True)
+
+
+# -- point 5: validation -------------------------------------------------------------------
+
+
+def test_batch_axes_may_not_broadcast_into_a_bigger_batch():
+    with pytest.raises(DimensionError, match=r"bigger batch \(3, 3\) than any argument's"):
+        clf_cbf(np.ones((3, 1)), np.ones((3, 2)), np.ones(3), np.ones((3, 2)), **P)
+    # a scalar a with a batch of b is fine and keeps the batch
+    assert clf_cbf(1.0, np.ones((3, 2)), np.ones(3), np.ones((3, 2)), **P).u.shape == (3, 2)
+
+
+def test_parameter_arrays_must_fit_the_batch():
+    with pytest.raises(DimensionError, match=r"kappa must be a scalar or broadcast to the batch"):
+        clf_cbf(
+            np.ones(3), np.ones((3, 2)), np.ones(3), np.ones((3, 2)), **{**P, "kappa": np.ones(4)}
+        )
+    ok = clf_cbf(
+        np.ones(3), np.ones((3, 2)), np.ones(3), np.ones((3, 2)), **{**P, "kappa": np.ones(3)}
+    )
+    assert ok.u.shape == (3, 2)
+
+
+def test_project_box_bounds_must_fit_u():
+    with pytest.raises(DimensionError, match=r"u_min must be a scalar or broadcast to the input"):
+        project_box(np.zeros(2), -np.ones(3), np.ones(3))
+
+
+def test_kkt_residuals_checks_its_arguments():
+    res = clf_cbf(1.0, [1.0, 0.5], -1.0, [0.3, 1.0], **P)
+    with pytest.raises(NonFiniteError, match=r"a must be finite"):
+        kkt_residuals(np.nan, [1.0, 0.5], -1.0, [0.3, 1.0], res, **P)
+    with pytest.raises(ParameterError, match=r"rho must be >= 0.0"):
+        kkt_residuals(1.0, [1.0, 0.5], -1.0, [0.3, 1.0], res, **{**P, "rho": -1.0})
+    with pytest.raises(DimensionError, match=r"u must have shape \(3,\)"):
+        kkt_residuals(1.0, [1.0, 0.5, 0.0], -1.0, [0.3, 1.0, 0.0], res, **P)
+    bad = FormulaResult(
+        u=res.u, region=res.region, multipliers=res.multipliers[:1], slack=res.slack
+    )
+    with pytest.raises(DimensionError, match=r"result.multipliers must have shape \(2,\)"):
+        kkt_residuals(1.0, [1.0, 0.5], -1.0, [0.3, 1.0], bad, **P)
+    with pytest.raises(InputTypeError, match=r"result must be a FormulaResult"):
+        kkt_residuals(1.0, [1.0, 0.5], -1.0, [0.3, 1.0], (res.u, res.region), **P)
+
+
+@pytest.mark.parametrize(
+    "pos, value, what",
+    [
+        (0, True, "bool"),
+        (1, np.array([1.0 + 1j]), "complex"),
+        (2, "1.0", "string"),
+        (3, np.array([True]), "bool"),
+    ],
+)
+def test_non_real_lie_terms_are_rejected(pos, value, what):
+    args = [1.0, [1.0], -1.0, [1.0]]
+    args[pos] = value
+    name = "abcd"[pos]
+    with pytest.raises(
+        InputTypeError, match=rf"{name} must be a real number or array, got .*{what}"
+    ):
+        clf_cbf(*args, **P)
+
+
+def test_non_real_states_are_rejected():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, **P)
+    with pytest.raises(InputTypeError, match=r"x must be a real number or array, got dtype bool"):
+        ctrl.step(np.array([True, False]))
+    with pytest.raises(
+        InputTypeError, match=r"x must be a real number or array, got dtype complex"
+    ):
+        lie_terms(system, clf, cbf, np.array([1.0 + 0j, 0.0]))
+
+
+def test_model_functions_must_return_one_array():
+    with pytest.raises(InputTypeError, match=r"f must return one JAX array .* got list"):
+        ControlAffineSystem(lambda x: [x[1], -x[0]], lambda x: jnp.array([[0.0], [1.0]]), 2)
+
+
+def test_certificate_rates_must_be_scalars():
+    with pytest.raises(DimensionError, match=r"lam must be a scalar, got an array of shape \(2,\)"):
+        CLF(lambda x: x @ x, lam=np.array([1.0, 2.0]))
+
+
+def test_lie_terms_with_a_vector_V():
+    system, _, cbf = _integrator()
+    with pytest.raises(DimensionError, match=r"V must return a scalar, got shape \(2,\)"):
+        lie_terms(system, CLF(lambda x: x, lam=1.0), cbf, np.zeros(2))
+
+
+def test_limits_must_have_the_input_length():
+    system, clf, cbf = _integrator()
+    with pytest.raises(
+        DimensionError, match=r"u_min must be a scalar or have shape \(n_inputs,\) = \(1,\)"
+    ):
+        UniversalController(system, clf, cbf, u_min=[-1.0, -1.0], u_max=[1.0, 1.0], **P)
+
+
+def test_mean_std_must_return_the_state_shape():
+    system, clf, cbf = _integrator()
+
+    class Wrong:
+        n_states = 2
+
+        def mean_std(self, x):
+            return jnp.zeros(3), jnp.zeros(3)
+
+    with pytest.raises(
+        DimensionError, match=r"mean_std\(x\) must return \(mean, std\), each of shape \(2,\)"
+    ):
+        UniversalController(system, clf, cbf, uncertainty=Wrong(), **P)
+
+
+def test_exogenous_must_return_the_state_shape():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, **P)
+    with pytest.raises(
+        DimensionError, match=r"exogenous\(t\) must return shape \(2,\), got \(3,\)"
+    ):
+        simulate(ctrl, np.zeros(2), t_final=0.1, exogenous=lambda t: jnp.zeros(3))
+
+
+def test_simulate_horizon_checks():
+    system, clf, cbf = _integrator()
+    ctrl = UniversalController(system, clf, cbf, **P)
+    with pytest.raises(ParameterError, match=r"t_final must be >= dt \(at least one step\)"):
+        simulate(ctrl, np.zeros(2), t_final=0.005, dt=0.01)
+    with pytest.raises(ParameterError, match=r"t_final / dt must be <= 10000000 steps"):
+        simulate(ctrl, np.zeros(2), t_final=1.0, dt=1e-9)
+
+
+def test_tiny_slack_weight_and_huge_rho_stay_finite_or_are_rejected():
+    # a subnormal weight would be flushed to zero by XLA: rejected with a named error
+    with pytest.raises(ParameterError, match=r"slack_weight must be >= 2.2250738585072014e-308"):
+        clf_cbf_relaxed(1.0, [1.0], -1.0, [1.0], slack_weight=1e-310, **P)
+    # the smallest normal weight and rho = 1e155 give finite, exact answers
+    params = {**P, "rho": 1e155}
+    for kwargs in ({"slack_weight": 2.3e-308, **P}, {"slack_weight": 10.0, **params}):
+        res = clf_cbf_relaxed(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], **kwargs)
+        assert np.all(np.isfinite(np.asarray(res.u))) and np.isfinite(float(res.slack))
+        sw = kwargs.pop("slack_weight")
+        u_ref, _, _, _ = mpref.solve(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], slack_weight=sw, **kwargs)
+        assert mpref.rel_error(np.asarray(res.u), u_ref) <= 1e-12
+    res = clf_cbf(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], **params)
+    u_ref, _, _, _ = mpref.solve(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], **params)
+    assert mpref.rel_error(np.asarray(res.u), u_ref) <= 1e-12

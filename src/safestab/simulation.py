@@ -124,7 +124,7 @@ def _closed_loop(controller, plant, exogenous, n_steps, dt):
         return xdot if exogenous is None else xdot + exogenous(t)
 
     def record(x):
-        out = controller._step(x)
+        out = controller.step_fn(x)
         return out, (clf.fn(x), cbf.fn(x))
 
     def body(x, k):

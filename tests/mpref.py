@@ -175,3 +175,41 @@ def clf_residual(a, b, u, kappa, phi):
         res = _mp(a) + mp.fsum(bu) + _mp(kappa) * zeta
         scale = abs(_mp(a)) + _mp(kappa) * zeta + mp.fsum(abs(x) for x in bu)
         return float(res), float(scale)
+
+
+def solve_rows(G, r):
+    """Exact minimiser of 1/2|z|^2 s.t. G z <= r (rows as lists of floats or mp numbers).
+
+    Enumerates every subset of at most D linearly independent rows in 80 digits and keeps the
+    KKT point (multipliers >= 0, every row satisfied). Returns (z, found).
+    """
+    import itertools
+
+    with mp.workdps(DPS):
+        G = [[_mp(x) for x in row] for row in G]
+        r = [_mp(x) for x in r]
+        n, dim = len(G), len(G[0])
+        tiny = mp.mpf(10) ** (20 - DPS)
+        for size in range(min(n, dim) + 1):
+            for S in itertools.combinations(range(n), size):
+                if size == 0:
+                    z = [mp.mpf(0)] * dim
+                    lam = []
+                else:
+                    M = mp.matrix([[_dot(G[i], G[j]) for j in S] for i in S])
+                    if abs(mp.det(M)) <= mp.mpf(10) ** (-60) * max(
+                        mp.mpf(1), mp.fsum(abs(M[i, i]) for i in range(size)) ** size
+                    ):
+                        continue
+                    mu = mp.lu_solve(M, mp.matrix([r[i] for i in S]))
+                    lam = [-mu[i] for i in range(size)]
+                    z = [mp.fsum(mu[t] * G[S[t]][col] for t in range(size)) for col in range(dim)]
+                mag = mp.fsum(abs(x) for x in z) + mp.fsum(abs(x) for x in r)
+                if any(x < -tiny * (1 + max((abs(y) for y in lam), default=0)) for x in lam):
+                    continue
+                if all(
+                    _dot(G[i], z) - r[i] <= tiny * (mag * (1 + mp.fsum(abs(x) for x in G[i])))
+                    for i in range(n)
+                ):
+                    return z, True
+        return [mp.mpf(0)] * dim, False

@@ -16,15 +16,17 @@ Notation used throughout (the paper's, with the corrections listed in ``docs/the
 
 The package has one idea per module: ``single`` (Sontag's CLF formula and the CBF formula),
 ``two_constraint`` (the combined and relaxed formulas), ``compat`` (Lemma 1), ``limits``
-(input limits), ``certificate`` (KKT residuals and the condition flags) and ``results`` (the
-result types). The public functions check their arguments and call the unchecked kernels of
-the internal module ``_kernels``, which the controllers call as well.
+(input limits), ``certificate`` (KKT residuals and the condition flags), ``multi`` (several
+CLFs and CBFs, limits inside the problem, weighted objectives) and ``results`` (the result
+types). The public functions check their arguments and call the unchecked kernels of
+the internal modules ``_kernels`` and ``_active_set``, which the controllers call as well.
 """
 
 from ._kernels import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL
 from .certificate import conditions_satisfied, kkt_residuals
 from .compat import compatibility
 from .limits import project_box, saturate_safety_first
+from .multi import MultiResult, MultiStatus, clf_cbf_multi
 from .results import (
     Compatibility,
     CompatibilityCase,
@@ -55,4 +57,7 @@ __all__ = [
     "saturate_safety_first",
     "kkt_residuals",
     "conditions_satisfied",
+    "MultiResult",
+    "MultiStatus",
+    "clf_cbf_multi",
 ]

@@ -176,9 +176,7 @@ def clf_cbf_relaxed(
     enters as ``1/sqrt(slack_weight)``, so weights down to the smallest float64 stay finite.
     """
     batch = check_lie_terms(a, b, c, d)
-    check_params(
-        batch, kappa=kappa, rho=rho, phi=phi, varphi=varphi, slack_weight=slack_weight
-    )
+    check_params(batch, kappa=kappa, rho=rho, phi=phi, varphi=varphi, slack_weight=slack_weight)
     res = _clf_cbf_relaxed_jit(*as_float(a, b, c, d), kappa, rho, phi, varphi, slack_weight)
     _check_result("clf_cbf_relaxed", res)
     return res

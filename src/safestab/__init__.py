@@ -9,7 +9,13 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from .certificates import CBF, CLF, LieTerms, lie_terms  # noqa: E402
-from .controllers import ControlOutput, StepStatus, UniversalController  # noqa: E402
+from .controllers import (  # noqa: E402
+    CBFController,
+    ControlOutput,
+    SontagController,
+    StepStatus,
+    UniversalController,
+)
 from .errors import (  # noqa: E402
     DimensionError,
     InfeasibleError,
@@ -64,6 +70,8 @@ __all__ = [
     "CLF",
     "ControlAffineSystem",
     "ControlOutput",
+    "SontagController",
+    "CBFController",
     "StepStatus",
     "LieTerms",
     "UniversalController",

@@ -9,7 +9,7 @@ For a system ``xdot = f(x) + g(x) u``:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +17,7 @@ import numpy as np
 
 from ._batching import over_batch
 from ._validation import check_real, check_scalar_range
-from .errors import DimensionError
+from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
 
 __all__ = ["CLF", "CBF", "LieTerms", "lie_terms"]
@@ -44,33 +44,89 @@ class LieTerms(NamedTuple):
     d: jax.Array
 
 
+#: Points where a class-K function is checked: 0 and +-10^k for k in -6..3 (the values a
+#: certificate takes in practice): zero at 0, strictly increasing for |h| <= 1 and
+#: non-decreasing beyond. Enough to catch a sign error, an offset or a decreasing function;
+#: not a proof of monotonicity everywhere.
+_CLASS_K_PROBE = np.concatenate([-np.logspace(3, -6, 46), [0.0], np.logspace(-6, 3, 46)])
+
+
+def _check_class_k(name: str, fn: Any) -> None:
+    """Check an extended class-K function on the probe grid.
+
+    Raises
+    ------
+    ParameterError
+        If it is not callable-to-scalar, ``fn(0) != 0``, or it is not strictly increasing.
+    """
+    if not callable(fn):
+        raise TypeError(f"{name} must be a callable from a scalar to a scalar")
+    values = np.asarray(jax.vmap(fn)(jnp.asarray(_CLASS_K_PROBE)), dtype=float)
+    if values.shape != _CLASS_K_PROBE.shape:
+        raise DimensionError(f"{name} must map a scalar to a scalar, got shape {values.shape[1:]}")
+    zero = float(values[_CLASS_K_PROBE.size // 2])
+    if zero != 0.0:
+        raise ParameterError(
+            f"{name} must be an extended class-K function with {name}(0) = 0, "
+            f"got {name}(0) = {zero!r}"
+        )
+    # strictly increasing near 0; far out only non-decreasing (tanh saturates in float64)
+    steps = np.diff(values)
+    near = np.abs(_CLASS_K_PROBE[1:]) <= 1.0
+    bad = np.where(near, steps <= 0, steps < 0) | ~np.isfinite(steps)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ParameterError(
+            f"{name} must be strictly increasing (extended class-K), but {name}"
+            f"({_CLASS_K_PROBE[i]:.3g}) = {values[i]!r} >= {name}({_CLASS_K_PROBE[i + 1]:.3g}) = "
+            f"{values[i + 1]!r}"
+        )
+
+
 class _Certificate:
     """A scalar function of the state with a gradient (autodiff unless given)."""
 
     _kind = "certificate"
     _fn_name = "fn"
     _rate_name = "rate"
+    _class_k_name = "class_k"
 
     def __init__(
         self,
         fn: Callable[[jax.Array], jax.Array],
-        rate: float,
+        rate: float | None,
         grad: Callable[[jax.Array], jax.Array] | None = None,
+        class_k: Callable[[jax.Array], jax.Array] | None = None,
     ) -> None:
         if not callable(fn):
             raise TypeError(f"{self._fn_name} must be a callable taking a state of shape (n,)")
         if grad is not None and not callable(grad):
             raise TypeError("grad must be None or a callable returning shape (n,)")
-        check_real(self._rate_name, rate)
-        if np.ndim(rate) != 0:
-            raise DimensionError(
-                f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
+        if (rate is None) == (class_k is None):
+            raise ParameterError(
+                f"give exactly one of {self._rate_name} (a linear rate) and "
+                f"{self._class_k_name} (a class-K function)"
             )
-        check_scalar_range(self._rate_name, rate, lower=0.0)
+        if rate is not None:
+            check_real(self._rate_name, rate)
+            if np.ndim(rate) != 0:
+                raise DimensionError(
+                    f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
+                )
+            check_scalar_range(self._rate_name, rate, lower=0.0)
+        else:
+            _check_class_k(self._class_k_name, class_k)
         self.fn = fn
-        self.rate = float(rate)
+        self.rate = float(rate) if rate is not None else None
+        self.class_k = class_k
         self.grad = grad if grad is not None else jax.grad(fn)
         self.hand_gradient = grad is not None
+
+    def _rate_term(self, value: jax.Array) -> jax.Array:
+        """``rate * value`` (the paper's linear choice) or ``class_k(value)``."""
+        if self.class_k is not None:
+            return self.class_k(value)
+        return cast(float, self.rate) * value
 
     def check(self, n_states: int) -> None:
         """Check shapes against a state dimension by tracing once.
@@ -102,7 +158,7 @@ class _Certificate:
 
     def _lie_point(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         grad = self.grad(x)
-        return grad @ system.f(x) + self.rate * self.fn(x), grad @ system.g(x)
+        return grad @ system.f(x) + self._rate_term(self.fn(x)), grad @ system.g(x)
 
     def lie(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """``(L_f + rate) value`` of shape (...,) and ``L_g value`` of shape (..., m)."""
@@ -116,25 +172,39 @@ class CLF(_Certificate):
     ----------
     V : callable
         A JAX function from a state of shape (n,) to a scalar; positive definite.
-    lam : float
+    lam : float, optional
         The rate ``lambda >= 0`` in ``a = L_f V + lambda V``.
     grad : callable, optional
         A hand-written gradient, shape (n,) to (n,); autodiff is used when omitted.
+    gamma : callable, optional
+        Instead of ``lam``: an extended class-K function (``gamma(0) = 0``, strictly
+        increasing), scalar to scalar, giving ``a = L_f V + gamma(V)``.
 
     Raises
     ------
     ParameterError
-        If ``lam < 0``.
+        If ``lam < 0``, both or neither of ``lam`` and ``gamma`` are given, or ``gamma`` is not
+        an extended class-K function on a probe grid.
     NonFiniteError
         If ``lam`` is NaN or inf.
+    DimensionError
+        If ``lam`` is not a scalar.
     """
 
     _kind = "CLF"
     _fn_name = "V"
     _rate_name = "lam"
+    _class_k_name = "gamma"
 
-    def __init__(self, V: Callable, lam: float, grad: Callable | None = None) -> None:
-        super().__init__(V, lam, grad)
+    def __init__(
+        self,
+        V: Callable,
+        lam: float | None = None,
+        grad: Callable | None = None,
+        *,
+        gamma: Callable | None = None,
+    ) -> None:
+        super().__init__(V, lam, grad, gamma)
 
     @property
     def V(self) -> Callable:
@@ -142,9 +212,14 @@ class CLF(_Certificate):
         return self.fn
 
     @property
-    def lam(self) -> float:
-        """The rate ``lambda``."""
+    def lam(self) -> float | None:
+        """The rate ``lambda`` (None when a class-K ``gamma`` is used)."""
         return self.rate
+
+    @property
+    def gamma(self) -> Callable | None:
+        """The class-K function ``gamma`` (None for the linear rate)."""
+        return self.class_k
 
 
 class CBF(_Certificate):
@@ -154,25 +229,39 @@ class CBF(_Certificate):
     ----------
     h : callable
         A JAX function from a state of shape (n,) to a scalar; the safe set is ``h >= 0``.
-    beta : float
+    beta : float, optional
         The rate ``beta >= 0`` in ``c = L_f h + beta h``.
     grad : callable, optional
         A hand-written gradient; autodiff is used when omitted.
+    alpha : callable, optional
+        Instead of ``beta``: an extended class-K function (``alpha(0) = 0``, strictly
+        increasing), scalar to scalar, giving ``c = L_f h + alpha(h)``.
 
     Raises
     ------
     ParameterError
-        If ``beta < 0``.
+        If ``beta < 0``, both or neither of ``beta`` and ``alpha`` are given, or ``alpha`` is
+        not an extended class-K function on a probe grid.
     NonFiniteError
         If ``beta`` is NaN or inf.
+    DimensionError
+        If ``beta`` is not a scalar.
     """
 
     _kind = "CBF"
     _fn_name = "h"
     _rate_name = "beta"
+    _class_k_name = "alpha"
 
-    def __init__(self, h: Callable, beta: float, grad: Callable | None = None) -> None:
-        super().__init__(h, beta, grad)
+    def __init__(
+        self,
+        h: Callable,
+        beta: float | None = None,
+        grad: Callable | None = None,
+        *,
+        alpha: Callable | None = None,
+    ) -> None:
+        super().__init__(h, beta, grad, alpha)
 
     @property
     def h(self) -> Callable:
@@ -180,9 +269,14 @@ class CBF(_Certificate):
         return self.fn
 
     @property
-    def beta(self) -> float:
-        """The rate ``beta``."""
+    def beta(self) -> float | None:
+        """The rate ``beta`` (None when a class-K ``alpha`` is used)."""
         return self.rate
+
+    @property
+    def alpha(self) -> Callable | None:
+        """The class-K function ``alpha`` (None for the linear rate)."""
+        return self.class_k
 
 
 def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTerms:

@@ -20,11 +20,24 @@ from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL, Region
 from .formulas._checks import check_box, check_params
-from .formulas._kernels import condition_flags, margins, saturate_single, solve_two
+from .formulas._kernels import (
+    cbf_only,
+    condition_flags,
+    margins,
+    saturate_single,
+    solve_two,
+    sontag,
+)
 from .robust import UncertaintyModel, check_beta, robust_lie_terms
 from .systems import ControlAffineSystem
 
-__all__ = ["ControlOutput", "StepStatus", "UniversalController"]
+__all__ = [
+    "ControlOutput",
+    "StepStatus",
+    "UniversalController",
+    "SontagController",
+    "CBFController",
+]
 
 
 class StepStatus(IntEnum):
@@ -40,6 +53,7 @@ class StepStatus(IntEnum):
     NONFINITE_UNCERTAINTY = 3  #: the uncertainty model's mean or std is NaN or inf
     NEGATIVE_STD = 4  #: the uncertainty model returned a negative standard deviation
     NONFINITE_INPUT = 5  #: the formula's exact input overflows float64 (rescale the problem)
+    NEGATIVE_WEIGHT = 6  #: a state-dependent phi(x) or varphi(x) is negative
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,8 +122,10 @@ class UniversalController:
     cbf : CBF
     kappa, rho : float
         >= 0 (see :func:`~safestab.formulas.clf_cbf`).
-    phi, varphi : float
-        >= 0, weights in ``zeta`` and ``Gamma``.
+    phi, varphi : float or callable
+        >= 0, weights in ``zeta`` and ``Gamma``; or, as the paper defines them, non-negative
+        functions of the state (one state of shape (n,) to a scalar), checked at run time: a
+        negative value gives the step status ``NEGATIVE_WEIGHT``.
     slack_weight : float, optional
         When given, the relaxed formula (Theorem 3) with this weight; otherwise the combined
         formula (Theorem 1, or Theorem 2 with an uncertainty model).
@@ -127,11 +143,19 @@ class UniversalController:
         Confidence scaling ``beta_i`` of the uncertainty model (Lemma 2); default 2.
     parallel_rtol : float
         Tolerance of the parallel test.
+    formula : {"combined", "sontag", "cbf"}
+        ``"combined"`` (default): the universal formula (Theorems 1-3). ``"sontag"``: Sontag's
+        CLF formula alone, eq. (3) (region ``P1``, or ``P4`` where ``b = 0``); ``"cbf"``: the
+        CBF formula alone, eq. (6) (region ``P2``, or ``P4`` where ``d = 0``). Both
+        certificates are still evaluated, so the flags and ``compatible`` report on both
+        conditions, for comparison studies (see :class:`SontagController`,
+        :class:`CBFController`).
 
     Raises
     ------
     ParameterError
-        If a parameter is out of range, ``u_min > u_max``, or only one limit is given.
+        If a parameter is out of range, ``u_min > u_max``, only one limit is given, or
+        ``formula`` is unknown (or ``"sontag"``/``"cbf"`` with ``slack_weight``).
     DimensionError
         If the certificates, limits or the uncertainty model's outputs do not fit the system,
         a parameter is not a scalar, or ``saturation="safety_first"`` with more than one input.
@@ -158,10 +182,24 @@ class UniversalController:
         uncertainty: UncertaintyModel | None = None,
         gp_beta: Any = 2.0,
         parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
+        formula: Literal["combined", "sontag", "cbf"] = "combined",
     ) -> None:
-        check_params(
-            (), kappa=kappa, rho=rho, phi=phi, varphi=varphi, parallel_rtol=parallel_rtol
-        )
+        if formula not in ("combined", "sontag", "cbf"):
+            raise ParameterError(f"formula must be 'combined', 'sontag' or 'cbf', got {formula!r}")
+        if formula != "combined" and slack_weight is not None:
+            raise ParameterError(f"slack_weight applies to the combined formula, not {formula!r}")
+        check_params((), kappa=kappa, rho=rho, parallel_rtol=parallel_rtol)
+        for name, weight in (("phi", phi), ("varphi", varphi)):
+            if callable(weight):
+                probe = jax.ShapeDtypeStruct((system.n_states,), jnp.float64)
+                shape = getattr(jax.eval_shape(weight, probe), "shape", None)
+                if shape != ():
+                    raise DimensionError(
+                        f"{name}(x) must return a scalar for a state of shape "
+                        f"({system.n_states},), got {shape}"
+                    )
+            else:
+                check_params((), **{name: weight})
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
         clf.check(system.n_states)
@@ -190,8 +228,8 @@ class UniversalController:
         self.params = {
             "kappa": float(kappa),
             "rho": float(rho),
-            "phi": float(phi),
-            "varphi": float(varphi),
+            "phi": phi if callable(phi) else float(phi),
+            "varphi": varphi if callable(varphi) else float(varphi),
         }
         self.slack_weight = None if slack_weight is None else float(slack_weight)
         self.u_min = u_min
@@ -200,6 +238,7 @@ class UniversalController:
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta if uncertainty is not None else None
         self.parallel_rtol = float(parallel_rtol)
+        self.formula = formula
         #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
         #: for one state (n,) or a batch (..., n); for loops and benchmarks.
         self.step_fn = jax.jit(self._step)
@@ -214,8 +253,7 @@ class UniversalController:
             return np.full((m,), float(arr))
         if arr.shape != (m,):
             raise DimensionError(
-                f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape "
-                f"{arr.shape}"
+                f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape {arr.shape}"
             )
         return arr.copy()
 
@@ -225,8 +263,7 @@ class UniversalController:
             raise TypeError("uncertainty must provide mean_std(x) -> (mean, std)")
         if getattr(uncertainty, "n_states", n) != n:
             raise DimensionError(
-                f"uncertainty.n_states must equal system.n_states = {n}, "
-                f"got {uncertainty.n_states}"
+                f"uncertainty.n_states must equal system.n_states = {n}, got {uncertainty.n_states}"
             )
         probe = jax.ShapeDtypeStruct((n,), jnp.float64)
         out = jax.eval_shape(uncertainty.mean_std, probe)
@@ -234,12 +271,12 @@ class UniversalController:
         if shapes is None or len(shapes) != 2 or any(sh != (n,) for sh in shapes):
             got = shapes if shapes is not None else type(out).__name__
             raise DimensionError(
-                f"uncertainty.mean_std(x) must return (mean, std), each of shape ({n},), "
-                f"got {got}"
+                f"uncertainty.mean_std(x) must return (mean, std), each of shape ({n},), got {got}"
             )
 
     def __repr__(self) -> str:
-        kind = "relaxed" if self.slack_weight is not None else "clf_cbf"
+        kind: str = self.formula if self.formula != "combined" else "clf_cbf"
+        kind = "relaxed" if self.slack_weight is not None else kind
         gp = ", GP-robust" if self.uncertainty is not None else ""
         return f"UniversalController({self.system.name}, formula={kind}{gp}, params={self.params})"
 
@@ -249,10 +286,23 @@ class UniversalController:
         """The (GP-robust when an uncertainty model is set) Lie terms at one state."""
         return self._terms_status_point(x)[0]
 
-    def _terms_status_point(self, x: jax.Array) -> tuple[LieTerms, jax.Array]:
+    def _weights_point(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """``phi`` and ``varphi`` at one state (constants or functions of the state)."""
+        phi, varphi = self.params["phi"], self.params["varphi"]
+        return (
+            jnp.asarray(phi(x) if callable(phi) else phi, dtype=float),
+            jnp.asarray(varphi(x) if callable(varphi) else varphi, dtype=float),
+        )
+
+    def _terms_status_point(self, x: jax.Array) -> tuple[LieTerms, jax.Array, tuple]:
         terms = lie_terms_point(self.system, self.clf, self.cbf, x)
+        weights = self._weights_point(x)
         S = StepStatus
-        model_ok = jnp.where(_all_finite(*terms), S.OK, S.NONFINITE_MODEL)
+        model_ok = jnp.where(
+            _all_finite(*terms, *weights),
+            jnp.where((weights[0] < 0) | (weights[1] < 0), S.NEGATIVE_WEIGHT, S.OK),
+            S.NONFINITE_MODEL,
+        )
         status = jnp.where(~_all_finite(x), S.NONFINITE_STATE, model_ok)
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
@@ -267,15 +317,25 @@ class UniversalController:
                     jnp.where(jnp.any(std < 0), S.NEGATIVE_STD, S.OK),
                 ),
             )
-        return terms, status.astype(jnp.int32)
+        return terms, status.astype(jnp.int32), weights
 
     def _step(self, x: jax.Array) -> ControlOutput:
-        terms, status = over_batch(self._terms_status_point, x)
+        terms, status, (phi, varphi) = over_batch(self._terms_status_point, x)
         a, b, c, d = terms
         p = self.params
-        mg = margins(a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"])
+        # a negative weight is reported by the status; the formula runs on 0 meanwhile
+        phi, varphi = jnp.maximum(phi, 0.0), jnp.maximum(varphi, 0.0)
+        mg = margins(a, b, c, d, p["kappa"], p["rho"], phi, varphi)
         hard = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, parallel_rtol=self.parallel_rtol)
-        if self.slack_weight is None:
+        if self.formula == "sontag":
+            u0 = sontag(mg.A, b, mg.nb)
+            region0 = jnp.where(mg.nb > 0, Region.P1, Region.P4).astype(jnp.int32)
+            res = hard._replace(u=u0, region=region0, slack=jnp.zeros_like(mg.A))
+        elif self.formula == "cbf":
+            u0 = cbf_only(mg.B, d, mg.nd)
+            region0 = jnp.where(mg.nd > 0, Region.P2, Region.P4).astype(jnp.int32)
+            res = hard._replace(u=u0, region=region0, slack=jnp.zeros_like(mg.A))
+        elif self.slack_weight is None:
             res = hard
         else:
             s = 1.0 / np.sqrt(self.slack_weight)
@@ -309,7 +369,7 @@ class UniversalController:
     # -- public, checked entry points ---------------------------------------------------
 
     def diagnose(self, x: Any) -> str:
-        """Name the parts of the model that are not finite (or invalid) at one state ``x``.
+        """Name the parts of the model that are not finite or invalid at one state ``x``.
 
         Evaluates ``f``, ``g``, ``V``, ``h``, their gradients and the uncertainty model at
         ``x`` (shape (n,)) eagerly; for messages and debugging.
@@ -328,9 +388,12 @@ class UniversalController:
             mean, std = self.uncertainty.mean_std(x)
             parts["uncertainty mean"] = mean
             parts["uncertainty std"] = std
+        phi, varphi = self._weights_point(x)
+        parts["phi(x)"], parts["varphi(x)"] = phi, varphi
         bad = [name for name, val in parts.items() if not bool(np.all(np.isfinite(val)))]
         if self.uncertainty is not None and bool(np.any(np.asarray(parts["uncertainty std"]) < 0)):
             bad.append("uncertainty std (negative)")
+        bad += [f"{n} (negative)" for n, w in (("phi(x)", phi), ("varphi(x)", varphi)) if w < 0]
         return ", ".join(bad) if bad else "none"
 
     def _raise_for_status(self, x: jax.Array, out: ControlOutput, strict: bool) -> None:
@@ -350,6 +413,11 @@ class UniversalController:
         if badi.size:
             i = int(badi[0])
             name = StepStatus(int(flat[i])).name
+            if flat[i] == StepStatus.NEGATIVE_WEIGHT:
+                raise ModelError(
+                    f"controller step failed with status {name} at state index {i} "
+                    f"(x = {xs[i].tolist()}): {self.diagnose(xs[i])}; phi and varphi must be >= 0"
+                )
             raise NonFiniteError(
                 f"controller step failed with status {name} at state index {i} "
                 f"(x = {xs[i].tolist()}); not finite: {self.diagnose(xs[i])}"
@@ -387,7 +455,8 @@ class UniversalController:
         NonFiniteError
             If ``x`` contains NaN or inf; with ``strict=True``, if a step's status is not OK.
         ModelError
-            If the uncertainty model returns a negative standard deviation (always).
+            If the uncertainty model returns a negative standard deviation (always); with
+            ``strict=True``, if ``phi(x)`` or ``varphi(x)`` is negative.
         InfeasibleError
             With ``strict=True``, if the conditions are incompatible or the CBF condition is
             violated by the applied input.
@@ -401,3 +470,27 @@ class UniversalController:
     def __call__(self, x: Any) -> jax.Array:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
         return self.step(x).u
+
+
+class SontagController(UniversalController):
+    """Sontag's CLF formula, eq. (3), as a controller (``formula="sontag"``).
+
+    ``u = -(a + kappa zeta) / |b|^2 b`` (0 where ``b = 0``). Takes the same arguments as
+    :class:`UniversalController` except ``slack_weight`` and ``formula``; the CBF is still
+    evaluated, so ``cbf_satisfied`` says whether the CLF-only input happens to be safe.
+    """
+
+    def __init__(self, system: ControlAffineSystem, clf: CLF, cbf: CBF, **kwargs: Any) -> None:
+        super().__init__(system, clf, cbf, formula="sontag", **kwargs)
+
+
+class CBFController(UniversalController):
+    """The CBF formula, eq. (6), as a controller (``formula="cbf"``).
+
+    ``u = (rho Gamma - c) / |d|^2 d`` (0 where ``d = 0``). Takes the same arguments as
+    :class:`UniversalController` except ``slack_weight`` and ``formula``; the CLF is still
+    evaluated, so ``clf_satisfied`` reports on the CLF condition.
+    """
+
+    def __init__(self, system: ControlAffineSystem, clf: CLF, cbf: CBF, **kwargs: Any) -> None:
+        super().__init__(system, clf, cbf, formula="cbf", **kwargs)

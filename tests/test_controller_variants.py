@@ -115,3 +115,68 @@ def test_single_certificate_controllers_are_the_paper_formulas():
     assert np.all(np.asarray(sontag.clf_satisfied)) and np.all(np.asarray(cbf_ctrl.cbf_satisfied))
     with pytest.raises(ParameterError, match=r"slack_weight applies to the combined formula"):
         SontagController(system, clf, cbf, slack_weight=1.0, **P)
+
+
+def _double_integrator():
+    from safestab import ControlAffineSystem
+
+    return ControlAffineSystem(
+        lambda x: jnp.array([x[1], 0.0]), lambda x: jnp.array([[0.0], [1.0]]), 2, name="di"
+    )
+
+
+def test_high_order_cbf_keeps_a_position_limit_where_degree_one_cannot():
+    """Double integrator (position p, speed v, input = acceleration), position limit p <= 1,
+    and a CLF that pulls towards p = 3 beyond it."""
+    from safestab import Region, high_order_cbf, simulate
+
+    system = _double_integrator()
+    clf = CLF(lambda x: (x[0] - 3.0) ** 2 + (x[0] - 3.0 + x[1]) ** 2, lam=1.0)
+
+    def h(x):
+        return 1.0 - x[0]
+
+    kw = {"kappa": 0.0, "rho": 0.0, "phi": 0.0, "varphi": 0.0, "slack_weight": 10.0}
+    x0 = np.array([0.0, 0.0])
+    # degree one: d = L_g h = 0, so the barrier cannot act; the CLF drives p past 1
+    plain = UniversalController(system, clf, CBF(h, beta=1.0), **kw)
+    t_plain = simulate(plain, x0, t_final=8.0, dt=0.01)
+    assert float(np.min(np.asarray(t_plain.h))) < -0.5
+    # degree two: psi1 = -v + 2 (1 - p); the closed loop keeps h >= 0 throughout
+    hocbf = high_order_cbf(system, h, alpha1=2.0, beta=2.0)
+    ctrl = UniversalController(system, clf, hocbf, **kw)
+    traj = simulate(ctrl, x0, t_final=8.0, dt=0.01)
+    p = np.asarray(traj.x)[:, 0]
+    assert traj.ok and np.min(1.0 - p) >= -1e-6  # RK4 with dt = 0.01: O(dt^4) drift at most
+    assert p[-1] > 0.9  # it still goes as far as the limit allows
+    assert np.any(np.asarray(traj.region) == Region.P3) or np.any(
+        np.asarray(traj.region) == Region.P2
+    )
+
+
+def test_high_order_cbf_rejects_relative_degree_one():
+    from safestab import high_order_cbf
+
+    system = _double_integrator()
+    with pytest.raises(ParameterError, match=r"h does not have relative degree 2: L_g h = \[1.0\]"):
+        high_order_cbf(system, lambda x: x[1], alpha1=1.0, beta=1.0)
+
+
+def test_high_order_cbf_reports_where_degree_two_fails_at_run_time():
+    from safestab import ControlAffineSystem, high_order_cbf
+
+    # g acts on the position only where p > 5: degree 2 holds at the probes, not there
+    system = ControlAffineSystem(
+        lambda x: jnp.array([x[1], 0.0]),
+        lambda x: jnp.array([[jnp.where(x[0] > 5.0, 1.0, 0.0)], [1.0]]),
+        2,
+    )
+    clf = CLF(lambda x: x @ x, lam=1.0)
+    hocbf = high_order_cbf(
+        system, lambda x: 10.0 - x[0], alpha1=1.0, beta=1.0, probe=np.zeros((1, 2))
+    )
+    ctrl = UniversalController(system, clf, hocbf, **P)
+    out = ctrl.step(np.array([[0.0, 0.0], [6.0, 0.0]]))
+    assert out.status.tolist() == [StepStatus.OK, StepStatus.RELATIVE_DEGREE]
+    with pytest.raises(ModelError, match=r"relative degree 2 does not hold"):
+        ctrl.step(np.array([6.0, 0.0]), strict=True)

@@ -8,7 +8,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from .certificates import CBF, CLF, LieTerms, lie_terms  # noqa: E402
+from .certificates import CBF, CLF, LieTerms, high_order_cbf, lie_terms  # noqa: E402
 from .controllers import (  # noqa: E402
     CBFController,
     ControlOutput,
@@ -76,6 +76,7 @@ __all__ = [
     "LieTerms",
     "UniversalController",
     "lie_terms",
+    "high_order_cbf",
     "ProbabilisticCompatibility",
     "RobustMargins",
     "UncertaintyModel",

@@ -252,9 +252,7 @@ def figure_writer(fig: Any, path: str | os.PathLike[str], **savefig_kwargs: Any)
     fmt = Path(path).suffix.lstrip(".").lower()
     supported = fig.canvas.get_supported_filetypes()
     if fmt not in supported:
-        raise OutputError(
-            f"figure path must end in one of {sorted(supported)}, got {str(path)!r}"
-        )
+        raise OutputError(f"figure path must end in one of {sorted(supported)}, got {str(path)!r}")
     if "format" in savefig_kwargs:
         raise OutputError("figure_writer takes the format from the path's suffix, not format=")
     return lambda fh: fig.savefig(fh, format=fmt, **savefig_kwargs)

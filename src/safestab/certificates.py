@@ -20,7 +20,11 @@ from ._validation import check_real, check_scalar_range
 from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
 
-__all__ = ["CLF", "CBF", "LieTerms", "lie_terms"]
+__all__ = ["CLF", "CBF", "LieTerms", "lie_terms", "high_order_cbf", "RELATIVE_DEGREE_RTOL"]
+
+#: ``L_g h`` counts as zero for a relative-degree-2 barrier when
+#: ``|L_g h| <= RELATIVE_DEGREE_RTOL (|grad h| |g|)``: rounding of the product, with room.
+RELATIVE_DEGREE_RTOL = 1e-12
 
 
 class LieTerms(NamedTuple):
@@ -121,6 +125,10 @@ class _Certificate:
         self.class_k = class_k
         self.grad = grad if grad is not None else jax.grad(fn)
         self.hand_gradient = grad is not None
+        #: 1 for a plain certificate; 2 for :func:`high_order_cbf` (whose ``base`` is ``h``)
+        self.relative_degree = 1
+        self.base: Callable | None = None
+        self.base_grad: Callable | None = None
 
     def _rate_term(self, value: jax.Array) -> jax.Array:
         """``rate * value`` (the paper's linear choice) or ``class_k(value)``."""
@@ -147,6 +155,16 @@ class _Certificate:
             raise DimensionError(
                 f"grad of {self._fn_name} must return shape ({n_states},), got {gshape}"
             )
+
+    def relative_degree_holds(self, system: ControlAffineSystem, x: jax.Array) -> jax.Array:
+        """Whether ``L_g`` of the base constraint is zero at one state (True for degree 1).
+
+        For :func:`high_order_cbf`: ``|L_g h| <= RELATIVE_DEGREE_RTOL (|grad h| |g|)``.
+        """
+        if self.relative_degree == 1 or self.base_grad is None:
+            return jnp.asarray(True)
+        gh, g = self.base_grad(x), system.g(x)
+        return jnp.all(jnp.abs(gh @ g) <= RELATIVE_DEGREE_RTOL * (jnp.abs(gh) @ jnp.abs(g)))
 
     def value(self, x: jax.Array) -> jax.Array:
         """The function's value: shape (..., n) to (...,)."""
@@ -277,6 +295,100 @@ class CBF(_Certificate):
     def alpha(self) -> Callable | None:
         """The class-K function ``alpha`` (None for the linear rate)."""
         return self.class_k
+
+
+def high_order_cbf(
+    system: ControlAffineSystem,
+    h: Callable[[jax.Array], jax.Array],
+    *,
+    alpha1: Callable[[jax.Array], jax.Array] | float,
+    beta: float | None = None,
+    alpha: Callable[[jax.Array], jax.Array] | None = None,
+    probe: Any = None,
+) -> CBF:
+    """A CBF of relative degree 2 (a high-order / exponential CBF), built by autodiff.
+
+    For ``h`` with ``L_g h = 0`` (the input does not act on ``h`` directly), the barrier
+    ``psi1(x) = L_f h(x) + alpha1(h(x))`` has relative degree 1, and the returned CBF imposes
+    ``L_f psi1 + L_g psi1 u + alpha2(psi1) >= rho Gamma`` on it (with ``alpha2`` the linear
+    ``beta`` or the class-K ``alpha``). Keeping ``psi1 >= 0`` keeps ``h >= 0`` from states with
+    ``h >= 0`` and ``psi1 >= 0``.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+        The model whose ``f`` defines ``L_f h``.
+    h : callable
+        The constraint, a state of shape (n,) to a scalar; safe set ``h >= 0``.
+    alpha1 : float or callable
+        Rate of the first stage: a number ``> 0`` (``alpha1 h``) or an extended class-K
+        function.
+    beta, alpha : optional
+        The second stage's rate, as for :class:`CBF` (exactly one).
+    probe : array of shape (k, n), optional
+        States at which ``L_g h = 0`` is checked at construction (default: the origin and 16
+        seeded standard-normal states).
+
+    Returns
+    -------
+    CBF
+        With ``fn = psi1``, ``relative_degree = 2`` and ``base = h``; the controllers also
+        check ``L_g h = 0`` at every state and report the step status ``RELATIVE_DEGREE``
+        where it fails.
+
+    Raises
+    ------
+    ParameterError
+        If ``L_g h`` is not zero at a probe state (the relative degree is not 2 there), or a
+        rate is invalid.
+    """
+    if callable(alpha1):
+        _check_class_k("alpha1", alpha1)
+        first = alpha1
+    else:
+        check_real("alpha1", alpha1)
+        check_scalar_range("alpha1", alpha1, lower=0.0, strict_lower=True)
+        rate1 = float(alpha1)
+
+        def first(v: jax.Array) -> jax.Array:
+            return rate1 * v
+
+    grad_h = jax.grad(h)
+
+    def psi1(x: jax.Array) -> jax.Array:
+        return grad_h(x) @ system.f(x) + first(h(x))
+
+    n = system.n_states
+    pts = (
+        np.asarray(probe, dtype=float).reshape(-1, n)
+        if probe is not None
+        else np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
+    )
+    lgh, scale = _lg_h(system, grad_h, jnp.asarray(pts))
+    bad = np.flatnonzero(
+        ~(np.abs(np.asarray(lgh)) <= RELATIVE_DEGREE_RTOL * np.asarray(scale)).all(-1)
+    )
+    if bad.size:
+        i = int(bad[0])
+        raise ParameterError(
+            f"h does not have relative degree 2: L_g h = {np.asarray(lgh)[i].tolist()} != 0 at "
+            f"x = {pts[i].tolist()}; use a plain CBF, or a constraint the input does not act on"
+        )
+    cbf = CBF(psi1, beta=beta, alpha=alpha)
+    cbf.relative_degree = 2
+    cbf.base = h
+    cbf.base_grad = grad_h
+    return cbf
+
+
+def _lg_h(system: ControlAffineSystem, grad_h: Callable, x: jax.Array) -> tuple[Any, Any]:
+    """``L_g h`` (..., m) and the scale ``|grad h| |g|`` (..., m) of its rounding."""
+
+    def point(s: jax.Array) -> tuple[jax.Array, jax.Array]:
+        gh, g = grad_h(s), system.g(s)
+        return gh @ g, jnp.abs(gh) @ jnp.abs(g)
+
+    return over_batch(point, x)
 
 
 def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTerms:

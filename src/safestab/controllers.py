@@ -54,6 +54,7 @@ class StepStatus(IntEnum):
     NEGATIVE_STD = 4  #: the uncertainty model returned a negative standard deviation
     NONFINITE_INPUT = 5  #: the formula's exact input overflows float64 (rescale the problem)
     NEGATIVE_WEIGHT = 6  #: a state-dependent phi(x) or varphi(x) is negative
+    RELATIVE_DEGREE = 7  #: a high-order CBF's L_g h is not zero here (degree 2 fails)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -303,6 +304,11 @@ class UniversalController:
             jnp.where((weights[0] < 0) | (weights[1] < 0), S.NEGATIVE_WEIGHT, S.OK),
             S.NONFINITE_MODEL,
         )
+        model_ok = jnp.where(
+            (model_ok == S.OK) & ~self.cbf.relative_degree_holds(self.system, x),
+            S.RELATIVE_DEGREE,
+            model_ok,
+        )
         status = jnp.where(~_all_finite(x), S.NONFINITE_STATE, model_ok)
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
@@ -413,6 +419,12 @@ class UniversalController:
         if badi.size:
             i = int(badi[0])
             name = StepStatus(int(flat[i])).name
+            if flat[i] == StepStatus.RELATIVE_DEGREE:
+                raise ModelError(
+                    f"controller step failed with status {name} at state index {i} "
+                    f"(x = {xs[i].tolist()}): L_g h is not zero there, so the high-order CBF's "
+                    "relative degree 2 does not hold"
+                )
             if flat[i] == StepStatus.NEGATIVE_WEIGHT:
                 raise ModelError(
                     f"controller step failed with status {name} at state index {i} "

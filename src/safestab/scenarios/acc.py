@@ -216,8 +216,17 @@ _KEYS = {
     **{
         k: f"learning.{k}"
         for k in (
-            "n_samples", "sample_rate", "sample_horizon", "noise_std", "gp_beta", "kernel",
-            "x0_low", "x0_high", "excitation_limit", "hyper_subset", "seed",
+            "n_samples",
+            "sample_rate",
+            "sample_horizon",
+            "noise_std",
+            "gp_beta",
+            "kernel",
+            "x0_low",
+            "x0_high",
+            "excitation_limit",
+            "hyper_subset",
+            "seed",
         )
     },  # fmt: skip
 }
@@ -292,6 +301,6 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
             flat["name"] = FIELDS["name"]("name", name, source)
         except ScenarioError as exc:
             raise ScenarioError(
-                f"{exc} (the file has no name key, so its stem was used; add name = \"...\")"
+                f'{exc} (the file has no name key, so its stem was used; add name = "...")'
             ) from None
     return _build(check_values(flat, source))

@@ -227,3 +227,32 @@ def test_argument_errors():
         clf_cbf_multi(*one, u_min=-1.0, **P)
     with pytest.raises(DimensionError, match=r"u_nom must have shape \(2,\)"):
         clf_cbf_multi(*one, u_nom=np.zeros(3), **P)
+
+
+def test_safety_filter_matches_the_formula_and_keeps_every_barrier():
+    import jax.numpy as jnp
+
+    from safestab import CBF, CLF, ControlAffineSystem, SafetyFilter, lie_terms
+
+    # a planar single integrator with two disc obstacles and a nominal go-to-goal input
+    system = ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="si")
+    cbfs = [
+        CBF(lambda x: jnp.sum((x - jnp.array([1.0, 0.2])) ** 2) - 0.25, beta=1.0),
+        CBF(lambda x: jnp.sum((x - jnp.array([1.0, -0.6])) ** 2) - 0.16, beta=1.0),
+    ]
+    goal = jnp.array([2.5, 0.0])
+    filt = SafetyFilter(
+        system, cbfs, u_nom=lambda x: goal - x, u_min=-1.0, u_max=1.0, rho=0.0, varphi=0.0
+    )
+    x = np.random.default_rng(4).uniform([-1.0, -1.5], [0.3, 1.5], (40, 2))
+    out = filt.step(x)
+    terms = [lie_terms(system, CLF(lambda x: x @ x, lam=0.0), cb, x) for cb in cbfs]
+    c = np.stack([np.asarray(t.c) for t in terms], -1)
+    d = np.stack([np.asarray(t.d) for t in terms], -2)
+    ref = clf_cbf_multi(
+        np.zeros((40, 0)), np.zeros((40, 0, 2)), c, d, u_min=-1.0, u_max=1.0,
+        u_nom=np.asarray(goal) - x, kappa=0.0, rho=0.0, phi=0.0, varphi=0.0,
+    )  # fmt: skip
+    assert np.allclose(np.asarray(out.u), np.asarray(ref.u), rtol=1e-13, atol=1e-14)
+    solved = np.asarray(out.formula_status) == MultiStatus.SOLVED
+    assert solved.sum() >= 30 and np.all(np.asarray(out.cbf_satisfied)[solved])

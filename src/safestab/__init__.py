@@ -28,6 +28,7 @@ from .errors import (  # noqa: E402
     SafeStabError,
     ScenarioError,
 )
+from .filters import FilterOutput, SafetyFilter  # noqa: E402
 from .formulas import (  # noqa: E402
     DEFAULT_PARALLEL_RTOL,
     SATISFIED_RTOL,
@@ -73,6 +74,8 @@ __all__ = [
     "SontagController",
     "CBFController",
     "StepStatus",
+    "SafetyFilter",
+    "FilterOutput",
     "LieTerms",
     "UniversalController",
     "lie_terms",

@@ -130,7 +130,7 @@ class _Certificate:
         self.base: Callable | None = None
         self.base_grad: Callable | None = None
 
-    def _rate_term(self, value: jax.Array) -> jax.Array:
+    def rate_term(self, value: jax.Array) -> jax.Array:
         """``rate * value`` (the paper's linear choice) or ``class_k(value)``."""
         if self.class_k is not None:
             return self.class_k(value)
@@ -176,7 +176,7 @@ class _Certificate:
 
     def _lie_point(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         grad = self.grad(x)
-        return grad @ system.f(x) + self._rate_term(self.fn(x)), grad @ system.g(x)
+        return grad @ system.f(x) + self.rate_term(self.fn(x)), grad @ system.g(x)
 
     def lie(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """``(L_f + rate) value`` of shape (...,) and ``L_g value`` of shape (..., m)."""

@@ -28,7 +28,7 @@ from .formulas._kernels import (
     solve_two,
     sontag,
 )
-from .robust import UncertaintyModel, check_beta, robust_lie_terms
+from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_lie_terms
 from .systems import ControlAffineSystem
 
 __all__ = [
@@ -221,7 +221,7 @@ class UniversalController:
                 f"saturation='safety_first' needs a single-input system, got n_inputs={m}"
             )
         if uncertainty is not None:
-            self._check_uncertainty(uncertainty, system.n_states)
+            check_uncertainty_model(uncertainty, system.n_states)
             gp_beta = check_beta(gp_beta, system.n_states)
         self.system = system
         self.clf = clf
@@ -257,23 +257,6 @@ class UniversalController:
                 f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape {arr.shape}"
             )
         return arr.copy()
-
-    @staticmethod
-    def _check_uncertainty(uncertainty: Any, n: int) -> None:
-        if not hasattr(uncertainty, "mean_std"):
-            raise TypeError("uncertainty must provide mean_std(x) -> (mean, std)")
-        if getattr(uncertainty, "n_states", n) != n:
-            raise DimensionError(
-                f"uncertainty.n_states must equal system.n_states = {n}, got {uncertainty.n_states}"
-            )
-        probe = jax.ShapeDtypeStruct((n,), jnp.float64)
-        out = jax.eval_shape(uncertainty.mean_std, probe)
-        shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple) else None
-        if shapes is None or len(shapes) != 2 or any(sh != (n,) for sh in shapes):
-            got = shapes if shapes is not None else type(out).__name__
-            raise DimensionError(
-                f"uncertainty.mean_std(x) must return (mean, std), each of shape ({n},), got {got}"
-            )
 
     def __repr__(self) -> str:
         kind: str = self.formula if self.formula != "combined" else "clf_cbf"

@@ -27,6 +27,7 @@ __all__ = [
     "probabilistic_compatibility",
     "joint_probability",
     "check_beta",
+    "check_uncertainty_model",
 ]
 
 
@@ -54,6 +55,32 @@ class RobustMargins(NamedTuple):
 
     delta_V: jax.Array
     delta_h: jax.Array
+
+
+def check_uncertainty_model(uncertainty: Any, n: int) -> None:
+    """Check that ``uncertainty.mean_std`` maps a state (n,) to a mean and a std of shape (n,).
+
+    Raises
+    ------
+    TypeError
+        If there is no ``mean_std``.
+    DimensionError
+        If ``n_states`` or the traced output shapes do not match ``n``.
+    """
+    if not hasattr(uncertainty, "mean_std"):
+        raise TypeError("uncertainty must provide mean_std(x) -> (mean, std)")
+    if getattr(uncertainty, "n_states", n) != n:
+        raise DimensionError(
+            f"uncertainty.n_states must equal system.n_states = {n}, got {uncertainty.n_states}"
+        )
+    probe = jax.ShapeDtypeStruct((n,), jnp.float64)
+    out = jax.eval_shape(uncertainty.mean_std, probe)
+    shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple) else None
+    if shapes is None or len(shapes) != 2 or any(sh != (n,) for sh in shapes):
+        got = shapes if shapes is not None else type(out).__name__
+        raise DimensionError(
+            f"uncertainty.mean_std(x) must return (mean, std), each of shape ({n},), got {got}"
+        )
 
 
 def check_beta(beta: Any, n_states: int) -> jax.Array:

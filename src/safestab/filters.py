@@ -1,0 +1,295 @@
+"""Safety filters: several CBFs and CLFs, limits, a nominal input, in closed form.
+
+Limits are inside the problem, and the objective may be weighted (issue 10).
+
+:class:`SafetyFilter` is to :func:`~safestab.formulas.clf_cbf_multi` what
+:class:`~safestab.controllers.UniversalController` is to :func:`~safestab.formulas.clf_cbf`:
+a state-to-input map with statuses and flags, jitted and batched.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._batching import over_batch
+from ._validation import check_real
+from .certificates import CBF, CLF
+from .controllers import StepStatus
+from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
+from .formulas import SATISFIED_RTOL, MultiStatus
+from .formulas._checks import check_box, check_params
+from .formulas._kernels import condition_flags, margins
+from .formulas.multi import MAX_ROWS, multi_kernel
+from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_margins
+from .systems import ControlAffineSystem
+
+__all__ = ["SafetyFilter", "FilterOutput"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterOutput:
+    """One safety-filter step, batched over the leading axes of ``x``.
+
+    Attributes
+    ----------
+    u : array of shape (..., m)
+        The input (NaN where ``status`` is not OK).
+    status : int array of shape (...,)
+        A :class:`~safestab.controllers.StepStatus`.
+    formula_status : int array of shape (...,)
+        A :class:`~safestab.formulas.MultiStatus`: solved, or which fallback was used.
+    active : bool array of shape (..., rows)
+        Active rows (CLFs, CBFs, upper limits, lower limits).
+    multipliers : array of shape (..., rows)
+    slack : array of shape (..., p)
+        CLF slacks.
+    cbf_satisfied : bool array of shape (..., k)
+        Per CBF, judged against the condition's own magnitudes.
+    clf_satisfied : bool array of shape (..., p)
+        Per CLF (without slack), likewise.
+    """
+
+    u: jax.Array
+    status: jax.Array
+    formula_status: jax.Array
+    active: jax.Array
+    multipliers: jax.Array
+    slack: jax.Array
+    cbf_satisfied: jax.Array
+    clf_satisfied: jax.Array
+
+
+jax.tree_util.register_dataclass(
+    FilterOutput, data_fields=[f.name for f in dataclasses.fields(FilterOutput)], meta_fields=[]
+)
+
+
+def _as_tuple(value: Any, kind: type, name: str) -> tuple:
+    items = (value,) if isinstance(value, kind) else tuple(value)
+    if not all(isinstance(v, kind) for v in items):
+        raise TypeError(f"{name} must be a {kind.__name__} or a sequence of them")
+    return items
+
+
+class SafetyFilter:
+    """Minimally modify a nominal input so that every CBF (and CLF) condition holds.
+
+    Solves, at each state, ``min 1/2 (u - u_nom)^T H (u - u_nom) + 1/2 m sum chi_j^2`` subject
+    to every CBF condition, every CLF condition (with slack ``chi_j`` when ``slack_weight`` is
+    given) and the input limits, exactly (:func:`~safestab.formulas.clf_cbf_multi`).
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    cbfs : CBF or sequence of CBF
+        ``k >= 1`` barriers (plain or :func:`~safestab.certificates.high_order_cbf`).
+    clfs : CLF or sequence of CLF, optional
+        ``p >= 0`` Lyapunov functions.
+    u_nom : callable or array of shape (m,), optional
+        The nominal input: a function of one state (n,) returning (m,), or a constant.
+        Zero when omitted (then the filter is the universal formula with several rows).
+    H : array of shape (m, m), optional
+        Positive definite weight of the objective.
+    kappa, rho, phi, varphi : float
+        As for :class:`~safestab.controllers.UniversalController` (shared by the rows).
+    slack_weight : float, optional
+        CLF slack weight; hard CLFs when omitted.
+    u_min, u_max : float or array of shape (m,), optional
+        Limits inside the problem.
+    uncertainty : UncertaintyModel, optional
+        GP-robust terms (Lemma 3) for every row.
+    gp_beta : float or array of shape (n,)
+
+    Raises
+    ------
+    DimensionError, ParameterError, InputTypeError, TypeError
+        For invalid arguments, named.
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        cbfs: CBF | Sequence[CBF],
+        *,
+        clfs: CLF | Sequence[CLF] = (),
+        u_nom: Callable[[jax.Array], jax.Array] | Any = None,
+        H: Any = None,
+        kappa: float = 0.0,
+        rho: float = 0.0,
+        phi: float = 0.0,
+        varphi: float = 0.0,
+        slack_weight: float | None = None,
+        u_min: Any = None,
+        u_max: Any = None,
+        uncertainty: UncertaintyModel | None = None,
+        gp_beta: Any = 2.0,
+    ) -> None:
+        self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
+        self.clfs = _as_tuple(clfs, CLF, "clfs")
+        if not self.cbfs:
+            raise ParameterError("give at least one CBF")
+        check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
+        if slack_weight is not None:
+            check_params((), slack_weight=slack_weight)
+        n, m = system.n_states, system.n_inputs
+        for cert in self.clfs + self.cbfs:
+            cert.check(n)
+        if (u_min is None) != (u_max is None):
+            raise ParameterError("give both u_min and u_max, or neither")
+        if u_min is not None:
+            check_real("u_min", u_min)
+            check_real("u_max", u_max)
+            u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
+            u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
+            check_box(u_min, u_max)
+        rows = len(self.clfs) + len(self.cbfs) + (2 * m if u_min is not None else 0)
+        if rows > MAX_ROWS:
+            raise ParameterError(f"a safety filter handles at most {MAX_ROWS} rows, got {rows}")
+        if u_nom is not None and callable(u_nom):
+            probe = jax.ShapeDtypeStruct((n,), jnp.float64)
+            shape = getattr(jax.eval_shape(u_nom, probe), "shape", None)
+            if shape != (m,):
+                raise DimensionError(f"u_nom(x) must return shape ({m},), got {shape}")
+        elif u_nom is not None:
+            check_real("u_nom", u_nom)
+            if np.shape(u_nom) != (m,):
+                raise DimensionError(f"u_nom must have shape ({m},), got {np.shape(u_nom)}")
+            const = jnp.asarray(u_nom, dtype=float)
+            u_nom = lambda x: const  # noqa: E731
+        if H is not None:
+            check_real("H", H)
+            Hn = np.asarray(H, dtype=float)
+            if Hn.shape != (m, m):
+                raise DimensionError(f"H must have shape ({m}, {m}), got {Hn.shape}")
+            if not np.allclose(Hn, Hn.T, rtol=1e-12, atol=0.0) or np.any(
+                np.linalg.eigvalsh(Hn) <= 0
+            ):
+                raise ParameterError("H must be symmetric positive definite")
+            H = Hn
+        if uncertainty is not None:
+            check_uncertainty_model(uncertainty, n)
+            gp_beta = check_beta(gp_beta, n)
+        self.system = system
+        self.u_nom = u_nom
+        self.H = H
+        self.params = {"kappa": kappa, "rho": rho, "phi": phi, "varphi": varphi}
+        self.slack_weight = slack_weight
+        self.u_min, self.u_max = u_min, u_max
+        self.uncertainty = uncertainty
+        self.gp_beta = gp_beta
+        #: The fused, jitted step without argument checks, for one state or a batch.
+        self.step_fn = jax.jit(self._step)
+
+    def _point(self, x: jax.Array):
+        f, g = self.system.f(x), self.system.g(x)
+        a = (
+            jnp.stack([cl.grad(x) @ f + cl.rate_term(cl.fn(x)) for cl in self.clfs])
+            if self.clfs
+            else jnp.zeros(0)
+        )
+        b = (
+            jnp.stack([cl.grad(x) @ g for cl in self.clfs])
+            if self.clfs
+            else jnp.zeros((0, g.shape[1]))
+        )
+        c = jnp.stack([cb.grad(x) @ f + cb.rate_term(cb.fn(x)) for cb in self.cbfs])
+        d = jnp.stack([cb.grad(x) @ g for cb in self.cbfs])
+        S = StepStatus
+        status = jnp.where(jnp.all(jnp.isfinite(x)), S.OK, S.NONFINITE_STATE)
+        finite = jnp.all(jnp.isfinite(a)) & jnp.all(jnp.isfinite(b)) & jnp.all(jnp.isfinite(c))
+        finite = finite & jnp.all(jnp.isfinite(d))
+        status = jnp.where((status == S.OK) & ~finite, S.NONFINITE_MODEL, status)
+        degree_ok = jnp.all(
+            jnp.stack([cb.relative_degree_holds(self.system, x) for cb in self.cbfs])
+        )
+        status = jnp.where((status == S.OK) & ~degree_ok, S.RELATIVE_DEGREE, status)
+        if self.uncertainty is not None:
+            mean, std = self.uncertainty.mean_std(x)
+            beta = jnp.asarray(self.gp_beta)
+            for i, cl in enumerate(self.clfs):
+                a = a.at[i].add(robust_margins(cl.grad(x), cl.grad(x), mean, std, beta).delta_V)
+            for i, cb in enumerate(self.cbfs):
+                c = c.at[i].add(robust_margins(cb.grad(x), cb.grad(x), mean, std, beta).delta_h)
+            unc_ok = jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(std))
+            status = jnp.where((status == S.OK) & ~unc_ok, S.NONFINITE_UNCERTAINTY, status)
+            status = jnp.where((status == S.OK) & jnp.any(std < 0), S.NEGATIVE_STD, status)
+        u_nom = self.u_nom(x) if self.u_nom is not None else None
+        return (a, b, c, d, u_nom), status.astype(jnp.int32)
+
+    def _step(self, x: jax.Array) -> FilterOutput:
+        (a, b, c, d, u_nom), status = over_batch(self._point, x)
+        p = self.params
+        batch = x.shape[:-1]
+        inv = None if self.slack_weight is None else np.asarray(1.0 / np.sqrt(self.slack_weight))
+        lo = hi = None
+        if self.u_min is not None:
+            m = self.system.n_inputs
+            lo = jnp.broadcast_to(jnp.asarray(self.u_min), batch + (m,))
+            hi = jnp.broadcast_to(jnp.asarray(self.u_max), batch + (m,))
+        H = None if self.H is None else jnp.broadcast_to(jnp.asarray(self.H), batch + self.H.shape)
+        res = multi_kernel(
+            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], inv, lo, hi, u_nom, H
+        )
+        u = res.u
+        ub = u[..., None, :]
+        mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
+        _, cbf_ok = condition_flags(c, d, c, d, ub, mg_c, 0.0, p["rho"], SATISFIED_RTOL)
+        mg_v = margins(a, b, a, b, p["kappa"], 0.0, p["phi"], 0.0)
+        clf_ok, _ = condition_flags(a, b, a, b, ub, mg_v, p["kappa"], 0.0, SATISFIED_RTOL)
+        finite = jnp.all(jnp.isfinite(u), -1)
+        status = jnp.where((status == StepStatus.OK) & ~finite, StepStatus.NONFINITE_INPUT, status)
+        ok = status == StepStatus.OK
+        return FilterOutput(
+            u=jnp.where(ok[..., None], u, jnp.nan),
+            status=status.astype(jnp.int32),
+            formula_status=res.status,
+            active=res.active,
+            multipliers=res.multipliers,
+            slack=res.slack,
+            cbf_satisfied=ok[..., None] & cbf_ok,
+            clf_satisfied=ok[..., None] & clf_ok,
+        )
+
+    def step(self, x: Any, *, strict: bool = False) -> FilterOutput:
+        """The filtered input and diagnostics at states ``x`` of shape (..., n).
+
+        Raises
+        ------
+        InputTypeError, DimensionError, NonFiniteError
+            For an invalid ``x``; with ``strict=True`` also where a step failed.
+        ModelError
+            If the uncertainty model returns a negative standard deviation.
+        InfeasibleError
+            With ``strict=True``, where a fallback was used or a CBF condition is violated.
+        """
+        check_real("x", x)
+        x = self.system.check_state(x)
+        out = self.step_fn(x)
+        status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
+        if np.any(status == StepStatus.NEGATIVE_STD):
+            raise ModelError("the uncertainty model returned a negative standard deviation")
+        if strict:
+            if np.any(status != StepStatus.OK):
+                i = int(np.flatnonzero(status != StepStatus.OK)[0])
+                name = StepStatus(int(status[i])).name
+                raise NonFiniteError(f"filter step failed with status {name} at state index {i}")
+            fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
+            if np.any(fstat != MultiStatus.SOLVED) or not bool(
+                np.all(np.asarray(out.cbf_satisfied))
+            ):
+                i = int(np.argmax(fstat != MultiStatus.SOLVED))
+                raise InfeasibleError(
+                    f"the CBF conditions and limits cannot all be met (state index {i}, "
+                    f"{MultiStatus(int(fstat[i])).name})"
+                )
+        return out
+
+    def __call__(self, x: Any) -> jax.Array:
+        """The filtered input at states ``x`` of shape (..., n); shape (..., m)."""
+        return self.step(x).u

@@ -14,6 +14,8 @@ __all__ = [
     "NumericalError",
     "ScenarioError",
     "InfeasibleError",
+    "UnsupportedPrimitiveError",
+    "CompilationError",
 ]
 
 
@@ -43,3 +45,14 @@ class ScenarioError(SafeStabError, ValueError):
 
 class InfeasibleError(SafeStabError, RuntimeError):
     """No input satisfies the requested conditions and ``strict=True`` was asked for."""
+
+
+class UnsupportedPrimitiveError(SafeStabError, NotImplementedError):
+    """A function uses a JAX primitive (or dtype) that the C export cannot translate.
+
+    The message names the primitive and the ``file:line`` of the code that produced it.
+    """
+
+
+class CompilationError(SafeStabError, RuntimeError):
+    """The C compiler is missing or rejected the exported code; the message has its output."""

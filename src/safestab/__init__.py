@@ -11,6 +11,7 @@ jax.config.update("jax_enable_x64", True)
 from .certificates import CBF, CLF, LieTerms, lie_terms  # noqa: E402
 from .controllers import ControlOutput, UniversalController  # noqa: E402
 from .errors import (  # noqa: E402
+    CompilationError,
     DimensionError,
     InfeasibleError,
     NonFiniteError,
@@ -18,7 +19,9 @@ from .errors import (  # noqa: E402
     ParameterError,
     SafeStabError,
     ScenarioError,
+    UnsupportedPrimitiveError,
 )
+from .export import NativeController, export_c  # noqa: E402
 from .formulas import (  # noqa: E402
     Compatibility,
     CompatibilityCase,
@@ -70,6 +73,8 @@ __all__ = [
     "ParameterError",
     "SafeStabError",
     "ScenarioError",
+    "CompilationError",
+    "UnsupportedPrimitiveError",
     "Compatibility",
     "CompatibilityCase",
     "FormulaResult",
@@ -86,4 +91,6 @@ __all__ = [
     "Trajectory",
     "rk4_step",
     "simulate",
+    "NativeController",
+    "export_c",
 ]

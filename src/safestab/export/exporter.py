@@ -22,7 +22,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import __version__
 from ..errors import DimensionError, ParameterError
 from ._cgen import Emitter, c_identifier
 from ._ir import Program, Val, check_dtype, live_statements
@@ -268,11 +267,17 @@ def export_function(
         stmts=live_statements(program, outs),
         emitter=Emitter(precision),
         description=description,
-        version=__version__,
+        version=_version(),
     )
     return ExportedC(
         name, n, precision, source, header, cdef, tuple(leaves), primary, treedef, stack
     )
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__
 
 
 def _describe_controller(controller: Any) -> str:

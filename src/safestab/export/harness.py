@@ -47,10 +47,12 @@ def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
         One per leaf (in pytree order), broadcastable to the leaf: for ``u`` and
         ``u_unconstrained``, ``|lambda1| |b| + |lambda2| |d|`` per state (the terms the formula
         subtracts; multipliers from :func:`~safestab.clf_cbf` or
-        :func:`~safestab.clf_cbf_relaxed` on the step's own Lie terms); for other real leaves
+        :func:`~safestab.clf_cbf_relaxed` on the step's own Lie terms), plus in region P3
+        the magnitudes of the products in the multipliers' numerators over the Gram
+        determinant (the products may cancel); for other real leaves
         the largest magnitude of that leaf over the N states; zeros for integer leaves.
     """
-    from .. import clf_cbf, clf_cbf_relaxed
+    from .. import Region, clf_cbf, clf_cbf_relaxed
 
     a, b, c, d = (np.asarray(t) for t in out.terms)
     p = dict(controller.params, parallel_rtol=controller.parallel_rtol)
@@ -59,9 +61,32 @@ def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
     else:
         res = clf_cbf_relaxed(a, b, c, d, slack_weight=controller.slack_weight, **p)
     lam = np.abs(np.asarray(res.multipliers))
-    u_scale = lam[..., :1] * np.linalg.norm(b, axis=-1, keepdims=True) + lam[
-        ..., 1:
-    ] * np.linalg.norm(d, axis=-1, keepdims=True)
+    bn = np.linalg.norm(b, axis=-1)
+    dn = np.linalg.norm(d, axis=-1)
+    u_scale = lam[..., 0] * bn + lam[..., 1] * dn
+    # The margins A = a + kappa zeta and B = rho Gamma - c can be small differences of large
+    # numbers (a < 0, c > 0): their rounding is relative to |a| + kappa zeta and |c| + rho
+    # Gamma. In region P3 the multipliers are (w, v) / det with v = A b.d + B |b|^2 and
+    # w = A |d|^2 + B b.d (Gram form; relaxed: |b|^2 + 1/slack_weight), whose two products
+    # can cancel as well.
+    inv_slack = 0.0 if controller.slack_weight is None else 1.0 / controller.slack_weight
+    kappa, rho, phi, varphi = (controller.params[k] for k in ("kappa", "rho", "phi", "varphi"))
+    bb, dd, bd = bn**2 + inv_slack, dn**2, np.abs(np.sum(b * d, axis=-1))
+    a_mag = np.abs(a) + kappa * np.sqrt(a * a + phi * bn**4)
+    b_mag = np.abs(c) + rho * np.sqrt(c * c + varphi * dn**4)
+    cross = b[..., :, None] * d[..., None, :] - b[..., None, :] * d[..., :, None]
+    det = 0.5 * np.sum(cross * cross, axis=(-2, -1)) + inv_slack * dd
+    region = np.asarray(out.region)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        clf_part = np.where(bb > 0, a_mag / bb * bn, 0.0)
+        cbf_part = np.where(dd > 0, b_mag / dd * dn, 0.0)
+        gram = ((a_mag * dd + b_mag * bd) * bn + (a_mag * bd + b_mag * bb) * dn) / det
+    u_scale = u_scale + np.select(
+        [region == Region.P1, region == Region.P2, (region == Region.P3) & (det > 0)],
+        [clf_part, cbf_part, gram],
+        clf_part + cbf_part,
+    )
+    u_scale = u_scale[..., None]
     scales = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(out)[0]:
         leaf = np.asarray(leaf)

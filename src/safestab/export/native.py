@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
+import io
 import os
 import shutil
 import subprocess
+import sys
+import sysconfig
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -52,20 +57,30 @@ def _run(cmd: list[str], cwd: Path) -> None:
         )
 
 
-def _load_api_module(exported: ExportedC, obj: Path, build: Path, module: str) -> Any:
-    """Build and import a cffi API-mode extension linked with ``obj`` (lowest call overhead)."""
+def _load_api_module(exported: ExportedC, cc: str, obj: Path, build: Path, module: str) -> Any:
+    """Build and import a cffi API-mode extension linked with ``obj`` (lowest call overhead).
+
+    The wrapper that cffi generates is compiled with the same compiler directly (much faster
+    than going through setuptools); this needs the Python headers.
+    """
     import cffi
 
     ffi = cffi.FFI()
     ffi.cdef(exported.cdef)
-    ffi.set_source(
-        module,
-        f'#include "{exported.name}.h"',
-        include_dirs=[str(build)],
-        extra_objects=[str(obj)],
-        libraries=["m"],
-    )
-    so = ffi.compile(tmpdir=str(build), verbose=False)
+    ffi.set_source(module, f'#include "{exported.name}.h"')
+    wrapper = build / f"{module}.c"
+    with contextlib.redirect_stdout(io.StringIO()):
+        ffi.emit_c_code(str(wrapper))
+    include = sysconfig.get_paths()["include"]
+    if not Path(include, "Python.h").exists():
+        raise CompilationError(f"no Python.h in {include}")
+    so = build / (module + (sysconfig.get_config_var("EXT_SUFFIX") or ".so"))
+    extra = ["-undefined", "dynamic_lookup"] if sys.platform == "darwin" else []
+    _run(
+        [cc, "-O1", "-fPIC", "-shared", *extra, f"-I{include}", f"-I{build}", str(wrapper),
+         str(obj), "-lm", "-o", str(so)],
+        build,
+    )  # fmt: skip
     spec = importlib.util.spec_from_file_location(module, so)
     if spec is None or spec.loader is None:  # pragma: no cover - importlib failure
         raise CompilationError(f"could not load the compiled module {so}")
@@ -126,9 +141,9 @@ class NativeFunction:
             _run([cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)], build)
             module = f"_safestab_native_{exported.name}_{digest}"
             try:
-                self._ffi, self._lib = _load_api_module(exported, obj, build, module)
+                self._ffi, self._lib = _load_api_module(exported, cc, obj, build, module)
                 self.mode = "api"
-            except Exception:  # no Python headers / setuptools: fall back to dlopen
+            except (CompilationError, ImportError, OSError):  # no Python headers: dlopen
                 self._ffi, self._lib = _load_abi(exported, cc, obj, build)
                 self.mode = "abi"
         # the loaded code stays mapped after its files are removed
@@ -157,6 +172,8 @@ class NativeFunction:
         self._prim_shape = ex.leaves[ex.primary].shape
         self._prim_dtype = self._leaf_dtypes[ex.primary]
         self._prim_ctype = self._leaf_ctypes[ex.primary]
+        self._null = self._ffi.NULL
+        self._local = threading.local()
 
     def columns(self, x: np.ndarray) -> tuple[list[np.ndarray], int]:
         """Evaluate at ``x`` of shape (count, n) (C-contiguous, this precision).
@@ -176,12 +193,27 @@ class NativeFunction:
         status = self._columns(count, fb(self._real_ptr, x), *ptrs)
         return leaves, int(status)
 
-    def primary(self, x: np.ndarray) -> tuple[np.ndarray, int]:
-        """The primary output (``u``) only, at one state ``x`` of shape (n,)."""
-        out = np.empty(self._prim_shape, dtype=self._prim_dtype)
+    def _buffers(self) -> tuple[np.ndarray, Any, np.ndarray, Any]:
+        xb = np.empty(self.exported.n_states, dtype=self.dtype)
+        ub = np.empty(self._prim_shape, dtype=self._prim_dtype)
         fb = self._ffi.from_buffer
-        status = self._step(fb(self._real_ptr, x), fb(self._prim_ctype, out), self._ffi.NULL)
-        return out, status
+        bufs = (xb, fb(self._real_ptr, xb), ub, fb(self._prim_ctype, ub))
+        self._local.bufs = bufs
+        return bufs
+
+    def primary(self, x: Any) -> tuple[np.ndarray, int]:
+        """The primary output (``u``) only, at one state ``x`` of shape (n,).
+
+        ``x`` is copied into a per-thread buffer (so any array-like works and calls from
+        several threads do not share memory) and the result is a fresh array.
+        """
+        try:
+            xb, xp, ub, up = self._local.bufs
+        except AttributeError:
+            xb, xp, ub, up = self._buffers()
+        xb[...] = x
+        status = self._step(xp, up, self._null)
+        return ub.copy(), status
 
 
 def compile_native(
@@ -241,6 +273,7 @@ class NativeController:
         self.function = NativeFunction(self.exported, compiler=compiler, march_native=march_native)
         self._dtype = self.function.dtype
         self._names = [leaf.path for leaf in self.exported.leaves]
+        self._one_state = (self.n_states,)
 
     def __repr__(self) -> str:
         return f"NativeController({self.controller!r}, precision={self.exported.precision!r})"
@@ -301,8 +334,8 @@ class NativeController:
 
     def __call__(self, x: Any) -> np.ndarray:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
-        if type(x) is np.ndarray and x.shape == (self.n_states,) and x.dtype == self._dtype:
-            u, status = self.function.primary(x if x.flags.c_contiguous else x.copy())
+        if np.shape(x) == self._one_state:
+            u, status = self.function.primary(x)
             if status & 1:
                 check_finite("x", x)
             return u

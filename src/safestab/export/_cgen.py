@@ -265,7 +265,14 @@ def _ipow(name: str, ct: str, flt: bool, e: Emitter) -> str:
     )
 
 
-_HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow}
+def _exp(name: str, ct: str, flt: bool, e: Emitter) -> str:
+    fn, lim = ("expf", "-104.0f") if ct == "float" else ("exp", "-746.0")
+    # the same value as exp: below the limit exp rounds to +0, but glibc reaches that result
+    # through a slow path (the GP kernels of the ACC cache hit it at most points)
+    return f"static {ct} {name}({ct} a) {{ return a < {lim} ? 0 : {fn}(a); }}"
+
+
+_HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp}
 
 
 def _float_to_int(name: str, ct: str, dct: str, dst: np.dtype) -> str:

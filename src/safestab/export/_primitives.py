@@ -134,10 +134,11 @@ def _math(fn: str) -> Rule:
 
 
 for _name in (
-    "exp exp2 log log1p expm1 sin cos tan tanh asin acos atan sinh cosh asinh acosh atanh "
+    "exp2 log log1p expm1 sin cos tan tanh asin acos atan sinh cosh asinh acosh atanh "
     "sqrt cbrt erf erfc lgamma floor ceil"
 ).split():
     RULES[_name] = _math(_name)
+RULES["exp"] = _unary(lambda e, dt, a: f"{e.helper('exp', dt)}({a})")
 RULES["atan2"] = _binary(lambda e, dt, a, b: f"{e.math('atan2', dt)}({a}, {b})")
 RULES["nextafter"] = _binary(lambda e, dt, a, b: f"{e.math('nextafter', dt)}({a}, {b})")
 RULES["pow"] = _binary(lambda e, dt, a, b: f"{e.math('pow', dt)}({a}, {b})")

@@ -135,7 +135,9 @@ class NativeFunction:
             build = Path(tmp)
             exported.write(build)
             obj = build / f"{exported.name}.o"
-            flags = [*C_FLAGS, "-fno-math-errno", "-fPIC"] + (
+            # -O3 (same numbers as -O2: no fast-math, no contraction) vectorises the GP
+            # cache's matrix-vector products about twice as well as -O2 with GCC 12
+            flags = [*C_FLAGS, "-O3", "-fno-math-errno", "-fPIC"] + (
                 ["-march=native"] if march_native else []
             )
             _run([cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)], build)

@@ -81,12 +81,116 @@ def bench_fit(sc, train, test, full):
     return out, models["subset 500 + condition on all"]
 
 
+C_TIMER = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <time.h>
+#include "NAME.h"
+#include "states.h"
+int main(void)
+{
+    double u[NAME_UPPER_N_OUT], sink = 0.0, best = 1e300;
+    NAME_info info;
+    for (int rep = 0; rep < 7; ++rep) {
+        struct timespec a, b;
+        const long n = STEPS;
+        clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &a);
+        for (long k = 0; k < n; ++k) {
+            NAME_step(states + (k % N_REC) * NAME_UPPER_N_STATES, u, &info);
+            sink += u[0];
+        }
+        clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &b);
+        const double ns = ((double)(b.tv_sec - a.tv_sec) * 1e9 + (double)(b.tv_nsec - a.tv_nsec)) / n;
+        printf("%.2f\n", ns);
+        if (ns < best) best = ns;
+    }
+    return sink == 0.123456789 && best < 0.0;
+}
+"""
+
+
+def c_loop_ns(ctrl, states, native_flags, steps=200_000):
+    """CPU ns per step of <name>_step called in a C loop over recorded states (7 repetitions).
+
+    Process CPU time, not wall time: on a shared machine the wall clock also counts the time
+    other processes hold the CPU. ``native_flags``: the flags NativeController uses (-O3
+    -march=native), else the portable -O2 of the harness.
+    """
+    import subprocess
+    import tempfile
+
+    from safestab.export import export_c
+    from safestab.export.native import find_compiler
+
+    with tempfile.TemporaryDirectory() as tmp:
+        ex = export_c(ctrl, "bench", tmp)
+        flat = ", ".join(repr(float(v)) for v in np.asarray(states).ravel())
+        Path(tmp, "states.h").write_text(
+            f"#define N_REC {len(states)}\nstatic const double states[] = {{{flat}}};\n"
+        )
+        src = C_TIMER.replace("NAME_UPPER", "BENCH").replace("NAME", "bench")
+        Path(tmp, "timer.c").write_text(src.replace("STEPS", str(steps)))
+        flags = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-math-errno"]
+        flags += ["-O3", "-march=native"] if native_flags else []
+        exe = str(Path(tmp, "timer"))
+        subprocess.run([find_compiler(), *flags, "bench.c", "timer.c", "-lm", "-o", exe], cwd=tmp, check=True)
+        out = subprocess.run([exe], capture_output=True, text=True, check=False).stdout.split()
+    reps = [float(v) for v in out]
+    return {"median_ns": float(np.median(reps)), "min_ns": float(np.min(reps)), "steps": steps,
+            "repetitions": len(reps), "flags": " ".join(flags), "stack_bytes": ex.stack_bytes}
+
+
+def bench_export(c_fast, c_nom, states_1, xb, repeat):
+    """Native (exported C) controller rows: Python call, C loop, batched throughput."""
+    from safestab.export import NativeController
+
+    out = {}
+    t0 = time.perf_counter()
+    n_fast = NativeController(c_fast, name="acc_gp")
+    out["build_seconds_gp"] = time.perf_counter() - t0
+    n_nom = NativeController(c_nom, name="acc_nominal")
+    out["cffi_mode"] = n_fast.function.mode
+    states_np = [np.asarray(x) for x in states_1]
+    lat = {}
+    lat["JAX fused step (controller.input_fn), GP-robust"] = latency(block(c_fast.input_fn), states_1, repeat)
+    lat["native GP-robust step from Python (NativeController(x))"] = latency(n_fast, states_np, repeat)
+    lat["native GP-robust step() with all diagnostics"] = latency(n_fast.step, states_np, repeat)
+    lat["JAX fused step (controller.input_fn), nominal"] = latency(block(c_nom.input_fn), states_1, repeat)
+    lat["native nominal step from Python (NativeController(x))"] = latency(n_nom, states_np, repeat)
+    out["latency"] = lat
+    out["c_loop"] = {
+        "GP-robust, flags of NativeController": c_loop_ns(c_fast, states_np[:200], True),
+        "GP-robust, portable flags of the harness": c_loop_ns(c_fast, states_np[:200], False),
+        "nominal, flags of NativeController": c_loop_ns(c_nom, states_np[:200], True),
+    }
+    thr = {}
+    xb_np = np.asarray(xb)
+    for name, fn, arg in [
+        ("JAX batched GP-robust step (input_fn)", c_fast.input_fn, xb),
+        ("native batched GP-robust step (NativeController(x), C loop)", n_fast, xb_np),
+        ("JAX batched nominal step (input_fn)", c_nom.input_fn, xb),
+        ("native batched nominal step", n_nom, xb_np),
+    ]:
+        jax.block_until_ready(fn(arg))
+        reps = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(arg))
+            reps.append(time.perf_counter() - t0)
+        thr[name] = {"states_per_second": len(arg) / float(np.median(reps)), "batch": len(arg)}
+    out["throughput"] = thr
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--q", type=int, default=2000)
     parser.add_argument("--repeat", type=int, default=3000)
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
+    parser.add_argument(
+        "--only", choices=["export"], help="run only these rows and merge them into the existing results"
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     results: dict = {
@@ -101,6 +205,8 @@ def main():
 
     print("collecting data and fitting the GP ...", flush=True)
     sc, train, test = setup(args.q, seed=0)
+    if args.only == "export":
+        return run_export_only(args, sc, train, test, rng, results["machine"])
     results["gp_fit"], gp = bench_fit(sc, train, test, full=not args.no_full_fit)
     fast = FastGP(gp, n_inducing=32)
     widening = fast.calibrate(test.x[:300], sc.gp_beta)
@@ -228,6 +334,9 @@ def main():
         thr[name] = {"states_per_second": count / float(np.median(reps)), "batch": count}
     results["throughput"] = thr
 
+    print("native (exported C) controller ...", flush=True)
+    results["export"] = bench_export(c_fast, c_nom, states, xb[:100_000], args.repeat)
+
     print("closed loop ...", flush=True)
     loop = {}
     for name, ctrl in [("fast GP controller", c_fast), ("nominal controller", c_nom)]:
@@ -253,6 +362,73 @@ def main():
     (args.out / "performance.json").write_text(json.dumps(results, indent=2, default=float))
     write_markdown(results, args.out / "performance.md")
     print(f"wrote {args.out / 'performance.json'} and performance.md")
+
+
+def run_export_only(args, sc, train, test, rng, machine):
+    """``--only export``: the native rows alone, merged into the existing results."""
+    gp = GaussianProcessModel(kernel=sc.kernel).fit(train.x, train.y, hyper_subset=500, seed=0)
+    fast = FastGP(gp, n_inducing=32)
+    fast.calibrate(test.x[:300], sc.gp_beta)
+    nominal = sc.system("nominal")
+    clf, cbf = sc.certificates()
+    p = dict(kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi, slack_weight=sc.slack_weight)
+    c_nom = ss.UniversalController(nominal, clf, cbf, **p)
+    c_fast = ss.UniversalController(nominal, clf, cbf, uncertainty=fast, gp_beta=sc.gp_beta, **p)
+    states = [jnp.asarray(x) for x in test.x[:200]]
+    xb = jnp.asarray(rng.uniform(sc.x0_low, sc.x0_high, size=(100_000, 3)))
+    print("native (exported C) controller ...", flush=True)
+    path = args.out / "performance.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    results["export"] = bench_export(c_fast, c_nom, states, xb, args.repeat)
+    results["export"]["machine"] = machine
+    args.out.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2, default=float))
+    tmp.replace(path)
+    if "latency" in results:
+        write_markdown(results, args.out / "performance.md")
+    print(json.dumps(results["export"], indent=2, default=float))
+
+
+def export_markdown(e):
+    """The rows of the native (exported C) controller."""
+    lat, loop, thr = e["latency"], e["c_loop"], e["throughput"]
+    jax_gp = lat["JAX fused step (controller.input_fn), GP-robust"]["median_us"]
+    nat_gp = lat["native GP-robust step from Python (NativeController(x))"]["median_us"]
+    lines = [
+        "## Native controller (exported C, `safestab.export`)",
+        "",
+        "`NativeController` compiles the C99 export of the fused step (cffi "
+        f"{e['cffi_mode']} mode) and calls it per state; same GP-robust ACC controller as above "
+        "(fast cache, Q = 2000). Rerun these rows alone with "
+        "`python benchmarks/run.py --only export`.",
+    ]
+    if "machine" in e:
+        lines += ["", f"Measured on {e['machine']['platform']}, {e['machine']['cpus']} CPUs."]
+    lines += ["", "| step | median (us) | quartiles (us) | JAX fused step / this |", "|---|---:|---:|---:|"]
+    for name, v in lat.items():
+        base = jax_gp if "GP" in name else lat["JAX fused step (controller.input_fn), nominal"]["median_us"]
+        lines.append(
+            f"| {name} | {v['median_us']:.2f} | {v['q1_us']:.2f} - {v['q3_us']:.2f} | {base / v['median_us']:.1f}x |"
+        )
+    lines += ["", "| C function alone, in a C loop (process CPU time) | ns per step (median of 7) | best | flags |", "|---|---:|---:|---|"]
+    for name, v in loop.items():
+        lines.append(f"| {name} | {v['median_ns']:.0f} | {v['min_ns']:.0f} | `{v['flags']}` |")
+    lines += ["", "| batched (100,000 states) | states per second |", "|---|---:|"]
+    for name, v in thr.items():
+        lines.append(f"| {name} | {v['states_per_second']:.3g} |")
+    loop_gp = loop["GP-robust, flags of NativeController"]["median_ns"]
+    thr_nat = thr["native batched GP-robust step (NativeController(x), C loop)"]["states_per_second"]
+    thr_jax = thr["JAX batched GP-robust step (input_fn)"]["states_per_second"]
+    targets = [
+        ("native GP-robust step from Python, median <= 2 us", nat_gp <= 2.0, f"{nat_gp:.2f} us"),
+        ("native >= 10x faster than the JAX fused step", jax_gp / nat_gp >= 10, f"{jax_gp / nat_gp:.1f}x"),
+        ("C loop <= 1 us per GP-robust step", loop_gp <= 1000, f"{loop_gp:.0f} ns"),
+        ("native batched throughput >= JAX batched", thr_nat >= thr_jax, f"{thr_nat / thr_jax:.2f}x"),
+    ]
+    lines += ["", "| target (issue 9) | met | measured |", "|---|---|---:|"]
+    lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
+    return lines + [""]
 
 
 def write_markdown(r, path):
@@ -332,6 +508,8 @@ def write_markdown(r, path):
         ("GP fit at Q = 2000 < 10 s", fit["subset 500 + condition on all"]["seconds"] < 10.0,
          f"{fit['subset 500 + condition on all']['seconds']:.1f} s"),
     ]  # fmt: skip
+    if "export" in r:
+        lines += export_markdown(r["export"])
     lines += ["## Targets", "", "| target | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
     lines.append("")

@@ -17,6 +17,7 @@ from .controllers import (  # noqa: E402
     UniversalController,
 )
 from .errors import (  # noqa: E402
+    CompilationError,
     DimensionError,
     InfeasibleError,
     InputTypeError,
@@ -27,7 +28,9 @@ from .errors import (  # noqa: E402
     ParameterError,
     SafeStabError,
     ScenarioError,
+    UnsupportedPrimitiveError,
 )
+from .export import NativeController, export_c  # noqa: E402
 from .filters import FilterOutput, SafetyFilter  # noqa: E402
 from .formulas import (  # noqa: E402
     DEFAULT_PARALLEL_RTOL,
@@ -99,6 +102,8 @@ __all__ = [
     "ScenarioError",
     "DEFAULT_PARALLEL_RTOL",
     "SATISFIED_RTOL",
+    "CompilationError",
+    "UnsupportedPrimitiveError",
     "Compatibility",
     "CompatibilityCase",
     "ConditionFlags",
@@ -121,4 +126,6 @@ __all__ = [
     "Trajectory",
     "rk4_step",
     "simulate",
+    "NativeController",
+    "export_c",
 ]

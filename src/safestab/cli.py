@@ -151,5 +151,54 @@ def acc(
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
 
 
+@app.command("export")
+def export_cmd(
+    scenario: str = typer.Option("stress", help="A preset ('paper', 'stress') or a TOML file."),
+    out: Path = typer.Option(Path("build"), help="Output folder (created if needed)."),
+    controller: str = typer.Option(
+        "gp", help="'gp' (GP-corrected, fast cache), 'nominal' or 'true' model."
+    ),
+    name: str = typer.Option("acc", help="Prefix of the C names and files."),
+    precision: str = typer.Option("double", help="'double' or 'float'."),
+    cases: int = typer.Option(256, help="Recorded states in the C test harness."),
+    n_samples: int | None = typer.Option(None, help="Override the number of GP samples Q."),
+    n_inducing: int = typer.Option(32, help="Inducing points of the fast GP cache."),
+    seed: int | None = typer.Option(None, help="Seed for data, GP fit and recorded states."),
+    check: bool = typer.Option(True, help="Compile and run the harness (needs a C compiler)."),
+) -> None:
+    """Export an ACC controller step as C99 (name.c, name.h) with a C test harness."""
+    from rich.console import Console
+
+    from .errors import SafeStabError
+    from .export.scenario_export import export_scenario
+
+    console = Console()
+    try:
+        report = export_scenario(
+            scenario,
+            out,
+            controller=controller,
+            name=name,
+            precision=precision,
+            cases=cases,
+            n_samples=n_samples,
+            n_inducing=n_inducing,
+            seed=seed,
+            check=check,
+            progress=lambda msg: console.print(msg),
+        )
+    except SafeStabError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(code=2) from None
+    for path in report.files:
+        console.print(f"wrote {path}")
+    console.print(f"build the harness: {report.build_command}")
+    if report.harness_output is not None:
+        console.print(report.harness_output.rstrip())
+        if not report.passed:
+            console.print("[red]the harness found mismatches[/red]")
+            raise typer.Exit(code=1)
+
+
 if __name__ == "__main__":
     app()

@@ -17,6 +17,8 @@ __all__ = [
     "InputTypeError",
     "ModelError",
     "OutputError",
+    "UnsupportedPrimitiveError",
+    "CompilationError",
 ]
 
 
@@ -58,3 +60,12 @@ class ModelError(SafeStabError, ValueError):
 
 class OutputError(SafeStabError, OSError):
     """An output cannot be written: the folder is missing, not a folder, or not writable."""
+class UnsupportedPrimitiveError(SafeStabError, NotImplementedError):
+    """A function uses a JAX primitive (or dtype) that the C export cannot translate.
+
+    The message names the primitive and the ``file:line`` of the code that produced it.
+    """
+
+
+class CompilationError(SafeStabError, RuntimeError):
+    """The C compiler is missing or rejected the exported code; the message has its output."""

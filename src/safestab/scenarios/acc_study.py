@@ -16,7 +16,15 @@ from ..learning import Calibration, Dataset, GaussianProcessModel, calibration, 
 from ..simulation import Trajectory, simulate
 from .acc import ACCScenario
 
-__all__ = ["CONTROLLERS", "StudyResult", "run_study", "trajectory_metrics"]
+__all__ = [
+    "CONTROLLERS",
+    "StudyResult",
+    "collect_study_data",
+    "fit_study_gp",
+    "run_study",
+    "study_controllers",
+    "trajectory_metrics",
+]
 
 #: The three controllers of the paper's Fig. 4.
 CONTROLLERS = ("true model", "mismatched model", "GP-corrected")
@@ -108,6 +116,94 @@ def trajectory_metrics(
     return out
 
 
+def collect_study_data(
+    scenario: ACCScenario, *, seed: int | None = None, n_samples: int | None = None
+) -> tuple[Dataset, Dataset]:
+    """Collect the study's data on the true system: ``Q`` training rows and held-out rows.
+
+    Parameters
+    ----------
+    scenario : ACCScenario
+    seed : int, optional
+        Overrides the scenario's seed.
+    n_samples : int, optional
+        Overrides ``Q``; ``max(50, Q // 4)`` further rows are held out.
+
+    Returns
+    -------
+    train, held_out : Dataset
+    """
+    seed = scenario.seed if seed is None else int(seed)
+    q = scenario.n_samples if n_samples is None else int(n_samples)
+    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
+    n_test = max(50, q // 4)
+    data = collect_data(
+        scenario.system("true"),
+        scenario.system("nominal"),
+        x0=(scenario.x0_low, scenario.x0_high),
+        u_low=-span,
+        u_high=span,
+        n_samples=q + n_test,
+        rate=scenario.sample_rate,
+        horizon=scenario.sample_horizon,
+        noise_std=scenario.noise_std,
+        seed=seed,
+    )
+    return data._take(np.arange(q)), data._take(np.arange(q, q + n_test))
+
+
+def fit_study_gp(
+    scenario: ACCScenario, train: Dataset, *, seed: int | None = None
+) -> GaussianProcessModel:
+    """Fit the study's GP (the scenario's kernel and hyperparameter subset) to ``train``."""
+    seed = scenario.seed if seed is None else int(seed)
+    model = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
+    return model.fit(
+        train.x, train.y, hyper_subset=min(scenario.hyper_subset, len(train)), seed=seed
+    )
+
+
+def study_controllers(
+    scenario: ACCScenario, uncertainty: Any = None
+) -> dict[str, UniversalController]:
+    """The controllers of Fig. 4 with the scenario's parameters and input limits.
+
+    Parameters
+    ----------
+    scenario : ACCScenario
+    uncertainty : UncertaintyModel, optional
+        A fitted GP (or its :class:`~safestab.learning.FastGP` cache) for the GP-corrected
+        controller, used with ``scenario.gp_beta``; without it only the two model-based
+        controllers are returned.
+
+    Returns
+    -------
+    dict
+        ``{"true model": ..., "mismatched model": ..., "GP-corrected": ...}``.
+    """
+    true_sys, nominal = scenario.system("true"), scenario.system("nominal")
+    clf, cbf = scenario.certificates()
+    u_min, u_max = scenario.input_limits()
+    common: dict[str, Any] = dict(
+        kappa=scenario.kappa,
+        rho=scenario.rho,
+        phi=scenario.phi,
+        varphi=scenario.varphi,
+        slack_weight=scenario.slack_weight,
+        u_min=u_min,
+        u_max=u_max,
+    )
+    out = {
+        "true model": UniversalController(true_sys, clf, cbf, **common),
+        "mismatched model": UniversalController(nominal, clf, cbf, **common),
+    }
+    if uncertainty is not None:
+        out["GP-corrected"] = UniversalController(
+            nominal, clf, cbf, uncertainty=uncertainty, gp_beta=scenario.gp_beta, **common
+        )
+    return out
+
+
 def run_study(
     scenario: ACCScenario,
     *,
@@ -146,56 +242,25 @@ def run_study(
     # checked like the file (ScenarioError), before any work
     scenario = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
     seed, q, horizon = scenario.seed, scenario.n_samples, scenario.t_final
-    true_sys, nominal = scenario.system("true"), scenario.system("nominal")
-    clf, cbf = scenario.certificates()
+    true_sys = scenario.system("true")
     timings: dict[str, float] = {}
 
-    u_min, u_max = scenario.input_limits()
-    common: dict[str, Any] = dict(
-        kappa=scenario.kappa,
-        rho=scenario.rho,
-        phi=scenario.phi,
-        varphi=scenario.varphi,
-        slack_weight=scenario.slack_weight,
-        u_min=u_min,
-        u_max=u_max,
-    )
     # built first, so that the formulas' own parameter checks also run before any work
-    controllers = {
-        "true model": UniversalController(true_sys, clf, cbf, **common),
-        "mismatched model": UniversalController(nominal, clf, cbf, **common),
-    }
+    study_controllers(scenario)
 
     report("collecting data", 0.0)
     t0 = time.perf_counter()
-    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
-    n_test = max(50, q // 4)
-    data = collect_data(
-        true_sys,
-        nominal,
-        x0=(scenario.x0_low, scenario.x0_high),
-        u_low=-span,
-        u_high=span,
-        n_samples=q + n_test,
-        rate=scenario.sample_rate,
-        horizon=scenario.sample_horizon,
-        noise_std=scenario.noise_std,
-        seed=seed,
-    )
-    train, test = data._take(np.arange(q)), data._take(np.arange(q, q + n_test))
+    train, test = collect_study_data(scenario, seed=seed, n_samples=q)
     timings["collect_data"] = time.perf_counter() - t0
 
     report(f"fitting the GP (Q = {q}, n = {true_sys.n_states})", 0.2)
     t0 = time.perf_counter()
-    model = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
-    gp = model.fit(train.x, train.y, hyper_subset=min(scenario.hyper_subset, q), seed=seed)
+    gp = fit_study_gp(scenario, train, seed=seed)
     timings["fit_gp"] = time.perf_counter() - t0
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
-    controllers["GP-corrected"] = UniversalController(
-        nominal, clf, cbf, uncertainty=gp, gp_beta=scenario.gp_beta, **common
-    )
+    controllers = study_controllers(scenario, gp)
     trajectories: dict[str, Trajectory] = {}
     for i, (name, ctrl) in enumerate(controllers.items()):
         report(f"simulating: {name}", 0.4 + 0.2 * i)

@@ -1,0 +1,582 @@
+"""The primitive table: one small translation rule per JAX primitive.
+
+A rule has the signature ``rule(program, eqn, ins) -> outs``: ``ins`` are the input
+:class:`~safestab.export._ir.Val` objects, the rule creates the outputs (``program.new``),
+registers a statement whose ``gen(emitter)`` returns C lines, and returns the outputs. Inputs
+known at export time never reach a rule (they are folded), and calls are inlined before.
+To support a new primitive, add a rule to :data:`RULES` (docs/export.md shows an example).
+
+Semantics follow XLA, not C, where they differ: ``max``/``min`` propagate NaN and order
+``-0 < +0``; ``sign`` keeps NaN and signed zeros; float-to-int conversion truncates, maps NaN
+to 0 and saturates; ``argmax``/``argmin`` pick the first NaN.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._cgen import Emitter
+from ._ir import Program, Val
+
+Rule = Callable[[Program, Any, list[Val]], list[Val]]
+RULES: dict[str, Rule] = {}
+
+
+def _register(*names: str) -> Callable[[Rule], Rule]:
+    def deco(rule: Rule) -> Rule:
+        for name in names:
+            RULES[name] = rule
+        return rule
+
+    return deco
+
+
+# --------------------------------------------------------------------------------------
+# loops and indices
+
+
+def _strides(shape: tuple[int, ...]) -> list[int]:
+    out, acc = [], 1
+    for s in reversed(shape):
+        out.append(acc)
+        acc *= s
+    return out[::-1]
+
+
+def _index(terms: list[tuple[str, int]]) -> str:
+    """Flat index ``var0 * stride0 + ...`` (``"0"`` when empty)."""
+    parts = [v if st == 1 else f"{v} * {st}" for v, st in terms if st != 0]
+    return " + ".join(parts) or "0"
+
+
+def _affine(start: int, step: int, var: str = "i") -> str:
+    if step == 0:
+        return str(start)
+    term = var if abs(step) == 1 else f"{abs(step)} * {var}"
+    if start == 0 and step > 0:
+        return term
+    return f"{start} {'+' if step > 0 else '-'} {term}"
+
+
+def _nest(loops: list[tuple[str, int]], body: list[str]) -> list[str]:
+    """Nested ``for`` loops (outermost first) around ``body``; extents of 1 are skipped."""
+    lines = list(body)
+    for var, n in reversed([lp for lp in loops if lp[1] > 1]):
+        head = f"for (int {var} = 0; {var} < {n}; ++{var})"
+        if len(lines) == 1 and not lines[0].startswith("for"):
+            lines = [f"{head} {lines[0]}"]
+        else:
+            lines = [head + " {"] + ["    " + ln for ln in lines] + ["}"]
+    return lines
+
+
+# --------------------------------------------------------------------------------------
+# elementwise
+
+
+def elementwise(p: Program, eqn: Any, ins: list[Val], expr: Callable[..., str]) -> list[Val]:
+    """One output element from the same element of each input (scalars broadcast)."""
+    out = p.new(eqn.outvars[0].aval)
+
+    # operands are scalars, of the output's shape, or (JAX >= 0.9) of the same rank with
+    # size-1 axes broadcast
+    broadcast = any(v.size != 1 and v.shape != out.shape for v in ins)
+    for v in ins:
+        if v.size != 1 and (
+            len(v.shape) != len(out.shape)
+            or any(s not in (1, o) for s, o in zip(v.shape, out.shape, strict=True))
+        ):  # pragma: no cover - JAX does not produce this
+            raise p.unsupported(f"operand of shape {v.shape} for an output of shape {out.shape}")
+
+    def gen(e: Emitter) -> list[str]:
+        if out.size == 1:
+            return [e.declare(out, expr(e, *[e.ref(v, 0) for v in ins]))]
+        if not broadcast:
+            refs = [e.ref(v, 0 if v.size == 1 else "i") for v in ins]
+            loop = f"for (int i = 0; i < {out.size}; ++i) {e.name(out)}[i] = {expr(e, *refs)};"
+            return [e.declare(out), loop]
+        loops = [(f"i{d}", s) for d, s in enumerate(out.shape)]
+
+        def idx(shape: tuple[int, ...]) -> str:
+            st = _strides(shape)
+            return _index([(f"i{d}", st[d]) for d, s in enumerate(shape) if s > 1])
+
+        refs = [e.ref(v, 0 if v.size == 1 else idx(v.shape)) for v in ins]
+        body = [f"{e.target(out, idx(out.shape))} = {expr(e, *refs)};"]
+        return [e.declare(out)] + _nest(loops, body)
+
+    p.stmt([out], ins, gen)
+    return [out]
+
+
+def _unary(fmt: Callable[[Emitter, Any, str], str]) -> Rule:
+    def rule(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+        dt = ins[0].dtype
+        return elementwise(p, eqn, ins, lambda e, a: fmt(e, dt, a))
+
+    return rule
+
+
+def _binary(fmt: Callable[[Emitter, Any, str, str], str]) -> Rule:
+    def rule(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+        dt = ins[0].dtype
+        return elementwise(p, eqn, ins, lambda e, a, b: fmt(e, dt, a, b))
+
+    return rule
+
+
+def _math(fn: str) -> Rule:
+    return _unary(lambda e, dt, a: f"{e.math(fn, dt)}({a})")
+
+
+for _name in (
+    "exp2 log log1p expm1 sin cos tan tanh asin acos atan sinh cosh asinh acosh atanh "
+    "sqrt cbrt erf erfc lgamma floor ceil"
+).split():
+    RULES[_name] = _math(_name)
+RULES["exp"] = _unary(lambda e, dt, a: f"{e.helper('exp', dt)}({a})")
+RULES["atan2"] = _binary(lambda e, dt, a, b: f"{e.math('atan2', dt)}({a}, {b})")
+RULES["nextafter"] = _binary(lambda e, dt, a, b: f"{e.math('nextafter', dt)}({a}, {b})")
+RULES["pow"] = _binary(lambda e, dt, a, b: f"{e.math('pow', dt)}({a}, {b})")
+RULES["rsqrt"] = _unary(lambda e, dt, a: f"{e.lit(1, dt)} / {e.math('sqrt', dt)}({a})")
+RULES["logistic"] = _unary(
+    lambda e, dt, a: f"{e.lit(1, dt)} / ({e.lit(1, dt)} + {e.math('exp', dt)}(-{a}))"
+)
+RULES["square"] = _unary(lambda e, dt, a: f"{a} * {a}")
+RULES["neg"] = _unary(lambda e, dt, a: f"-{a}")
+RULES["sign"] = _unary(lambda e, dt, a: f"{e.helper('sign', dt)}({a})")
+RULES["abs"] = _unary(
+    lambda e, dt, a: f"{e.math('fabs', dt)}({a})" if e.is_float(dt) else f"({a} < 0 ? -{a} : {a})"
+)
+RULES["is_finite"] = _unary(lambda e, dt, a: f"(isfinite({a}) ? 1 : 0)")
+RULES["not"] = _unary(lambda e, dt, a: f"!{a}" if dt == np.bool_ else f"~{a}")
+RULES["add"] = RULES["add_any"] = _binary(lambda e, dt, a, b: f"{a} + {b}")
+RULES["sub"] = _binary(lambda e, dt, a, b: f"{a} - {b}")
+RULES["mul"] = _binary(lambda e, dt, a, b: f"{a} * {b}")
+RULES["div"] = _binary(lambda e, dt, a, b: f"{a} / {b}")
+RULES["rem"] = _binary(
+    lambda e, dt, a, b: f"{e.math('fmod', dt)}({a}, {b})" if e.is_float(dt) else f"{a} % {b}"
+)
+RULES["max"] = _binary(lambda e, dt, a, b: f"{e.helper('max', dt)}({a}, {b})")
+RULES["min"] = _binary(lambda e, dt, a, b: f"{e.helper('min', dt)}({a}, {b})")
+RULES["and"] = _binary(lambda e, dt, a, b: f"{a} & {b}")
+RULES["or"] = _binary(lambda e, dt, a, b: f"{a} | {b}")
+RULES["xor"] = _binary(lambda e, dt, a, b: f"{a} ^ {b}")
+for _name, _op in (
+    ("eq", "=="),
+    ("ne", "!="),
+    ("lt", "<"),
+    ("le", "<="),
+    ("gt", ">"),
+    ("ge", ">="),
+):
+    RULES[_name] = _binary(lambda e, dt, a, b, op=_op: f"{a} {op} {b}")  # type: ignore[misc]
+
+
+@_register("round")
+def _round(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    # rounding_method 0: half away from zero (C round); 1: half to even (nearbyint)
+    fn = "round" if int(eqn.params["rounding_method"]) == 0 else "nearbyint"
+    return _math(fn)(p, eqn, ins)
+
+
+@_register("integer_pow")
+def _integer_pow(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    y, dt = int(eqn.params["y"]), ins[0].dtype
+    if y == 0:
+        return elementwise(p, eqn, ins, lambda e, a: e.lit(1, dt))
+    if y == 1:
+        return elementwise(p, eqn, ins, lambda e, a: a)
+    if y == 2:
+        return elementwise(p, eqn, ins, lambda e, a: f"{a} * {a}")
+    return elementwise(p, eqn, ins, lambda e, a: f"{e.helper('ipow', dt)}({a}, {y})")
+
+
+@_register("clamp")
+def _clamp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    dt = ins[1].dtype  # clamp(lo, x, hi) = min(max(x, lo), hi), as XLA
+    return elementwise(
+        p,
+        eqn,
+        ins,
+        lambda e, lo, x, hi: f"{e.helper('min', dt)}({e.helper('max', dt)}({x}, {lo}), {hi})",
+    )
+
+
+@_register("select_n")
+def _select_n(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    pred, cases = ins[0], ins[1:]
+    s = pred.splat()
+    if s is not None and pred.size in (1, cases[0].size):
+        chosen = cases[int(s)]
+        if chosen.shape == tuple(eqn.outvars[0].aval.shape):
+            return [chosen]
+    boolean = pred.dtype == np.bool_
+
+    def expr(e: Emitter, c: str, *refs: str) -> str:
+        if boolean:
+            return f"{c} ? {refs[1]} : {refs[0]}"
+        text = refs[-1]
+        for k in range(len(refs) - 2, -1, -1):
+            text = f"{c} == {k} ? {refs[k]} : ({text})"
+        return text
+
+    return elementwise(p, eqn, ins, expr)
+
+
+@_register("convert_element_type")
+def _convert(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    src, dst = ins[0].dtype, np.dtype(eqn.params["new_dtype"])
+    if src == dst:
+        return [ins[0]]
+
+    def expr(e: Emitter, a: str) -> str:
+        if dst == np.bool_:
+            return f"{a} != {e.zero(src)}"
+        if dst.kind in "iu" and src.kind == "f":
+            return f"{e.helper('f2i', src, dst)}({a})"
+        if e.ctype(src) == e.ctype(dst):
+            return a
+        return f"({e.ctype(dst)}){a}"
+
+    return elementwise(p, eqn, ins, expr)
+
+
+@_register("copy", "copy_p", "optimization_barrier")
+def _identity(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    return list(ins)
+
+
+@_register("reduce_precision")
+def _reduce_precision(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    info = np.finfo(ins[0].dtype)
+    if (eqn.params["exponent_bits"], eqn.params["mantissa_bits"]) == (info.nexp, info.nmant):
+        return list(ins)
+    raise p.unsupported("rounding to a narrower float format is not exported")
+
+
+# --------------------------------------------------------------------------------------
+# data movement: the index map is found by running the primitive on element labels
+
+
+_DATA_OPERANDS: dict[str, Callable[[int], list[int]]] = {
+    "broadcast_in_dim": lambda n: [0],
+    "reshape": lambda n: [0],
+    "squeeze": lambda n: [0],
+    "expand_dims": lambda n: [0],
+    "transpose": lambda n: [0],
+    "rev": lambda n: [0],
+    "slice": lambda n: [0],
+    "split": lambda n: [0],
+    "concatenate": lambda n: list(range(n)),
+    "stack": lambda n: list(range(n)),
+    "pad": lambda n: [0, 1],
+    "gather": lambda n: [0],
+    "scatter": lambda n: [0, 2],
+    "dynamic_slice": lambda n: [0],
+    "dynamic_update_slice": lambda n: [0, 1],
+}
+
+
+def _movement(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """Copy elements: every output element is one input element or a fill value."""
+    data = _DATA_OPERANDS[eqn.primitive.name](len(ins))
+    args, starts, owners = [], [], []
+    base = 0
+    for k, v in enumerate(ins):
+        if k in data:
+            labels = np.arange(base, base + v.size, dtype=np.float64).reshape(v.shape)
+            args.append(jnp.asarray(labels))
+            starts.append(base)
+            owners.append(v)
+            base += v.size
+        elif v.const is None:
+            raise p.unsupported(
+                "an index operand depends on the state; only indices known at export time "
+                "are supported"
+            )
+        else:
+            args.append(jnp.asarray(v.const))
+    res = eqn.primitive.bind(*args, **eqn.params)
+    res = res if eqn.primitive.multiple_results else [res]
+    return [
+        _copy_from(p, var.aval, np.asarray(r).reshape(-1), np.array(starts), owners)
+        for r, var in zip(res, eqn.outvars, strict=True)
+    ]
+
+
+for _name in _DATA_OPERANDS:
+    RULES[_name] = _movement
+
+
+def _copy_from(p: Program, aval: Any, lab: np.ndarray, starts: np.ndarray, owners) -> Val:
+    n = lab.size
+    if n == 0:
+        return p.const(np.zeros(aval.shape, aval.dtype))
+    fill = np.isnan(lab)
+    if fill.any() and np.dtype(aval.dtype).kind != "f":
+        raise p.unsupported("out-of-bounds indices with a non-float fill value")
+    li = np.where(fill, 0, lab).astype(np.int64)
+    owner = np.where(fill, -1, np.searchsorted(starts, li, side="right") - 1)
+    src = np.where(fill, 0, li - starts[np.maximum(owner, 0)])
+    if (owner == owner[0]).all() and owner[0] >= 0:
+        v = owners[owner[0]]
+        if v.size == n and (src == np.arange(n)).all():
+            return p.alias(v, aval.shape, aval.dtype)
+    if all(o < 0 or owners[o].const is not None for o in owner):
+        flat = np.array(
+            [np.nan if o < 0 else owners[o].const.reshape(-1)[s] for o, s in zip(owner, src)]
+        )
+        return p.const(flat.astype(aval.dtype).reshape(aval.shape))
+    out = p.new(aval)
+    runs = []  # (out start, length, owner, src start, src step)
+    j = 0
+    while j < n:
+        o, s = int(owner[j]), int(src[j])
+        length, step = 1, 0
+        if j + 1 < n and owner[j + 1] == o:
+            step = 0 if o < 0 else int(src[j + 1] - s)
+            while (
+                j + length < n and owner[j + length] == o and src[j + length] == s + step * length
+            ):
+                length += 1
+        runs.append((j, length, o, s, step))
+        j += length
+    used = sorted({o for o in owner.tolist() if o >= 0})
+    table = None
+    if len(runs) > 8 and n > 16 and len(used) == 1 and not fill.any():
+        table = p.const(src.astype(np.int32))
+    ins = [owners[o] for o in used] + ([table] if table is not None else [])
+
+    def gen(e: Emitter) -> list[str]:
+        def src_ref(o: int, idx: int | str) -> str:
+            return e.lit(np.nan, aval.dtype) if o < 0 else e.ref(owners[o], idx)
+
+        if out.size == 1:
+            return [e.declare(out, src_ref(runs[0][2], runs[0][3]))]
+        lines = [e.declare(out)]
+        name = e.name(out)
+        if table is not None:
+            ref = e.ref(owners[used[0]], e.ref(table, "i"))
+            return lines + [f"for (int i = 0; i < {n}; ++i) {name}[i] = {ref};"]
+        for start, length, o, s, step in runs:
+            if length == 1:
+                lines.append(f"{name}[{start}] = {src_ref(o, s)};")
+            else:
+                lines.append(
+                    f"for (int i = 0; i < {length}; ++i) {name}[{_affine(start, 1)}] = "
+                    f"{src_ref(o, _affine(s, step))};"
+                )
+        return lines
+
+    p.stmt([out], ins, gen)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# reductions
+
+
+def _reduce_ops(kind: str, e: Emitter, dt: Any) -> tuple[str, Callable[[str, str], str]]:
+    """Initial value and combination of a reduction, as XLA defines them."""
+    flt = e.is_float(dt)
+    if kind == "sum":
+        return e.zero(dt), lambda acc, v: f"{acc} + {v}"
+    if kind == "prod":
+        return e.lit(1, dt), lambda acc, v: f"{acc} * {v}"
+    if kind in ("max", "min"):
+        if flt:
+            init = e.lit(-np.inf if kind == "max" else np.inf, dt)
+        elif dt == np.bool_:
+            init = "0" if kind == "max" else "1"
+        else:
+            info = np.iinfo(dt)
+            init = e.lit(info.min if kind == "max" else info.max, dt)
+        fn = e.helper(kind, dt)
+        return init, lambda acc, v: f"{fn}({acc}, {v})"
+    op = {"and": "&", "or": "|", "xor": "^"}[kind]
+    return ("1" if kind == "and" else "0"), lambda acc, v: f"{acc} {op} {v}"
+
+
+def _reduction(kind: str) -> Rule:
+    def rule(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+        x = ins[0]
+        axes = sorted(int(a) for a in eqn.params["axes"])
+        out = p.new(eqn.outvars[0].aval)
+        kept = [d for d in range(len(x.shape)) if d not in axes]
+
+        def gen(e: Emitter) -> list[str]:
+            xs, os_ = _strides(x.shape), _strides(out.shape)
+            kept_loops = [(f"i{d}", x.shape[d]) for d in kept]
+            red_loops = [(f"r{d}", x.shape[d]) for d in axes]
+            out_idx = _index([(f"i{d}", os_[j]) for j, d in enumerate(kept) if x.shape[d] > 1])
+            in_idx = _index(
+                [
+                    (f"{'r' if d in axes else 'i'}{d}", xs[d])
+                    for d in range(len(x.shape))
+                    if x.shape[d] > 1
+                ]
+            )
+            tgt = e.target(out, out_idx)
+            init, combine = _reduce_ops(kind, e, x.dtype)
+            body = [f"{tgt} = {init};"] + _nest(
+                red_loops, [f"{tgt} = {combine(tgt, e.ref(x, in_idx))};"]
+            )
+            return [e.declare(out)] + _nest(kept_loops, body)
+
+        p.stmt([out], [x], gen)
+        return [out]
+
+    return rule
+
+
+for _kind in ("sum", "prod", "max", "min", "and", "or", "xor"):
+    RULES[f"reduce_{_kind}"] = _reduction(_kind)
+
+
+def _arg_extremum(kind: str) -> Rule:
+    def rule(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+        x = ins[0]
+        (axis,) = (int(a) for a in eqn.params["axes"])
+        out = p.new(eqn.outvars[0].aval)
+        kept = [d for d in range(len(x.shape)) if d != axis]
+
+        def gen(e: Emitter) -> list[str]:
+            xs, os_ = _strides(x.shape), _strides(out.shape)
+            out_idx = _index([(f"i{d}", os_[j]) for j, d in enumerate(kept) if x.shape[d] > 1])
+            terms = [(f"i{d}", xs[d]) for d in kept if x.shape[d] > 1]
+            tgt = e.target(out, out_idx)
+            if x.shape[axis] == 1:
+                body = [f"{tgt} = 0;"]
+            else:
+                first = e.ref(x, _index(terms))
+                cur = e.ref(x, _index(terms + [("r", xs[axis])]))
+                op = ">" if kind == "max" else "<"
+                better = f"v {op} best"
+                if e.is_float(x.dtype):  # XLA: the first NaN wins
+                    better = f"{better} || (v != v && best == best)"
+                ct = e.ctype(x.dtype)
+                body = [
+                    "{",
+                    f"    {ct} best = {first};",
+                    f"    {tgt} = 0;",
+                    f"    for (int r = 1; r < {x.shape[axis]}; ++r) {{",
+                    f"        const {ct} v = {cur};",
+                    f"        if ({better}) {{ best = v; {tgt} = r; }}",
+                    "    }",
+                    "}",
+                ]
+            return [e.declare(out)] + _nest([(f"i{d}", x.shape[d]) for d in kept], body)
+
+        p.stmt([out], [x], gen)
+        return [out]
+
+    return rule
+
+
+RULES["argmax"] = _arg_extremum("max")
+RULES["argmin"] = _arg_extremum("min")
+
+
+# --------------------------------------------------------------------------------------
+# dot_general
+
+
+@_register("dot_general")
+def _dot_general(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    lhs, rhs = ins
+    (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
+    lc, rc, lb, rb = (tuple(int(d) for d in t) for t in (lc, rc, lb, rb))
+    out = p.new(eqn.outvars[0].aval)
+    lfree = [d for d in range(len(lhs.shape)) if d not in lc and d not in lb]
+    rfree = [d for d in range(len(rhs.shape)) if d not in rc and d not in rb]
+    lvar: dict[int, str] = {}
+    rvar: dict[int, str] = {}
+    for j, (a, b) in enumerate(zip(lb, rb, strict=True)):
+        lvar[a] = rvar[b] = f"i{j}"
+    for j, d in enumerate(lfree):
+        lvar[d] = f"i{len(lb) + j}"
+    for j, d in enumerate(rfree):
+        rvar[d] = f"i{len(lb) + len(lfree) + j}"
+    for t, (a, b) in enumerate(zip(lc, rc, strict=True)):
+        lvar[a] = rvar[b] = f"k{t}"
+    # The innermost loop runs over the last output axis; store a constant operand with that
+    # axis last so the loop reads contiguous memory (and the compiler can vectorise it).
+    last = f"i{len(out.shape) - 1}" if out.shape else None
+    operands = []
+    for v, var in ((lhs, lvar), (rhs, rvar)):
+        dims = list(range(len(v.shape)))
+        if v.const is not None and v.splat() is None and last in var.values():
+            d_last = next(d for d in dims if var[d] == last)
+            perm = [d for d in dims if d != d_last] + [d_last]
+            if perm != dims:
+                v = p.const(np.transpose(v.const, perm))
+                var = {j: var[d] for j, d in enumerate(perm)}
+        operands.append((v, var))
+
+    def gen(e: Emitter) -> list[str]:
+        ct = e.ctype(out.dtype)
+
+        def term(v: Val, var: dict[int, str]) -> str:
+            st = _strides(v.shape)
+            ref = e.ref(v, _index([(var[d], st[d]) for d in range(len(v.shape)) if v.shape[d] > 1]))
+            return ref if e.ctype(v.dtype) == ct else f"({ct}){ref}"
+
+        out_loops = [(f"i{j}", s) for j, s in enumerate(out.shape)]
+        k_loops = [(f"k{t}", lhs.shape[a]) for t, a in enumerate(lc)]
+        ost = _strides(out.shape)
+        tgt = e.target(out, _index([(v, ost[j]) for j, (v, s) in enumerate(out_loops) if s > 1]))
+        prod = f"{term(*operands[0])} * {term(*operands[1])}"
+        inner = out_loops[-1:] if out_loops else []
+        body = _nest(inner, [f"{tgt} = {e.zero(out.dtype)};"])
+        body += _nest(k_loops + inner, [f"{tgt} += {prod};"])
+        return [e.declare(out)] + _nest(out_loops[:-1], body)
+
+    p.stmt([out], [operands[0][0], operands[1][0]], gen)
+    return [out]
+
+
+# --------------------------------------------------------------------------------------
+# control flow
+
+
+@_register("cond")
+def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    branches = eqn.params["branches"]
+    index, args = ins[0], ins[1:]
+    if index.const is not None:
+        k = int(np.clip(int(index.const), 0, len(branches) - 1))
+        return p.run(branches[k].jaxpr, branches[k].consts, args)
+    # both branches are pure: compute each and select, as XLA may do for small branches
+    results = [p.run(b.jaxpr, b.consts, args) for b in branches]
+    outs = []
+    for j, var in enumerate(eqn.outvars):
+
+        def expr(e: Emitter, c: str, *refs: str) -> str:
+            text = refs[-1]
+            for k in range(len(refs) - 2, -1, -1):
+                text = f"{c} == {k} ? {refs[k]} : ({text})"
+            return text
+
+        sub = _FakeEqn(var)
+        outs += elementwise(p, sub, [index] + [r[j] for r in results], expr)
+    return outs
+
+
+class _FakeEqn:
+    """Just enough of an equation for :func:`elementwise` (one output variable)."""
+
+    def __init__(self, var: Any) -> None:
+        self.outvars = [var]
+
+
+@_register("while", "scan")
+def _loop(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    raise p.unsupported(
+        "loops (lax.while_loop, lax.fori_loop, lax.scan) are not exported; write the loop "
+        "as a Python for loop over a fixed count so that it is unrolled when traced"
+    )

@@ -1,0 +1,374 @@
+"""Export a controller step (or any function of one state) as a dependency-free C99 file.
+
+The function is traced to a jaxpr for one state of shape (n,); calls are inlined, everything
+known at export time is folded into literals and ``static const`` tables, and each remaining
+equation becomes one C statement (see :mod:`safestab.export._primitives`). Every leaf of the
+output pytree becomes a field of the ``<name>_info`` struct, named after its pytree path
+(``terms.a`` -> ``terms_a``); the leaf ``u`` (or the first leaf) is the function's array
+argument.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import DimensionError, ParameterError
+from ._cgen import Emitter, c_identifier
+from ._ir import Program, Val, check_dtype, live_statements
+from ._primitives import RULES
+
+__all__ = ["ExportedC", "Leaf", "PRIMITIVES", "export_c", "export_function"]
+
+#: Names of the primitives with a C translation (calls such as ``jit``, ``custom_jvp_call``
+#: and ``custom_vjp_call`` are inlined and not listed).
+PRIMITIVES = tuple(sorted(RULES))
+
+#: Bits of the value returned by the exported functions.
+STATUS_BITS = {"NONFINITE_STATE": 1, "NONFINITE_OUTPUT": 2}
+
+#: Compiler flags the exported code is written for (results match XLA's to rounding).
+C_FLAGS = ("-std=c99", "-O2", "-ffp-contract=off")
+
+
+@dataclasses.dataclass(frozen=True)
+class Leaf:
+    """One output of the exported function.
+
+    Attributes
+    ----------
+    name : str
+        The C field (or argument) name.
+    path : str
+        Its path in the output pytree, e.g. ``"terms.a"``.
+    shape : tuple of int
+        Shape for one state.
+    dtype : numpy dtype
+        The JAX dtype (float64 leaves are ``float`` in the float precision).
+    doc : str
+        One line from the output class's docstring, if found.
+    """
+
+    name: str
+    path: str
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    doc: str
+
+    @property
+    def size(self) -> int:
+        """Number of elements for one state."""
+        return math.prod(self.shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportedC:
+    """The C translation of a function of one state.
+
+    Attributes
+    ----------
+    name : str
+        Prefix of every C name (``<name>_step``, ``<name>_info``).
+    n_states : int
+    precision : {"double", "float"}
+    source, header : str
+        Contents of ``<name>.c`` and ``<name>.h``.
+    cdef : str
+        The header's declarations in the form cffi parses.
+    leaves : tuple of Leaf
+        The outputs in pytree order.
+    primary : int
+        Index in ``leaves`` of the output passed as the array argument (``u``).
+    treedef : jax.tree_util.PyTreeDef
+        Structure of the outputs (to rebuild the pytree from the leaves).
+    stack_bytes : int
+        Bytes of temporaries in the step function (an upper bound on its stack frame, which
+        the compiler usually shrinks).
+    """
+
+    name: str
+    n_states: int
+    precision: str
+    source: str
+    header: str
+    cdef: str
+    leaves: tuple[Leaf, ...]
+    primary: int
+    treedef: Any
+    stack_bytes: int
+
+    def write(self, out_dir: str | Path) -> tuple[Path, Path]:
+        """Write ``<name>.c`` and ``<name>.h`` into ``out_dir`` (created if needed).
+
+        Returns
+        -------
+        (Path, Path)
+            The paths of the source and the header.
+        """
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = (out / f"{self.name}.c", out / f"{self.name}.h")
+        for path, text in zip(paths, (self.source, self.header), strict=True):
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(text)
+            tmp.replace(path)  # atomic: never a half-written file under the final name
+        return paths
+
+
+def _check_name(name: str) -> str:
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,40}", name):
+        raise ParameterError(
+            f"name must be a C identifier (letters, digits, underscores; at most 41 "
+            f"characters), got {name!r}"
+        )
+    return name
+
+
+def _check_precision(precision: str) -> str:
+    if precision not in ("double", "float"):
+        raise ParameterError(f"precision must be 'double' or 'float', got {precision!r}")
+    return precision
+
+
+# --------------------------------------------------------------------------------------
+# output leaves: names and documentation
+
+
+def _key_name(key: Any) -> str:
+    for attr in ("name", "key", "idx"):
+        if hasattr(key, attr):
+            val = getattr(key, attr)
+            return f"y{val}" if isinstance(val, int) else str(val)
+    return str(key)
+
+
+def _attribute_docs(obj: Any) -> dict[str, str]:
+    """First description line of each entry in a NumPy-style ``Attributes`` section."""
+    doc = inspect.getdoc(type(obj)) or ""
+    m = re.search(r"^Attributes\n-+\n(.*?)(?:\n\S[^\n]*\n-+\n|\Z)", doc, re.S | re.M)
+    if not m:
+        return {}
+    out: dict[str, str] = {}
+    current = None
+    for line in m.group(1).splitlines():
+        if line and not line.startswith(" "):
+            current = line.split(":")[0].strip()
+            out[current] = ""
+        elif current and line.strip() and not out[current]:
+            out[current] = line.strip()
+    return out
+
+
+def _leaves(out_shape: Any) -> tuple[list[Leaf], Any]:
+    flat, treedef = jax.tree_util.tree_flatten_with_path(out_shape)
+    leaves: list[Leaf] = []
+    used: set[str] = set()
+    for path, sds in flat:
+        parent, doc = out_shape, ""
+        for key in path:
+            docs = _attribute_docs(parent)
+            doc = docs.get(_key_name(key), "")
+            try:
+                parent = _child(parent, key)
+            except (AttributeError, KeyError, IndexError, TypeError):
+                parent = None
+        dotted = ".".join(_key_name(k) for k in path) or "y"
+        name = c_identifier(dotted.replace(".", "_"))
+        while name in used:
+            name += "_"
+        used.add(name)
+        leaves.append(Leaf(name, dotted, tuple(sds.shape), np.dtype(sds.dtype), doc))
+    return leaves, treedef
+
+
+def _child(parent: Any, key: Any) -> Any:
+    if hasattr(key, "name"):
+        return getattr(parent, key.name)
+    if hasattr(key, "key"):
+        return parent[key.key]
+    return parent[key.idx]
+
+
+# --------------------------------------------------------------------------------------
+# the translation
+
+
+def export_function(
+    fn: Callable[[jax.Array], Any],
+    n_states: int,
+    name: str,
+    *,
+    precision: str = "double",
+    description: str = "",
+) -> ExportedC:
+    """Translate a function of one state to C99.
+
+    Parameters
+    ----------
+    fn : callable
+        A JAX function from a state of shape (n_states,) to a pytree of arrays.
+    n_states : int
+        The state dimension.
+    name : str
+        Prefix of the C names; a C identifier.
+    precision : {"double", "float"}
+        The C type of float64 values.
+    description : str
+        Text for the header comment (what the function computes, units).
+
+    Returns
+    -------
+    ExportedC
+
+    Raises
+    ------
+    UnsupportedPrimitiveError
+        If ``fn`` uses a primitive without a C translation (the message names the primitive
+        and the ``file:line`` that produced it) or a dtype the C code cannot hold.
+    ParameterError
+        If ``name`` is not a C identifier or ``precision`` is unknown.
+    DimensionError
+        If ``n_states`` is not a positive integer.
+    """
+    _check_name(name)
+    _check_precision(precision)
+    if not isinstance(n_states, int | np.integer) or int(n_states) < 1:
+        raise DimensionError(f"n_states must be a positive integer, got {n_states!r}")
+    n = int(n_states)
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(
+        jax.ShapeDtypeStruct((n,), jnp.float64)
+    )
+    leaves, treedef = _leaves(out_shape)
+    for leaf in leaves:
+        check_dtype(leaf.dtype, f"output {leaf.path}", "the function's result")
+    program = Program()
+    program.rules = RULES
+    x = Val((n,), np.float64, param="x")
+    outs = program.run(closed.jaxpr, closed.consts, [x])
+    primary = next((i for i, leaf in enumerate(leaves) if leaf.path == "u"), 0)
+    from ._assemble import assemble
+
+    source, header, cdef, stack = assemble(
+        name=name,
+        precision=precision,
+        n_states=n,
+        leaves=leaves,
+        outs=outs,
+        primary=primary,
+        stmts=live_statements(program, outs),
+        emitter=Emitter(precision),
+        description=description,
+        version=_version(),
+    )
+    return ExportedC(
+        name, n, precision, source, header, cdef, tuple(leaves), primary, treedef, stack
+    )
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__
+
+
+def _describe_controller(controller: Any) -> str:
+    """The exact formula variant of a UniversalController, for the header."""
+    p = controller.params
+    kind = (
+        f"relaxed formula (Theorem 3), slack_weight = {controller.slack_weight!r}"
+        if controller.slack_weight is not None
+        else "combined hard-constraint formula (Theorem 1)"
+    )
+    lines = [
+        f"Controller: {controller!r}",
+        f"System '{controller.system.name}': n_states = {controller.system.n_states}, "
+        f"n_inputs = {controller.system.n_inputs}.",
+        f"Formula: {kind}; kappa = {p['kappa']!r}, rho = {p['rho']!r}, phi = {p['phi']!r}, "
+        f"varphi = {p['varphi']!r}, parallel_rtol = {controller.parallel_rtol!r}.",
+        f"CLF rate lambda = {controller.clf.rate!r}; CBF rate beta = {controller.cbf.rate!r}.",
+    ]
+    if controller.u_min is not None:
+        lines.append(
+            f"Input limits u_min = {np.asarray(controller.u_min).tolist()}, "
+            f"u_max = {np.asarray(controller.u_max).tolist()}, enforced by "
+            + (
+                "projection (eq. (26))"
+                if controller.saturation == "project"
+                else "safety-first saturation"
+            )
+            + "."
+        )
+    else:
+        lines.append("No input limits.")
+    if controller.uncertainty is not None:
+        unc = controller.uncertainty
+        extra = ""
+        if hasattr(unc, "n_inducing_"):
+            extra = (
+                f" (inducing points per component {np.asarray(unc.n_inducing_).tolist()}, "
+                f"widening {np.round(np.asarray(unc.widening_), 6).tolist()})"
+            )
+        lines.append(
+            f"GP-robust Lie terms (Lemma 3, Theorem 2) from {type(unc).__name__}{extra}, "
+            f"beta = {np.asarray(controller.gp_beta).tolist()}."
+        )
+    return "\n".join(lines)
+
+
+def export_c(
+    controller: Any,
+    name: str = "controller",
+    out_dir: str | Path | None = None,
+    *,
+    precision: str = "double",
+    description: str = "",
+) -> ExportedC:
+    """Export a controller's whole step (Lie terms, GP, formula, limits, flags) as C99.
+
+    Parameters
+    ----------
+    controller : UniversalController
+        The controller; its fused step ``controller.step_fn`` is traced for one state.
+    name : str
+        Prefix of the C names: ``<name>_step``, ``<name>_info``, files ``<name>.c/.h``.
+    out_dir : path, optional
+        When given, ``<name>.c`` and ``<name>.h`` are written there.
+    precision : {"double", "float"}
+        The C type of real numbers (``float`` for small processors without a double FPU).
+    description : str
+        Extra text for the header, e.g. the units of the state and the input.
+
+    Returns
+    -------
+    ExportedC
+
+    Raises
+    ------
+    UnsupportedPrimitiveError
+        If the system, certificates or uncertainty model use a primitive without a C
+        translation; the message names it and the ``file:line`` it came from.
+    ParameterError
+        If ``name`` or ``precision`` is invalid.
+    """
+    text = _describe_controller(controller)
+    if description:
+        text += "\n" + description
+    exported = export_function(
+        controller.step_fn,
+        controller.system.n_states,
+        name,
+        precision=precision,
+        description=text,
+    )
+    if out_dir is not None:
+        exported.write(out_dir)
+    return exported

@@ -1,0 +1,344 @@
+"""Compile exported C with the system compiler and call it from Python through cffi."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.util
+import io
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._validation import check_finite
+from ..errors import CompilationError, DimensionError, InfeasibleError
+from .exporter import C_FLAGS, ExportedC, export_c
+
+__all__ = ["NativeController", "NativeFunction", "compile_native", "find_compiler"]
+
+_NP_DTYPES = {"double": np.float64, "float": np.float32}
+
+
+def find_compiler(compiler: str | None = None) -> str:
+    """The C compiler to use: ``compiler``, else ``$CC``, else ``cc``, ``gcc`` or ``clang``.
+
+    Raises
+    ------
+    CompilationError
+        If none is found.
+    """
+    candidates = [compiler] if compiler else [os.environ.get("CC"), "cc", "gcc", "clang"]
+    for cand in candidates:
+        if cand and shutil.which(cand):
+            return str(shutil.which(cand))
+    raise CompilationError(
+        f"no C compiler found (tried {[c for c in candidates if c]}); install one (on Debian "
+        "or Ubuntu: apt-get install gcc; scripts/_venv.sh does this) or set CC"
+    )
+
+
+def _run(cmd: list[str], cwd: Path) -> None:
+    try:
+        proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
+    except OSError as exc:
+        raise CompilationError(f"could not run {cmd[0]!r}: {exc}") from None
+    if proc.returncode != 0:
+        raise CompilationError(
+            f"the C compiler failed (exit {proc.returncode}) on: {' '.join(cmd)}\n"
+            + (proc.stderr or proc.stdout)[-4000:]
+        )
+
+
+def _load_api_module(exported: ExportedC, cc: str, obj: Path, build: Path, module: str) -> Any:
+    """Build and import a cffi API-mode extension linked with ``obj`` (lowest call overhead).
+
+    The wrapper that cffi generates is compiled with the same compiler directly (much faster
+    than going through setuptools); this needs the Python headers.
+    """
+    import cffi
+
+    ffi = cffi.FFI()
+    ffi.cdef(exported.cdef)
+    ffi.set_source(module, f'#include "{exported.name}.h"')
+    wrapper = build / f"{module}.c"
+    with contextlib.redirect_stdout(io.StringIO()):
+        ffi.emit_c_code(str(wrapper))
+    include = sysconfig.get_paths()["include"]
+    if not Path(include, "Python.h").exists():
+        raise CompilationError(f"no Python.h in {include}")
+    so = build / (module + (sysconfig.get_config_var("EXT_SUFFIX") or ".so"))
+    extra = ["-undefined", "dynamic_lookup"] if sys.platform == "darwin" else []
+    _run(
+        [cc, "-O1", "-fPIC", "-shared", *extra, f"-I{include}", f"-I{build}", str(wrapper),
+         str(obj), "-lm", "-o", str(so)],
+        build,
+    )  # fmt: skip
+    spec = importlib.util.spec_from_file_location(module, so)
+    if spec is None or spec.loader is None:  # pragma: no cover - importlib failure
+        raise CompilationError(f"could not load the compiled module {so}")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.ffi, mod.lib
+
+
+def _load_abi(exported: ExportedC, cc: str, obj: Path, build: Path) -> Any:
+    """Link a shared library and open it with cffi's ABI mode (no Python headers needed)."""
+    import cffi
+
+    lib_path = build / f"lib{exported.name}.so"
+    _run([cc, "-shared", "-o", str(lib_path), str(obj), "-lm"], build)
+    ffi = cffi.FFI()
+    ffi.cdef(exported.cdef)
+    return ffi, ffi.dlopen(str(lib_path))
+
+
+class NativeFunction:
+    """A compiled :class:`~safestab.export.ExportedC`, callable on states of shape (..., n).
+
+    Parameters
+    ----------
+    exported : ExportedC
+    compiler : str, optional
+        Path or name of the C compiler (default ``$CC`` or ``cc``).
+    march_native : bool
+        Add ``-march=native`` (code for this machine's CPU; results are unchanged because
+        ``-ffp-contract=off`` forbids fused multiply-adds).
+
+    Attributes
+    ----------
+    mode : {"api", "abi"}
+        How cffi calls the code: a compiled extension module (needs the Python headers,
+        lowest overhead) or ``dlopen`` of a shared library.
+
+    Raises
+    ------
+    CompilationError
+        If no compiler is found or it rejects the code.
+    """
+
+    def __init__(
+        self, exported: ExportedC, *, compiler: str | None = None, march_native: bool = True
+    ) -> None:
+        cc = find_compiler(compiler)
+        self.exported = exported
+        self.dtype = _NP_DTYPES[exported.precision]
+        digest = hashlib.sha1(exported.source.encode()).hexdigest()[:12]
+        with tempfile.TemporaryDirectory(prefix="safestab-native-") as tmp:
+            build = Path(tmp)
+            exported.write(build)
+            obj = build / f"{exported.name}.o"
+            # -O3 (same numbers as -O2: no fast-math, no contraction) vectorises the GP
+            # cache's matrix-vector products about twice as well as -O2 with GCC 12
+            flags = [*C_FLAGS, "-O3", "-fno-math-errno", "-fPIC"] + (
+                ["-march=native"] if march_native else []
+            )
+            _run([cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)], build)
+            module = f"_safestab_native_{exported.name}_{digest}"
+            try:
+                self._ffi, self._lib = _load_api_module(exported, cc, obj, build, module)
+                self.mode = "api"
+            except (CompilationError, ImportError, OSError):  # no Python headers: dlopen
+                self._ffi, self._lib = _load_abi(exported, cc, obj, build)
+                self.mode = "abi"
+        # the loaded code stays mapped after its files are removed
+        ex = exported
+        self._leaf_ctypes: list[str] = []
+        self._leaf_dtypes: list[np.dtype] = []
+        for leaf in ex.leaves:
+            dt: Any = leaf.dtype
+            if leaf.dtype == np.float64:
+                ctype, dt = ("double" if ex.precision == "double" else "float"), self.dtype
+            elif leaf.dtype == np.bool_:
+                ctype = "unsigned char"
+            else:
+                ctype = {"float32": "float", "int32": "int", "int64": "long long"}.get(
+                    leaf.dtype.name, "unsigned char" if leaf.dtype == np.uint8 else "unsigned int"
+                )
+            self._leaf_ctypes.append(ctype + "[]")
+            self._leaf_dtypes.append(np.dtype(dt))
+        self._plan = [
+            (leaf.shape, dt, ct, leaf.size > 0)
+            for leaf, dt, ct in zip(ex.leaves, self._leaf_dtypes, self._leaf_ctypes, strict=True)
+        ]
+        self._real_ptr = ("double" if ex.precision == "double" else "float") + "[]"
+        self._columns = getattr(self._lib, f"{ex.name}_step_columns")
+        self._step = getattr(self._lib, f"{ex.name}_step")
+        self._prim_shape = ex.leaves[ex.primary].shape
+        self._prim_dtype = self._leaf_dtypes[ex.primary]
+        self._prim_ctype = self._leaf_ctypes[ex.primary]
+        self._null = self._ffi.NULL
+        self._local = threading.local()
+
+    def columns(self, x: np.ndarray) -> tuple[list[np.ndarray], int]:
+        """Evaluate at ``x`` of shape (count, n) (C-contiguous, this precision).
+
+        Returns
+        -------
+        leaves : list of arrays of shape (count, *leaf_shape)
+        status : int
+            The OR of the per-state status bits.
+        """
+        count = x.shape[0]
+        fb = self._ffi.from_buffer
+        leaves = [np.empty((count, *shape), dtype=dt) for shape, dt, _, _ in self._plan]
+        ptrs = [
+            fb(ct, arr) for (_, _, ct, used), arr in zip(self._plan, leaves, strict=True) if used
+        ]
+        status = self._columns(count, fb(self._real_ptr, x), *ptrs)
+        return leaves, int(status)
+
+    def _buffers(self) -> tuple[np.ndarray, Any, np.ndarray, Any]:
+        xb = np.empty(self.exported.n_states, dtype=self.dtype)
+        ub = np.empty(self._prim_shape, dtype=self._prim_dtype)
+        fb = self._ffi.from_buffer
+        bufs = (xb, fb(self._real_ptr, xb), ub, fb(self._prim_ctype, ub))
+        self._local.bufs = bufs
+        return bufs
+
+    def primary(self, x: Any) -> tuple[np.ndarray, int]:
+        """The primary output (``u``) only, at one state ``x`` of shape (n,).
+
+        ``x`` is copied into a per-thread buffer (so any array-like works and calls from
+        several threads do not share memory) and the result is a fresh array.
+        """
+        try:
+            xb, xp, ub, up = self._local.bufs
+        except AttributeError:
+            xb, xp, ub, up = self._buffers()
+        xb[...] = x
+        status = self._step(xp, up, self._null)
+        return ub.copy(), status
+
+
+def compile_native(
+    exported: ExportedC, *, compiler: str | None = None, march_native: bool = True
+) -> NativeFunction:
+    """Compile and load exported C; see :class:`NativeFunction`."""
+    return NativeFunction(exported, compiler=compiler, march_native=march_native)
+
+
+class NativeController:
+    """A controller's exported step, compiled and called through cffi.
+
+    Same ``step`` and ``__call__`` as :class:`~safestab.UniversalController`, for one state
+    of shape (n,) or a batch (..., n) (a loop in C); outputs are NumPy arrays. Results equal
+    the JAX step to rounding (see docs/export.md for the measured agreement).
+
+    Parameters
+    ----------
+    controller : UniversalController
+    name : str
+        Prefix of the C names.
+    precision : {"double", "float"}
+        ``"float"`` computes in single precision and returns float32 arrays.
+    compiler : str, optional
+        The C compiler (default ``$CC`` or ``cc``).
+    march_native : bool
+        Compile for this machine's CPU (default True).
+
+    Attributes
+    ----------
+    exported : ExportedC
+        The C source and header (``exported.source``, ``exported.header``).
+    function : NativeFunction
+
+    Raises
+    ------
+    UnsupportedPrimitiveError
+        If the controller uses a primitive without a C translation.
+    CompilationError
+        If no C compiler is found or it rejects the code.
+    """
+
+    def __init__(
+        self,
+        controller: Any,
+        *,
+        name: str = "controller",
+        precision: str = "double",
+        compiler: str | None = None,
+        march_native: bool = True,
+    ) -> None:
+        self.controller = controller
+        self.system = controller.system
+        self.n_states = controller.system.n_states
+        self.n_inputs = controller.system.n_inputs
+        self.exported = export_c(controller, name, precision=precision)
+        self.function = NativeFunction(self.exported, compiler=compiler, march_native=march_native)
+        self._dtype = self.function.dtype
+        self._names = [leaf.path for leaf in self.exported.leaves]
+        self._one_state = (self.n_states,)
+
+    def __repr__(self) -> str:
+        return f"NativeController({self.controller!r}, precision={self.exported.precision!r})"
+
+    def _states(self, x: Any) -> np.ndarray:
+        arr = np.asarray(x, dtype=self._dtype)
+        if arr.ndim == 0 or arr.shape[-1] != self.n_states:
+            raise DimensionError(
+                f"x must have shape (..., {self.n_states}), got shape {np.shape(arr)}"
+            )
+        return np.ascontiguousarray(arr)
+
+    def step(self, x: Any, *, strict: bool = False) -> Any:
+        """Compute the input and its diagnostics at states ``x`` of shape (..., n).
+
+        Parameters
+        ----------
+        x : array of shape (..., n)
+        strict : bool
+            Raise :class:`~safestab.errors.InfeasibleError` where the conditions are
+            incompatible or the applied input violates the CBF condition.
+
+        Returns
+        -------
+        ControlOutput
+            With NumPy arrays as leaves.
+
+        Raises
+        ------
+        DimensionError
+            If ``x`` has the wrong last axis.
+        NonFiniteError
+            If ``x`` contains NaN or inf.
+        InfeasibleError
+            With ``strict=True``, as above.
+        """
+        from ..formulas import Region
+
+        x = self._states(x)
+        batch = x.shape[:-1]
+        leaves, status = self.function.columns(x.reshape(-1, self.n_states))
+        if status & 1:
+            check_finite("x", x)
+        leaves = [leaf.reshape(batch + leaf.shape[1:]) for leaf in leaves]
+        out = self.exported.treedef.unflatten(leaves)
+        if strict:
+            named = dict(zip(self._names, leaves, strict=True))
+            region, cbf_ok = named["region"], named["cbf_satisfied"]
+            bad = (region == Region.INCOMPATIBLE) | ~cbf_ok
+            if np.any(bad):
+                idx = np.argwhere(np.atleast_1d(bad))[0].tolist()
+                raise InfeasibleError(
+                    f"the CBF condition cannot be met at state index {idx} "
+                    f"(region {Region(int(np.atleast_1d(region)[tuple(idx)])).name}); "
+                    "use slack_weight for the relaxed formula or relax the input limits"
+                )
+        return out
+
+    def __call__(self, x: Any) -> np.ndarray:
+        """The input at states ``x`` of shape (..., n); shape (..., m)."""
+        if np.shape(x) == self._one_state:
+            u, status = self.function.primary(x)
+            if status & 1:
+                check_finite("x", x)
+            return u
+        return self.step(x).u

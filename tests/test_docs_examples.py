@@ -3,7 +3,8 @@
 The blocks of one file run in order in one shared namespace, as a reader pasting them one
 after the other would run them, in a temporary working directory. A block is skipped only
 when an HTML comment ``<!-- skip: reason -->`` comes right before it (blank lines allowed);
-the reason is required and checked by ``test_every_skip_has_a_reason``.
+the reason is required and checked by ``test_every_skip_has_a_reason``. Pages whose examples
+collect data and fit a GP are marked ``slow`` (CI runs them; ``-m "not slow"`` skips them).
 """
 
 from __future__ import annotations
@@ -110,7 +111,14 @@ def run_blocks(blocks: list[Block], filename: str) -> dict:
 FILES_WITH_CODE = [p for p in markdown_files() if python_blocks(p)]
 
 
-@pytest.mark.parametrize("path", FILES_WITH_CODE, ids=lambda p: str(p.relative_to(ROOT)))
+def _param(path: Path):
+    # Pages that collect data and fit a GP take 5-20 s each (mostly JAX compilation): slow.
+    slow = any("collect_data(" in b.code for b in python_blocks(path) if b.skip is None)
+    return pytest.param(path, marks=[pytest.mark.slow] if slow else [],
+                        id=str(path.relative_to(ROOT)))
+
+
+@pytest.mark.parametrize("path", [_param(p) for p in FILES_WITH_CODE])
 def test_python_blocks_run(path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)  # examples that write files write them here
     try:

@@ -10,7 +10,9 @@ print literally. At build time (nothing in the source changes) this turns
 - reStructuredText "simple tables" (rows between ``=====  ====`` rules) into Markdown tables;
 - a paragraph ending in ``::`` before an indented literal block into one ending in ``:``;
 - a line that starts with ``>`` (such as a parameter described as ``>= 0``), which Markdown
-  would turn into a block quote, into an escaped ``\>``.
+  would turn into a block quote, into an escaped ``\>``;
+- Sphinx's ``#:`` comments (a block of them above an assignment, or one after it on the same
+  line) into the docstring of the constant, attribute or enum member they document.
 
 Loaded by mkdocs.yml (``extensions: [scripts/griffe_sphinx_roles.py]``).
 """
@@ -99,6 +101,31 @@ def convert(obj: griffe.Object, text: str) -> str:
     return _quotes(_literal_blocks(_simple_tables(_roles(obj, text))))
 
 
+COMMENT = re.compile(r"^\s*#:\s?(.*)$")
+TRAILING = re.compile(r"#:\s?(.*)$")
+
+
+def comment_docstring(obj: griffe.Object) -> str | None:
+    """The ``#:`` documentation of an attribute from its module's source lines, if any."""
+    if not obj.is_attribute or obj.lineno is None:
+        return None
+    try:
+        lines = obj.module.lines
+    except (AttributeError, ValueError, KeyError):
+        return None
+    if not 0 < obj.lineno <= len(lines):
+        return None
+    trailing = TRAILING.search(lines[obj.lineno - 1].split("=", 1)[-1])
+    if trailing:
+        return trailing.group(1).strip()
+    above: list[str] = []
+    k = obj.lineno - 2
+    while k >= 0 and (m := COMMENT.match(lines[k])):
+        above.insert(0, m.group(1))
+        k -= 1
+    return "\n".join(above).strip() or None
+
+
 class SphinxRoles(griffe.Extension):
     """Rewrite docstrings once the whole package is loaded (names can then be resolved)."""
 
@@ -112,6 +139,15 @@ class SphinxRoles(griffe.Extension):
             if id(obj) in seen:
                 continue
             seen.add(id(obj))
+            if obj.docstring is None and (text := comment_docstring(obj)):
+                parent_doc = obj.parent.docstring if obj.parent is not None else None
+                obj.docstring = griffe.Docstring(
+                    text,
+                    lineno=obj.lineno,
+                    parent=obj,
+                    parser=parent_doc.parser if parent_doc else None,
+                    parser_options=parent_doc.parser_options if parent_doc else None,
+                )
             if obj.docstring is not None:
                 obj.docstring.value = convert(obj, obj.docstring.value)
             stack.extend(m for m in obj.members.values() if not m.is_alias)

@@ -135,3 +135,20 @@ def test_sphinx_markup_becomes_markdown() -> None:
     assert 'identifier="safestab.learning.fast.FastGP.calibrate"' in roles.convert(
         fast_gp, ":meth:`calibrate`"
     )
+
+
+def test_sphinx_comment_docstrings(tmp_path: Path) -> None:
+    griffe = pytest.importorskip("griffe", reason="the docs extra (griffe) is not installed")
+    roles = _load("griffe_sphinx_roles")
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "__init__.py").write_text(
+        '"""Demo."""\n\nimport enum\n\n#: The answer,\n#: on two lines.\nANSWER = 42\n\n'
+        "NOTHING = 0\n\n\nclass Colour(enum.IntEnum):\n"
+        '    """Colours."""\n\n    RED = 1  #: like a rose\n    BLUE = 2\n'
+    )
+    pkg = griffe.load("demo", search_paths=[str(tmp_path)])
+    assert roles.comment_docstring(pkg["ANSWER"]) == "The answer,\non two lines."
+    assert roles.comment_docstring(pkg["NOTHING"]) is None
+    assert roles.comment_docstring(pkg["Colour"]["RED"]) == "like a rose"
+    assert roles.comment_docstring(pkg["Colour"]["BLUE"]) is None
+    assert roles.comment_docstring(pkg["Colour"]) is None  # only attributes

@@ -1,0 +1,154 @@
+"""The documentation tooling: the gallery script and the offline check of the built site."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+GALLERY = ROOT / "docs" / "gallery"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+make_gallery = _load("make_gallery")
+check_site_offline = _load("check_site_offline")
+
+
+# -- gallery ------------------------------------------------------------------------------
+
+
+def test_gallery_files_are_exactly_the_scripts_figures() -> None:
+    # No figure placed by hand: every PNG in docs/gallery is one the script makes, and the
+    # manifest the script writes has an entry (with the command) for each.
+    expected = {file for file, _ in make_gallery.FIGURES.values()}
+    assert {p.name for p in GALLERY.glob("*.png")} == expected
+    manifest = json.loads((GALLERY / "manifest.json").read_text())
+    assert set(manifest) == set(make_gallery.FIGURES)
+    for name, entry in manifest.items():
+        assert entry["file"] == make_gallery.FIGURES[name][0]
+        assert entry["command"] and entry["seconds"] >= 0
+
+
+def test_gallery_page_shows_every_figure() -> None:
+    page = (ROOT / "docs" / "gallery.md").read_text()
+    shown = set(re.findall(r"\]\(gallery/([^)]+\.png)\)", page))
+    assert shown == {file for file, _ in make_gallery.FIGURES.values()}
+
+
+def test_gallery_script_makes_figures_and_manifest(tmp_path: Path) -> None:
+    # The two figures that need no simulation (a few seconds), through the script's main().
+    assert make_gallery.main(["--only", "formulas", "qp_geometry", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "formulas.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "qp_geometry.png").stat().st_size > 10_000
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert set(manifest) == {"formulas", "qp_geometry"}
+    assert manifest["qp_geometry"]["file"] == "qp_geometry.png"
+    # A later partial run keeps the earlier entries.
+    make_gallery.main(["--only", "formulas", "--out", str(tmp_path)])
+    assert set(json.loads((tmp_path / "manifest.json").read_text())) == {"formulas", "qp_geometry"}
+
+
+def test_gallery_script_rejects_unknown_figure(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        make_gallery.main(["--only", "no_such_figure"])
+    assert "invalid choice: 'no_such_figure'" in capsys.readouterr().err
+
+
+# -- offline check of the built site -----------------------------------------------------
+
+PAGE = """<!doctype html><html><head>
+<link rel="stylesheet" href="assets/main.css">
+<link rel="stylesheet" href="https://fonts.googleapis.com/css?family=Roboto">
+<link rel="canonical" href="https://example.org/page/">
+<script src="//cdn.example.org/lib.js"></script>
+<script src="assets/local.js"></script>
+</head><body><a href="https://example.org">a plain link is fine</a>
+<img src="gallery/fig.png"><img src="http://example.org/remote.png"></body></html>
+"""
+
+
+def test_offline_check_finds_remote_resources(tmp_path: Path) -> None:
+    (tmp_path / "index.html").write_text(PAGE)
+    (tmp_path / "assets").mkdir()
+    (tmp_path / "assets" / "main.css").write_text(
+        '@import url("https://example.org/x.css");\nbody { background: url(img/local.png) }\n'
+    )
+    found = check_site_offline.problems(tmp_path)
+    assert found == [
+        "assets/main.css: css https://example.org/x.css",
+        "index.html: <link rel=stylesheet href=https://fonts.googleapis.com/css?family=Roboto>",
+        "index.html: <script src=//cdn.example.org/lib.js>",
+        "index.html: <img src=http://example.org/remote.png>",
+        "index.html: web font host fonts.googleapis.com",
+    ]
+    assert check_site_offline.main([str(tmp_path)]) == 1
+
+
+def test_offline_check_passes_a_local_site_and_needs_a_built_one(tmp_path: Path) -> None:
+    (tmp_path / "index.html").write_text('<html><a href="https://example.org">x</a></html>')
+    assert check_site_offline.problems(tmp_path) == []
+    assert check_site_offline.main([str(tmp_path)]) == 0
+    assert check_site_offline.main([str(tmp_path / "missing")]) == 1
+
+
+# -- the griffe extension that turns Sphinx markup into Markdown for the API reference ---------
+
+
+def test_sphinx_markup_becomes_markdown() -> None:
+    griffe = pytest.importorskip("griffe", reason="the docs extra (griffe) is not installed")
+    roles = _load("griffe_sphinx_roles")
+    pkg = griffe.load("safestab", search_paths=[str(ROOT / "src")], resolve_aliases=False)
+    formulas = pkg["formulas"]
+    fast_gp = pkg["learning"]["fast"]["FastGP"]
+    text = (
+        "See :func:`clf_cbf`, :class:`~safestab.formulas.Region`, :meth:`calibrate`,\n"
+        ":mod:`decimal_nowhere` and :data:`NOT_A_NAME`.\n"
+        "kappa : float\n"
+        "    >= 0, and a >>> prompt stays.\n"
+        "Dynamics::\n\n    x' = u\n"
+        "=====  =========\n"
+        "name   value\n"
+        "=====  =========\n"
+        "P1     a | b\n"
+        "P2     2\n"
+        "=====  =========\n"
+    )
+    out = roles.convert(formulas, text)
+    assert '<autoref identifier="safestab.formulas.clf_cbf" optional><code>clf_cbf</code>' in out
+    assert '<autoref identifier="safestab.formulas.Region" optional><code>Region</code>' in out
+    assert "`decimal_nowhere`" in out and "`NOT_A_NAME`" in out  # unresolved: plain code
+    assert "    \\>= 0, and a >>> prompt stays." in out
+    assert "Dynamics:\n\n    x' = u" in out
+    assert "| name | value |\n|---|---|\n| P1 | a \\| b |\n| P2 | 2 |" in out
+    # a method name resolves from inside its class first
+    assert 'identifier="safestab.learning.fast.FastGP.calibrate"' in roles.convert(
+        fast_gp, ":meth:`calibrate`"
+    )
+
+
+def test_sphinx_comment_docstrings(tmp_path: Path) -> None:
+    griffe = pytest.importorskip("griffe", reason="the docs extra (griffe) is not installed")
+    roles = _load("griffe_sphinx_roles")
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "__init__.py").write_text(
+        '"""Demo."""\n\nimport enum\n\n#: The answer,\n#: on two lines.\nANSWER = 42\n\n'
+        "NOTHING = 0\n\n\nclass Colour(enum.IntEnum):\n"
+        '    """Colours."""\n\n    RED = 1  #: like a rose\n    BLUE = 2\n'
+    )
+    pkg = griffe.load("demo", search_paths=[str(tmp_path)])
+    assert roles.comment_docstring(pkg["ANSWER"]) == "The answer,\non two lines."
+    assert roles.comment_docstring(pkg["NOTHING"]) is None
+    assert roles.comment_docstring(pkg["Colour"]["RED"]) == "like a rose"
+    assert roles.comment_docstring(pkg["Colour"]["BLUE"]) is None
+    assert roles.comment_docstring(pkg["Colour"]) is None  # only attributes

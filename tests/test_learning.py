@@ -47,7 +47,7 @@ def test_posterior_matches_dense_numpy(toy_data, kind, mean):
     m, v = gp.predict(xq)
     for j in range(2):
         amp, ls, nz, mu = gp.amplitude_[j], gp.lengthscale_[j], gp.noise_[j], gp.mean_[j]
-        K = _dense_kernel(kind, amp, ls, x, x) + (nz**2 + gp.jitter * amp**2) * np.eye(len(x))
+        K = _dense_kernel(kind, amp, ls, x, x) + nz**2 * np.eye(len(x))  # noise_ is effective
         ks = _dense_kernel(kind, amp, ls, x, xq)
         mean_np = ks.T @ np.linalg.solve(K, y[:, j] - mu) + mu  # eq. (12)
         var_np = amp**2 - np.sum(ks * np.linalg.solve(K, ks), 0)  # eq. (13)
@@ -64,7 +64,7 @@ def test_fitted_hyperparameters_maximise_likelihood(toy_data):
 
     def lml(amp, ls, nz):
         K = np.array(_kernel("se", amp, jnp.asarray(ls))(jnp.asarray(x), jnp.asarray(x)))
-        K += (nz**2 + gp.jitter * amp**2) * np.eye(len(x))
+        K += nz**2 * np.eye(len(x))
         sign, logdet = np.linalg.slogdet(K)
         return (
             -0.5 * y[:, 0] @ np.linalg.solve(K, y[:, 0])
@@ -159,7 +159,7 @@ def test_sklearn_adapter_matches_builtin(toy_data):
             base = RBF(ls) if kind == "se" else Matern(ls, nu=2.5)
             reg = GaussianProcessRegressor(
                 ConstantKernel(amp**2) * base,
-                alpha=gp.noise_[j] ** 2 + gp.jitter * amp**2,
+                alpha=gp.noise_[j] ** 2,
                 optimizer=None,
             )
             regs[j] = reg.fit(x, y[:, j])
@@ -191,7 +191,7 @@ def test_lemma2_beta_and_information_gain(toy_data):
     x, y = toy_data
     gp = GaussianProcessModel().fit(x, y, components=[0])
     amp, ls, nz = gp.amplitude_[0], gp.lengthscale_[0], gp.noise_[0]
-    s2 = nz**2 + gp.jitter * amp**2
+    s2 = nz**2
     K = _dense_kernel("se", amp, ls, x, x)
     gamma_np = 0.5 * np.linalg.slogdet(np.eye(len(x)) + K / s2)[1]
     np.testing.assert_allclose(information_gain(gp), [gamma_np], rtol=1e-8)
@@ -202,8 +202,9 @@ def test_lemma2_beta_and_information_gain(toy_data):
     rep = confidence(gp, rkhs_norm=1.0, delta=0.01)
     assert rep.method == "lemma2" and rep.beta[1] == 0.0
     np.testing.assert_allclose(rep.probability, 0.99, rtol=1e-15)  # one learned component
-    user = confidence(gp, beta=2.0, delta=0.05)
+    user = confidence(gp, beta=2.0)
     assert user.beta.tolist() == [2.0, 0.0]
+    assert user.probability is None and "no guarantee" in user.statement
 
 
 # ---- errors -----------------------------------------------------------------------------

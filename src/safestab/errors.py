@@ -14,6 +14,10 @@ __all__ = [
     "NumericalError",
     "ScenarioError",
     "InfeasibleError",
+    "SafeStabWarning",
+    "ConvergenceWarning",
+    "DataWarning",
+    "InducingPointsWarning",
 ]
 
 
@@ -43,3 +47,19 @@ class ScenarioError(SafeStabError, ValueError):
 
 class InfeasibleError(SafeStabError, RuntimeError):
     """No input satisfies the requested conditions and ``strict=True`` was asked for."""
+
+
+class SafeStabWarning(UserWarning):
+    """Base class of every warning issued by safestab."""
+
+
+class ConvergenceWarning(SafeStabWarning, UserWarning):
+    """An optimiser stopped before converging, or a fitted value sits at a bound."""
+
+
+class DataWarning(SafeStabWarning, UserWarning):
+    """The data cannot support a trustworthy fit as given (too few rows, duplicates, ...)."""
+
+
+class InducingPointsWarning(SafeStabWarning, UserWarning):
+    """A fast GP cache has too few inducing points: its guaranteed band is much wider."""

@@ -23,6 +23,7 @@ import numpy as np
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, NumericalError, ParameterError
 from ..robust import joint_probability
+from .gp import GaussianProcessModel
 
 __all__ = [
     "information_gain",
@@ -193,10 +194,18 @@ def confidence(
     )
 
 
+def _mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std at states (N, n): the model's compiled ``predict`` where it has one."""
+    if isinstance(model, GaussianProcessModel):
+        mean, var = model.predict(x)
+        return np.asarray(mean), np.sqrt(np.asarray(var))
+    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
+    return np.asarray(mean), np.asarray(std)
+
+
 def _scores(model: Any, x: np.ndarray, y: np.ndarray, observation_noise: bool) -> np.ndarray:
     """``max_i |y_i - m_i| / s_i`` over learned components, per row; shape (N,)."""
-    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
-    mean, std = np.asarray(mean), np.asarray(std)
+    mean, std = _mean_std_batch(model, x)
     comps = list(getattr(model, "components_", range(x.shape[1])))
     if observation_noise:
         noise = np.zeros(x.shape[1])
@@ -371,8 +380,7 @@ def calibration(
         raise DimensionError(f"x and y must both have shape (Q, n), got {x.shape} and {y.shape}")
     check_finite("x", x)
     check_finite("y", y)
-    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
-    mean, std = np.asarray(mean), np.asarray(std)
+    mean, std = _mean_std_batch(model, x)
     if observation_noise:
         noise = np.zeros(x.shape[1])
         noise[list(model.components_)] = model.noise_

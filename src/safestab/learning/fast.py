@@ -103,6 +103,29 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
+def _parts(p, x, kind):
+    """Per learned component: cache mean (without the prior mean), sqrt(v~) and E r(x)."""
+    z0 = (x - p["offset"]) / p["scale"]
+    mm = p["z"].shape[1]
+
+    def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
+        k = jnp.where(mask, _kernel(kind, a, l_)(z, z0[None, :])[:, 0], 0.0)
+        all3 = maps @ k
+        v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
+        r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
+        r = jnp.sqrt(r2)
+        var = r2 + gv @ gv + 2.0 * jnp.sqrt(cv @ cv) * rho * r  # >= exact variance
+        return k @ wk, jnp.sqrt(var), err * r
+
+    return jax.vmap(per_comp)(
+        p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
+    )
+
+
+# the cache's arrays are arguments: one compilation per (M, kernel), not per cache
+_parts_batch = jax.jit(jax.vmap(_parts, in_axes=(None, 0, None)), static_argnums=2)
+
+
 class FastGP:
     """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
 
@@ -210,13 +233,26 @@ class FastGP:
         self._err = jnp.asarray(np.array(errs))
         self._rho = jnp.asarray(np.array(rhos))
         self._round = jnp.asarray([_round(m_max, a) for a in model.amplitude_])
+        self._params = {
+            "offset": jnp.asarray(model.x_offset_),
+            "scale": jnp.asarray(model.x_scale_),
+            "amp": jnp.asarray(model.amplitude_),
+            "ls": jnp.asarray(model._lengthscale_std),
+            "z": self._z,
+            "wk": self._wk,
+            "maps": self._maps,
+            "mask": self._mask,
+            "err": self._err,
+            "rho": self._rho,
+            "round": self._round,
+        }
         self._m = m_max
         self.n_inducing_ = np.array([len(z) for z in zs])
         self.inducing_ = np.asarray(self._z) * model.x_scale_ + model.x_offset_
         self.mean_error_norm_ = np.array(errs)
-        _, std_train = jax.vmap(self.mean_std)(jnp.asarray(model.x_train_))
+        _, sd_c, merr = self._parts_batch(model.x_train_)
         comps = list(model.components_)
-        ratio = np.asarray(std_train)[:, comps] / model.noise_
+        ratio = (np.asarray(sd_c) + np.asarray(merr) / self.min_beta) / model.noise_
         self.inflation_at_training_ = np.mean(ratio > INFLATION_WARN, axis=0)
         for comp, frac in zip(comps, self.inflation_at_training_, strict=True):
             if frac > 0.01:
@@ -230,24 +266,10 @@ class FastGP:
                 )
 
     def _mean_std_parts(self, x: jax.Array):
-        m = self.model
-        z0 = (x - jnp.asarray(m.x_offset_)) / jnp.asarray(m.x_scale_)
-        amp = jnp.asarray(m.amplitude_)
-        ls = jnp.asarray(m._lengthscale_std)
-        mm = self._m
+        return _parts(self._params, x, self.model.kernel)
 
-        def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
-            k = jnp.where(mask, _kernel(m.kernel, a, l_)(z, z0[None, :])[:, 0], 0.0)
-            all3 = maps @ k
-            v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
-            r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
-            r = jnp.sqrt(r2)
-            var = r2 + gv @ gv + 2.0 * jnp.sqrt(cv @ cv) * rho * r  # >= exact variance
-            return k @ wk, jnp.sqrt(var), err * r
-
-        return jax.vmap(per_comp)(
-            amp, ls, self._z, self._wk, self._maps, self._mask, self._err, self._rho, self._round
-        )
+    def _parts_batch(self, x: np.ndarray):
+        return _parts_batch(self._params, jnp.asarray(x), self.model.kernel)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and guaranteed std at one state of shape (n,); jittable, O(M^2).
@@ -261,13 +283,35 @@ class FastGP:
         std = jnp.zeros(self.n_states).at[comps].set(sd_c + merr / self.min_beta)
         return mean, std
 
+    def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and guaranteed std at states of shape (N, n), each (N, n); compiled once.
+
+        Raises
+        ------
+        DimensionError
+            If ``x`` is not of shape (N, n).
+        NonFiniteError
+            If ``x`` contains NaN or inf.
+        """
+        x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != self.n_states:
+            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
+        check_finite("x", x)
+        mean_c, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
+        comps = list(self.components_)
+        mean = np.zeros(x.shape)
+        std = np.zeros(x.shape)
+        mean[:, comps] = mean_c + np.asarray(self.model.mean_)
+        std[:, comps] = sd_c + merr / self.min_beta
+        return mean, std
+
     def mean_error_bound(self, x: Any) -> np.ndarray:
         """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""
         x = np.asarray(x, float)
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
         check_finite("x", x)
-        return np.asarray(jax.vmap(lambda s: self._mean_std_parts(s)[2])(jnp.asarray(x)))
+        return np.asarray(self._parts_batch(x)[2])
 
     def coverage_of_exact_band(self, x: Any, beta: Any) -> np.ndarray:
         """Fraction of states where the cache's band contains the exact band, per component.
@@ -290,9 +334,8 @@ class FastGP:
         comps = list(self.components_)
         b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
         m_ex, v_ex = self.model.predict(x)
-        m_fa, s_fa = jax.vmap(self.mean_std)(jnp.asarray(x))
+        m_fa, s_fa = (a[:, comps] for a in self.predict(x))
         m_ex, s_ex = np.asarray(m_ex)[:, comps], np.sqrt(np.asarray(v_ex))[:, comps]
-        m_fa, s_fa = np.asarray(m_fa)[:, comps], np.asarray(s_fa)[:, comps]
         lo_ok = m_fa - b * s_fa <= m_ex - b * s_ex
         hi_ok = m_fa + b * s_fa >= m_ex + b * s_ex
         return (lo_ok & hi_ok).mean(0)

@@ -307,8 +307,8 @@ class GaussianProcessModel:
             duplicate rows; a zero-mean prior on targets with a large offset; a leave-one-out
             coverage below :data:`LOO_MIN_COVERAGE`.
         ConvergenceWarning
-            The retained start did not converge, ``max_iter=0``, or the fitted noise sits at
-            its lower bound.
+            The retained start did not converge, ``max_iter=0``, or the fitted noise or a
+            lengthscale sits at its lower bound.
 
         Notes
         -----
@@ -439,7 +439,7 @@ class GaussianProcessModel:
         mean0 = float(np.mean(y)) if self.mean == "constant" else 0.0
         lo_amp, hi_amp = np.log(1e-6 * amp_scale), np.log(1e3 * amp_scale)
         lo_noise, hi_noise = np.log(1e-6 * sd), np.log(10 * sd)
-        lo_ls, hi_ls = np.log(1e-3), np.log(1e3)
+        lo_ls, hi_ls = np.log(1e-3), np.log(1e5)  # long: irrelevant inputs, as in sklearn
         nn = float(np.clip(_nn_noise(xs, y, rng), 1e-4 * sd, 0.5 * sd))
         starts = [
             np.concatenate([[np.log(amp_scale), np.log(0.1 * sd), mean0], np.zeros(n)]),
@@ -537,9 +537,21 @@ class GaussianProcessModel:
                 ConvergenceWarning,
                 stacklevel=3,
             )
+        noise_eff = float(np.sqrt(nz**2 + self.jitter * amp**2))
+        # a lengthscale at its lower bound matters only where the signal is not negligible
+        if self.max_iter > 0 and np.any(theta[3:] <= lo_ls + 1e-6) and amp > noise_eff:
+            dims = np.flatnonzero(theta[3:] <= lo_ls + 1e-6).tolist()
+            warnings.warn(
+                f"the fitted lengthscale of component {comp} along input(s) {dims} is at its "
+                "lower bound (1e-3 std(x)): the GP treats the rows as unrelated points and "
+                "predicts the prior mean between them (noise=0 or too small on noisy data? too "
+                "few rows?); fit the noise or give the sensor's noise",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
         return {
             "amplitude": float(amp),
-            "noise": float(np.sqrt(nz**2 + self.jitter * amp**2)),
+            "noise": noise_eff,
             "mean": float(mu) if self.mean == "constant" else 0.0,
             "lengthscale": ls,
             "lml": -fun_best,

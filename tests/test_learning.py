@@ -369,7 +369,8 @@ def test_manual_likelihood_gradient_matches_autodiff_of_tinygp():
     for kind in ("se", "matern52"):
         for fixed in (False, True):
             th = jnp.asarray(0.5 * rng.normal(size=6))
-            args = (xs, y, jnp.asarray(0.3), jnp.asarray(fixed), jnp.asarray(1.0), jnp.asarray(1e-4))
+            flags = (jnp.asarray(0.3), jnp.asarray(fixed), jnp.asarray(1.0), jnp.asarray(1e-4))
+            args = (xs, y, *flags)
             v, g = _nll_value_and_grad(th, *args, kind=kind)
             v_ref, g_ref = jax.value_and_grad(_nll_tinygp)(th, *args, kind)
             # both are float64 Cholesky-based; the 40x40 matrix is well conditioned
@@ -525,8 +526,10 @@ def test_conformal_beta_per_trajectory_and_errors():
     # ceil(21 * 0.9) = 19th smallest of the 20 unit scores
     m, v = gp.predict(xc)
     row = np.abs(yc[:, 0] - np.asarray(m)[:, 0]) / np.sqrt(np.asarray(v)[:, 0])
-    np.testing.assert_allclose(per_traj.beta[0], np.sort(row.reshape(20, 10).max(1))[18], rtol=1e-12)
-    np.testing.assert_allclose(per_row.beta[0], np.sort(row)[int(np.ceil(201 * 0.9)) - 1], rtol=1e-12)
+    unit_scores = np.sort(row.reshape(20, 10).max(1))
+    np.testing.assert_allclose(per_traj.beta[0], unit_scores[18], rtol=1e-12)
+    rank = int(np.ceil(201 * 0.9))
+    np.testing.assert_allclose(per_row.beta[0], np.sort(row)[rank - 1], rtol=1e-12)
     assert per_traj.n_calibration == 20 and "trajectory" in per_traj.statement
     with pytest.raises(ParameterError, match=r"delta=0.01 needs at least 99 calibration units"):
         conformal_beta(gp, xc, yc, 0.01, groups=groups)

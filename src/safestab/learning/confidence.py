@@ -367,8 +367,9 @@ def calibration(
     beta : float or array of shape (n,)
     observation_noise : bool
         Widen the band to ``beta sqrt(sigma^2 + sigma_epsilon^2)`` using the model's
-        ``noise_`` (the effective noise, jitter included), for comparison with noisy targets. Comparing noisy targets with the
-        latent band understates coverage once the posterior is sharper than the noise.
+        ``noise_`` (the effective noise, jitter included), for comparison with noisy
+        targets. Comparing noisy targets with the latent band understates coverage once the
+        posterior is sharper than the noise.
 
     Returns
     -------

@@ -333,9 +333,9 @@ class FastGP:
         check_scalar_range("beta", beta, lower=0.0)
         comps = list(self.components_)
         b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
-        m_ex, v_ex = self.model.predict(x)
+        mean_ex, var_ex = self.model.predict(x)
         m_fa, s_fa = (a[:, comps] for a in self.predict(x))
-        m_ex, s_ex = np.asarray(m_ex)[:, comps], np.sqrt(np.asarray(v_ex))[:, comps]
+        m_ex, s_ex = np.asarray(mean_ex)[:, comps], np.sqrt(np.asarray(var_ex))[:, comps]
         lo_ok = m_fa - b * s_fa <= m_ex - b * s_ex
         hi_ok = m_fa + b * s_fa >= m_ex + b * s_ex
         return (lo_ok & hi_ok).mean(0)

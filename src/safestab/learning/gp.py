@@ -577,14 +577,17 @@ class GaussianProcessModel:
                 )
             alphas.append(cho_solve((chol, True), jnp.asarray(self.y_train_[:, j]) - self.mean_[j]))
             chols.append(chol)
-        self.chol_ = np.asarray(jnp.stack(chols))
-        self.alpha_ = np.asarray(jnp.stack(alphas))
+        chol_all = jnp.stack(chols)
+        del chols, k, chol  # one (k, Q, Q) factor in memory, not two (6 GB at Q = 10,000)
+        alpha_all = jnp.stack(alphas)
+        self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
+        self.alpha_ = np.asarray(alpha_all)
         self._posterior = {
             "xs": xs,
             "offset": jnp.asarray(self.x_offset_),
             "scale": jnp.asarray(self.x_scale_),
-            "chol": jnp.asarray(self.chol_),
-            "alpha": jnp.asarray(self.alpha_),
+            "chol": chol_all,
+            "alpha": alpha_all,
             "amp": jnp.asarray(self.amplitude_),
             "ls": jnp.asarray(self._lengthscale_std),
             "mu": jnp.asarray(self.mean_),

@@ -60,7 +60,7 @@ def test_fitted_hyperparameters_maximise_likelihood(toy_data):
     x, y = toy_data
     gp = GaussianProcessModel().fit(x, y, components=[0])
     # perturbing any hyperparameter must not increase the marginal likelihood (local optimum)
-    from safestab.learning.gp import _kernel
+    from safestab.learning._kernels import kernel as _kernel
 
     def lml(amp, ls, nz):
         K = np.array(_kernel("se", amp, jnp.asarray(ls))(jnp.asarray(x), jnp.asarray(x)))

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 from jax.scipy.linalg import cho_solve, solve_triangular
-from tinygp import GaussianProcess, kernels, transforms
+from tinygp import GaussianProcess
 
 from .._validation import check_finite, check_scalar_range, is_concrete
 from ..errors import (
@@ -31,6 +31,8 @@ from ..errors import (
     ParameterError,
 )
 from ._checks import check_seed
+from ._kernels import kernel as _kernel
+from ._kernels import kernel_matrix
 
 __all__ = [
     "GaussianProcessModel",
@@ -61,17 +63,6 @@ LOO_MIN_COVERAGE = 0.5
 N_DATA_STARTS = 2
 _FORMAT = "safestab-gp-v2"  # v2: ``noise`` is the effective noise (jitter included)
 _FORMAT_V1 = "safestab-gp-v1"
-
-
-def _kernel(kind: str, amplitude, lengthscale):
-    # tinygp's Matern kernels default to the L1 distance, which is not positive definite in
-    # more than one dimension; the Matern 5/2 of GP regression (GPML, scikit-learn) is L2.
-    base: kernels.Kernel
-    if kind == "se":
-        base = kernels.ExpSquared()
-    else:
-        base = kernels.Matern52(distance=kernels.distance.L2Distance())
-    return amplitude**2 * transforms.Linear(1.0 / lengthscale, base)
 
 
 def _unpack(theta, n_features):
@@ -566,7 +557,7 @@ class GaussianProcessModel:
         chols, alphas = [], []
         for j in range(len(self.components_)):
             amp, nz = self.amplitude_[j], self.noise_[j]
-            k = _kernel(self.kernel, amp, jnp.asarray(self._lengthscale_std[j]))(xs, xs)
+            k = kernel_matrix(amp, jnp.asarray(self._lengthscale_std[j]), xs, xs, kind=self.kernel)
             k = k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
             chol = jnp.linalg.cholesky(k)
             if not bool(jnp.all(jnp.isfinite(chol))):

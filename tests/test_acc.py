@@ -124,6 +124,10 @@ def test_cli_smoke(tmp_path):
         assert np.isfinite(m["min_h_m"]) and np.isfinite(m["rms_speed_error_mps"])
         assert abs(sum(m["region_fraction"].values()) - 1.0) < 1e-12
     assert "min h" in res.output and "GP held-out coverage" in res.output
+    # the calibrated beta beside the chosen one (issue 14): recorded with its guarantee
+    conf = doc["gp"]["conformal"]
+    assert conf["beta"] > 0 and conf["probability"] == 0.95 and conf["n_trajectories"] == 40
+    assert conf["chosen_beta"] == doc["gp"]["beta"] and "conformal" in conf["statement"]
 
 
 @pytest.mark.slow

@@ -54,7 +54,6 @@ def acc():
     yt = np.asarray(sc.omega(xt)) + 0.3 * rng.standard_normal((40, 3))
     gp = GaussianProcessModel(kernel="se", max_iter=50).fit(xt, yt, components=[0], seed=0)
     fast = FastGP(gp, n_inducing=16)
-    fast.calibrate(rng.uniform(lo, hi, size=(200, 3)), sc.gp_beta)
     # states beyond the learning box, so that every region of the formula occurs
     states = rng.uniform([0.0, 0.0, -50.0], [40.0, 40.0, 250.0], size=(N_STATES, 3))
     return dict(sc=sc, clf=clf, cbf=cbf, p=p, fast=fast, states=states)

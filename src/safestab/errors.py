@@ -19,6 +19,10 @@ __all__ = [
     "OutputError",
     "UnsupportedPrimitiveError",
     "CompilationError",
+    "SafeStabWarning",
+    "ConvergenceWarning",
+    "DataWarning",
+    "InducingPointsWarning",
 ]
 
 
@@ -60,6 +64,8 @@ class ModelError(SafeStabError, ValueError):
 
 class OutputError(SafeStabError, OSError):
     """An output cannot be written: the folder is missing, not a folder, or not writable."""
+
+
 class UnsupportedPrimitiveError(SafeStabError, NotImplementedError):
     """A function uses a JAX primitive (or dtype) that the C export cannot translate.
 
@@ -69,3 +75,19 @@ class UnsupportedPrimitiveError(SafeStabError, NotImplementedError):
 
 class CompilationError(SafeStabError, RuntimeError):
     """The C compiler is missing or rejected the exported code; the message has its output."""
+
+
+class SafeStabWarning(UserWarning):
+    """Base class of every warning issued by safestab."""
+
+
+class ConvergenceWarning(SafeStabWarning, UserWarning):
+    """An optimiser stopped before converging, or a fitted value sits at a bound."""
+
+
+class DataWarning(SafeStabWarning, UserWarning):
+    """The data cannot support a trustworthy fit as given (too few rows, duplicates, ...)."""
+
+
+class InducingPointsWarning(SafeStabWarning, UserWarning):
+    """A fast GP cache has too few inducing points: its guaranteed band is much wider."""

@@ -6,6 +6,7 @@ from .confidence import (
     beta_lemma2,
     calibration,
     confidence,
+    conformal_beta,
     information_gain,
 )
 from .data import Dataset, collect_data
@@ -24,5 +25,6 @@ __all__ = [
     "calibration",
     "collect_data",
     "confidence",
+    "conformal_beta",
     "information_gain",
 ]

@@ -1,4 +1,15 @@
-"""Confidence scaling ``beta_i`` (Lemma 2) and calibration on held-out data."""
+"""Confidence scaling ``beta``: Lemma 2, split conformal calibration, held-out checks.
+
+Three ways to choose ``beta``, with what each probability means:
+
+- Lemma 2 (:func:`confidence` with ``rkhs_norm=``, ``delta=``): ``|omega_i - m_i| <= beta_i
+  sigma_i`` at *every* state with probability ``(1 - delta)^k`` over the noise, if the RKHS-norm
+  bound and the information gain are right (the gain used here is an estimate).
+- Split conformal (:func:`conformal_beta`): a new state (or a new trajectory) drawn from the
+  calibration distribution is inside the band with probability at least ``1 - delta`` over the
+  calibration draw and the new draw; nothing assumed about the GP.
+- Hand-chosen (:func:`confidence` with ``beta=``): no guarantee; check with :func:`calibration`.
+"""
 
 from __future__ import annotations
 
@@ -10,8 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validation import check_finite, check_scalar_range
-from ..errors import DimensionError, ParameterError
+from ..errors import DimensionError, NumericalError, ParameterError
 from ..robust import joint_probability
+from .gp import GaussianProcessModel
 
 __all__ = [
     "information_gain",
@@ -20,6 +32,7 @@ __all__ = [
     "calibration",
     "ConfidenceReport",
     "confidence",
+    "conformal_beta",
 ]
 
 
@@ -50,7 +63,7 @@ def information_gain(model: Any) -> np.ndarray:
     """
     chol = np.asarray(model.chol_)
     q = chol.shape[-1]
-    sigma2 = model.noise_**2 + model.jitter * model.amplitude_**2
+    sigma2 = model.noise_**2  # effective noise: the jitter is included
     logdiag = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
     return logdiag - 0.5 * q * np.log(sigma2)
 
@@ -90,21 +103,28 @@ def beta_lemma2(rkhs_norm: Any, gamma: Any, n_samples: int, delta: float) -> np.
 
 @dataclasses.dataclass(frozen=True)
 class ConfidenceReport:
-    """A beta per component with the probability it is claimed to hold with.
+    """A beta per component with the probability it holds with, and what that means.
 
     Attributes
     ----------
     beta : array of shape (n,)
         Confidence scaling per state component (0 for skipped components).
-    probability : float
-        ``(1 - delta)^k`` for ``k`` learned components, or NaN for a user-chosen beta.
+    probability : float or None
+        ``(1 - delta)^k`` for Lemma 2 with ``k`` learned components; ``1 - delta`` for the
+        conformal beta; None for a hand-chosen beta (no guarantee).
     method : str
-        ``"lemma2"`` or ``"user"``.
+        ``"lemma2"``, ``"conformal"`` or ``"user"``.
+    statement : str
+        What ``probability`` is the probability of, in words.
+    n_calibration : int or None
+        Calibration units (states or trajectories) behind a conformal beta.
     """
 
     beta: np.ndarray
-    probability: float
+    probability: float | None
     method: str
+    statement: str = ""
+    n_calibration: int | None = None
 
 
 def confidence(
@@ -115,14 +135,15 @@ def confidence(
     delta: float | None = None,
     gamma: Any = None,
 ) -> ConfidenceReport:
-    """Choose ``beta`` per component: user-given, or by Lemma 2.
+    """Choose ``beta`` per component: hand-chosen (no guarantee), or by Lemma 2.
 
     Parameters
     ----------
     model : GaussianProcessModel
         Fitted model.
     beta : float or array, optional
-        A chosen scaling (commonly 2 to 3); checked on held-out data with :func:`calibration`.
+        A chosen scaling (commonly 2 to 3). It carries no probability: check it with
+        :func:`calibration`, or calibrate one with :func:`conformal_beta`.
     rkhs_norm, delta : optional
         For Lemma 2: RKHS-norm bound per learned component and ``delta`` in (0, 1).
     gamma : optional
@@ -131,21 +152,182 @@ def confidence(
     Returns
     -------
     ConfidenceReport
+
+    Raises
+    ------
+    ParameterError
+        If ``delta`` is given with a hand-chosen ``beta`` (a probability would not follow from
+        it), or neither ``beta`` nor ``rkhs_norm`` and ``delta`` are given.
     """
     n, comps = model.n_states_, list(model.components_)
     if beta is not None:
+        if delta is not None:
+            raise ParameterError(
+                f"delta={delta!r} gives no probability for a hand-chosen beta={beta!r}: the "
+                "probability of Lemma 2 holds only for its own beta (pass rkhs_norm= and "
+                "delta= without beta=), and conformal_beta(model, x, y, delta) calibrates a "
+                "beta for 1 - delta"
+            )
         check_scalar_range("beta", beta, lower=0.0)
         b = np.zeros(n)
         b[comps] = np.broadcast_to(np.asarray(beta, float), (len(comps),))
-        prob = float("nan") if delta is None else joint_probability(delta, len(comps))
-        return ConfidenceReport(beta=b, probability=prob, method="user")
+        return ConfidenceReport(
+            beta=b,
+            probability=None,
+            method="user",
+            statement="no guarantee: a hand-chosen beta; check its coverage on held-out data",
+        )
     if rkhs_norm is None or delta is None:
         raise ParameterError("give beta=, or rkhs_norm= and delta= for Lemma 2")
     g = information_gain(model) if gamma is None else gamma
     b = np.zeros(n)
     b[comps] = beta_lemma2(rkhs_norm, g, model.x_train_.shape[0], delta)
     return ConfidenceReport(
-        beta=b, probability=joint_probability(delta, len(comps)), method="lemma2"
+        beta=b,
+        probability=joint_probability(delta, len(comps)),
+        method="lemma2",
+        statement=(
+            f"Lemma 2: with probability (1 - delta)^{len(comps)} over the noise, "
+            "|omega_i(x) - m_i(x)| <= beta_i sigma_i(x) for every state x and component, "
+            "provided ||omega_i||_k <= rkhs_norm and gamma bounds the information gain"
+        ),
+    )
+
+
+def _mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std at states (N, n): the model's compiled ``predict`` where it has one."""
+    if isinstance(model, GaussianProcessModel):
+        mean, var = model.predict(x)
+        return np.asarray(mean), np.sqrt(np.asarray(var))
+    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
+    return np.asarray(mean), np.asarray(std)
+
+
+def _scores(model: Any, x: np.ndarray, y: np.ndarray, observation_noise: bool) -> np.ndarray:
+    """``max_i |y_i - m_i| / s_i`` over learned components, per row; shape (N,)."""
+    mean, std = _mean_std_batch(model, x)
+    comps = list(getattr(model, "components_", range(x.shape[1])))
+    if observation_noise:
+        noise = np.zeros(x.shape[1])
+        noise[comps] = model.noise_
+        std = np.sqrt(std**2 + noise**2)
+    err = np.abs(y - mean)[:, comps]
+    sd = std[:, comps]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(err == 0, 0.0, err / sd)  # err > 0 with sd = 0: inf, never covered
+    return ratio.max(1)
+
+
+def conformal_beta(
+    model: Any,
+    x: Any,
+    y: Any,
+    delta: float,
+    *,
+    groups: Any = None,
+    observation_noise: bool = False,
+) -> ConfidenceReport:
+    """Calibrated ``beta`` by split conformal prediction on data not used for fitting.
+
+    The score of a calibration unit is ``max_i |y_i - m_i(x)| / sigma_i(x)`` over the learned
+    components (and over the unit's rows when ``groups`` is given). With ``N`` units, ``beta``
+    is the ``ceil((N + 1)(1 - delta))``-th smallest score, applied to every learned component.
+
+    Parameters
+    ----------
+    model : an uncertainty model with ``mean_std`` (fitted GP, cache or adapter)
+    x : array of shape (N_rows, n)
+        Calibration states, from trajectories not used to fit ``model``.
+    y : array of shape (N_rows, n)
+        The true ``omega(x)`` (the guarantee is then about ``omega``, the band of Lemma 2),
+        or noisy measurements with ``observation_noise=True`` (the guarantee is then about a
+        new noisy measurement and the band ``beta sqrt(sigma^2 + noise_^2)``).
+    delta : float
+        In (0, 1): the allowed miss probability.
+    groups : array of shape (N_rows,), optional
+        A unit label per row (for example the trajectory index). The score of a unit is its
+        largest row score and the guarantee covers *every* row of a new unit at once.
+    observation_noise : bool
+        Calibrate the band for noisy measurements, as above.
+
+    Returns
+    -------
+    ConfidenceReport
+        ``method="conformal"``, ``probability = 1 - delta`` and ``n_calibration = N``.
+
+    Raises
+    ------
+    DimensionError
+        If ``x``, ``y`` or ``groups`` have the wrong shapes.
+    NonFiniteError
+        If ``x`` or ``y`` contains NaN or inf.
+    ParameterError
+        If ``delta`` is outside (0, 1) or ``N < 1/delta - 1`` (no finite quantile).
+    NumericalError
+        If the quantile score is infinite (``sigma = 0`` where the error is not 0).
+
+    Notes
+    -----
+    Guarantee (Vovk et al.; Lei et al., 2018, Theorem 2.2): if the ``N`` calibration units and
+    a new unit are exchangeable (for example independent draws of states, or of whole
+    trajectories, from one distribution) and independent of the data the model was fitted on,
+    then ``P(new unit inside the band) >= 1 - delta``; with almost surely distinct scores it is
+    also ``<= 1 - delta + 1/(N + 1)``. The probability is over the calibration draw and the new
+    unit together. States along one trajectory are not exchangeable with each other: calibrate
+    per state only with states drawn independently (one per trajectory, say), or pass
+    ``groups`` for the per-trajectory guarantee. Closed-loop states under a new controller come
+    from another distribution, which the guarantee does not cover.
+    """
+    check_scalar_range("delta", delta, lower=0.0, strict_lower=True, upper=1.0, strict_upper=True)
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    if x.ndim != 2 or y.shape != x.shape:
+        raise DimensionError(f"x and y must both have shape (N, n), got {x.shape} and {y.shape}")
+    check_finite("x", x)
+    check_finite("y", y)
+    scores = _scores(model, x, y, observation_noise)
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (x.shape[0],):
+            raise DimensionError(
+                f"groups must have shape ({x.shape[0]},), one label per row, got {groups.shape}"
+            )
+        labels, inverse = np.unique(groups, return_inverse=True)
+        unit = np.full(len(labels), -np.inf)
+        np.maximum.at(unit, inverse, scores)
+        scores = unit
+    n_units = scores.shape[0]
+    rank = int(np.ceil((n_units + 1) * (1.0 - delta)))
+    if rank > n_units:
+        need = int(np.ceil(1.0 / delta - 1.0 - 1e-12))
+        raise ParameterError(
+            f"delta={delta!r} needs at least {need} calibration units (ceil((N + 1)(1 - delta)) "
+            f"<= N), got N = {n_units}; use more calibration "
+            f"{'groups' if groups is not None else 'rows'} or a larger delta"
+        )
+    beta = float(np.sort(scores)[rank - 1])
+    if not np.isfinite(beta):
+        raise NumericalError(
+            "the conformal quantile is infinite: the model reports sigma = 0 where the error "
+            "is not 0 at too many calibration units; a skipped component is not exact, or the "
+            "model is degenerate"
+        )
+    n = x.shape[1]
+    comps = list(getattr(model, "components_", range(n)))
+    b = np.zeros(n)
+    b[comps] = beta
+    unit_word = "trajectory (every row of it)" if groups is not None else "state"
+    target = "a new noisy measurement" if observation_noise else "omega"
+    return ConfidenceReport(
+        beta=b,
+        probability=1.0 - delta,
+        method="conformal",
+        statement=(
+            f"split conformal: a new {unit_word} from the calibration distribution has {target} "
+            f"inside the band at every learned component with probability >= 1 - delta = "
+            f"{1.0 - delta:g} (over calibration and new draw; N = {n_units} units)"
+        ),
+        n_calibration=n_units,
     )
 
 
@@ -184,9 +366,10 @@ def calibration(
         measurements with ``observation_noise=True``.
     beta : float or array of shape (n,)
     observation_noise : bool
-        Widen the band to ``beta sqrt(sigma^2 + sigma_epsilon^2)`` using the model's fitted
-        ``noise_``, for comparison with noisy targets. Comparing noisy targets with the
-        latent band understates coverage once the posterior is sharper than the noise.
+        Widen the band to ``beta sqrt(sigma^2 + sigma_epsilon^2)`` using the model's
+        ``noise_`` (the effective noise, jitter included), for comparison with noisy
+        targets. Comparing noisy targets with the latent band understates coverage once the
+        posterior is sharper than the noise.
 
     Returns
     -------
@@ -198,8 +381,7 @@ def calibration(
         raise DimensionError(f"x and y must both have shape (Q, n), got {x.shape} and {y.shape}")
     check_finite("x", x)
     check_finite("y", y)
-    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
-    mean, std = np.asarray(mean), np.asarray(std)
+    mean, std = _mean_std_batch(model, x)
     if observation_noise:
         noise = np.zeros(x.shape[1])
         noise[list(model.components_)] = model.noise_

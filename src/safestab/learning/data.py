@@ -21,6 +21,7 @@ from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, ParameterError
 from ..simulation import rk4_step
 from ..systems import ControlAffineSystem
+from ._checks import check_seed
 
 __all__ = ["Dataset", "collect_data", "EXCITATIONS"]
 
@@ -41,6 +42,9 @@ class Dataset:
         Targets ``xdot - f(x) - g(x) u - e(t)`` plus measurement noise.
     t : array of shape (Q,)
         Sample times within each trajectory, s.
+    trajectory : array of shape (Q,) or None
+        Index of the trajectory each row comes from (for per-trajectory splits and the
+        per-trajectory conformal beta).
     """
 
     x: np.ndarray
@@ -48,12 +52,14 @@ class Dataset:
     xdot: np.ndarray
     y: np.ndarray
     t: np.ndarray
+    trajectory: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.x.shape[0])
 
     def split(self, test_fraction: float, *, seed: int = 0) -> tuple[Dataset, Dataset]:
-        """Random train/test split (rows shuffled with ``seed``)."""
+        """Random train/test split (rows shuffled with ``seed``, an integer in [0, 2**32 - 1])."""
+        seed = check_seed("seed", seed)
         check_scalar_range(
             "test_fraction",
             test_fraction,
@@ -68,7 +74,8 @@ class Dataset:
         return self._take(tr), self._take(te)
 
     def _take(self, idx: np.ndarray) -> Dataset:
-        return Dataset(self.x[idx], self.u[idx], self.xdot[idx], self.y[idx], self.t[idx])
+        traj = None if self.trajectory is None else self.trajectory[idx]
+        return Dataset(self.x[idx], self.u[idx], self.xdot[idx], self.y[idx], self.t[idx], traj)
 
 
 def _x0_sampler(x0: Any, n_states: int) -> Callable[[jax.Array, int], jax.Array]:
@@ -148,7 +155,8 @@ def collect_data(
     substeps : int
         RK4 steps per sampling period.
     seed : int
-        Seeds everything (initial states, excitation parameters, noise).
+        Seeds everything (initial states, excitation parameters, noise); an integer in
+        ``[0, 2**32 - 1]``.
 
     Returns
     -------
@@ -158,10 +166,12 @@ def collect_data(
     ------
     ParameterError
         For non-positive ``n_samples``, ``rate``, ``horizon`` or ``substeps``, negative noise,
-        an unknown excitation, or ``"controller"`` without a controller.
+        an unknown excitation, ``"controller"`` without a controller, or a ``seed`` that is not
+        an integer in ``[0, 2**32 - 1]``.
     DimensionError
         If the two systems' dimensions differ.
     """
+    seed = check_seed("seed", seed)
     n, m = nominal.n_states, nominal.n_inputs
     if (true_system.n_states, true_system.n_inputs) != (n, m):
         raise DimensionError(
@@ -256,4 +266,5 @@ def collect_data(
     noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
         np.asarray(noise_std, float), (n,)
     )
-    return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t)
+    traj = np.repeat(np.arange(n_traj), per_traj)[:n_samples]
+    return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t, trajectory=traj)

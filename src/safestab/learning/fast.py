@@ -1,31 +1,29 @@
-"""A prediction cache for the control loop whose cost per query does not grow with Q.
+"""A prediction cache for the control loop, cost O(M^2) per query, with a proven band.
 
 From a fitted :class:`~safestab.learning.GaussianProcessModel`, pick ``M`` inducing inputs
-``Z`` among the training inputs (greedy pivoted Cholesky of the kernel matrix), take the
-*exact* posterior of ``omega_i`` at ``Z`` (conditioned on all ``Q`` samples), and project it
-to a query ``x`` through the prior conditional::
+``Z`` among the training inputs (greedy pivoted Cholesky of the prior kernel matrix). With
+``Kj = K_ZZ + eps I`` (``eps = jitter amplitude^2``), ``Lj Lj^T = Kj``, ``a(x) = Lj^-1 k_Z(x)``,
+``Phi = Lj^-1 K_ZX``, ``P = I + eps (Lj^T Lj)^-1``, ``B = P Phi`` and the exact model's
+``K + s^2 I = L L^T`` (``s = noise_``, the effective noise), the cache returns
 
-    a(x)  = Lz^-1 k_Zx                          (Lz: Cholesky factor of Kzz)
-    m~(x) = a(x) . Lz^-1 mu_Z
-    v~(x) = [k(x, x) - |a(x)|^2] + |G a(x)|^2,  G^T G = Lz^-1 S_Z Lz^-T
+    m~(x)     = mu + (B alpha) . a(x)
+    r(x)^2    = k(x, x) - |a(x)|^2                     (prior residual given f_Z, >= 0)
+    v~(x)     = r(x)^2 + a^T (I - H) a + 2 |A a| rho r(x)
+    sigma~(x) = sqrt(v~(x)) + E r(x) / min_beta
 
-with ``mu_Z``, ``S_Z`` the exact posterior mean and covariance at ``Z``. The two terms of
-``v~`` are each non-negative (prior residual given ``f_Z``; posterior spread at ``Z``); written
-as ``k(x, x) - k^T B k`` the same quantity cancels catastrophically when the posterior
-variance is many orders below the prior one, as in the ACC study.
-
-so each query costs ``M`` kernel evaluations and an ``M x M`` product, independent of ``Q``.
-
-The projected variance is not in general an upper bound of the exact one, so the cache does
-not claim it is: :meth:`FastGP.calibrate` measures, on held-out states, the factor ``c_i``
-by which ``beta sigma~_i`` must be widened so that the cache's band contains the exact band
-``m_i +- beta sigma_i`` at every checked state, and :meth:`FastGP.mean_std` returns the
-widened ``c_i sigma~_i``. The guarantee is therefore empirical, on the distribution of the
-checked states (docs/performance.md reports the factors and a check on further states).
+with ``H = B (K + s^2 I)^-1 B^T``, ``A = (K + s^2 I)^-1 B^T``, ``rho = ||r(X)||_2`` over the
+training inputs and ``E = min(sum_i |alpha_i| r(x_i), ||m - h||_k)``. docs/learning.md proves
+``v~(x) >= sigma^2(x)`` (the exact posterior variance, from its variational form
+``sigma^2(x) = min_c ||k_x - sum_i c_i k_{x_i}||^2 + s^2 |c|^2``) and
+``|m~(x) - m(x)| <= E r(x)`` at every ``x``. Hence for every ``beta >= min_beta`` the cache's
+band ``m~ +- beta sigma~`` contains the exact band ``m +- beta sigma``, far from the data too,
+with no held-out states. The first two terms of ``v~`` are the projected posterior of the
+previous cache; the third is the cross term it lacked.
 """
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import jax
@@ -33,14 +31,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validation import check_finite, check_scalar_range
-from ..errors import DimensionError, ParameterError
-from .gp import GaussianProcessModel, _kernel
+from ..errors import DimensionError, InducingPointsWarning, ParameterError
+from ._kernels import kernel as _kernel
+from ._kernels import kernel_matrix
+from .gp import GaussianProcessModel
 
-__all__ = ["FastGP"]
+__all__ = ["FastGP", "INFLATION_WARN"]
+
+#: :class:`InducingPointsWarning` when, at more than 1 % of the training inputs, the cache's
+#: std exceeds this many times the noise std (an upper bound of the exact posterior std at
+#: a training input), i.e. the cache's band is at least this much wider than the exact one.
+INFLATION_WARN = 3.0
+_U = np.finfo(float).eps / 2  # unit roundoff of float64
 
 
-def _pivoted_cholesky_indices(kfn, xs: np.ndarray, amp2: float, m: int, tol: float) -> np.ndarray:
-    """Greedy choice of ``m`` rows maximising the residual prior variance (pivoted Cholesky)."""
+def _pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float):
+    """Greedy choice of ``m`` rows maximising the residual prior variance (pivoted Cholesky).
+
+    Returns the chosen indices and the residual prior variance left at every row.
+    """
     q = xs.shape[0]
     m = min(m, q)
     diag = np.full(q, amp2)
@@ -54,11 +63,73 @@ def _pivoted_cholesky_indices(kfn, xs: np.ndarray, amp2: float, m: int, tol: flo
         col = np.asarray(kfn(xs, xs[j : j + 1]))[:, 0] - rows[:i].T @ rows[:i, j]
         rows[i] = col / np.sqrt(diag[j])
         diag = np.maximum(diag - rows[i] ** 2, 0.0)
-    return np.array(chosen)
+    return np.array(chosen), diag
+
+
+def _round(m: int, amp: float) -> float:
+    """Rounding allowance on ``r^2 = amp^2 - |a|^2``: ``2 (M + 2) u amp^2``."""
+    return float(2 * (m + 2) * _U * amp * amp)
+
+
+def _psd_root(mat: np.ndarray) -> np.ndarray:
+    """``G`` with ``G^T G = mat`` after clipping negative eigenvalues to 0 (never smaller)."""
+    evals, evecs = np.linalg.eigh(0.5 * (mat + mat.T))
+    return (evecs * np.sqrt(np.maximum(evals, 0.0))).T
+
+
+def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, float]:
+    """``||m - h||_k^2`` and a bound on its rounding error.
+
+    ``m = sum_i alpha_i k(x_i, .)``, ``h = sum_j b_j k(z_j, .)``:
+    ``||m - h||^2 = alpha^T K alpha - 2 b^T K_ZX alpha + b^T K_ZZ b``. The rounding bound uses
+    the standard dot-product error ``n u sum |terms|`` (kernels here are positive), doubled.
+    """
+    q = xs.shape[0]
+    ka = np.zeros(q)
+    ka_abs = np.zeros(q)
+    for s in range(0, q, chunk):  # K alpha by blocks: no Q x Q matrix in memory
+        kb = np.asarray(kfn(xs[s : s + chunk], xs))
+        ka[s : s + chunk] = kb @ alpha
+        ka_abs[s : s + chunk] = kb @ np.abs(alpha)
+    kzx = np.asarray(kfn(z, xs))
+    m_z = kzx @ alpha
+    a_term = alpha @ ka
+    b_term = b @ m_z
+    c_term = b @ kzz @ b
+    m = z.shape[0]
+    err = 2 * _U * (
+        (q + 2) * (np.abs(alpha) @ ka_abs)
+        + 2 * (q + m + 2) * (np.abs(b) @ (kzx @ np.abs(alpha)))
+        + (m + 2) * (np.abs(b) @ kzz @ np.abs(b))
+    )
+    return float(a_term - 2 * b_term + c_term), float(err)
+
+
+def _parts(p, x, kind):
+    """Per learned component: cache mean (without the prior mean), sqrt(v~) and E r(x)."""
+    z0 = (x - p["offset"]) / p["scale"]
+    mm = p["z"].shape[1]
+
+    def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
+        k = jnp.where(mask, _kernel(kind, a, l_)(z, z0[None, :])[:, 0], 0.0)
+        all3 = maps @ k
+        v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
+        r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
+        r = jnp.sqrt(r2)
+        var = r2 + gv @ gv + 2.0 * jnp.sqrt(cv @ cv) * rho * r  # >= exact variance
+        return k @ wk, jnp.sqrt(var), err * r
+
+    return jax.vmap(per_comp)(
+        p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
+    )
+
+
+# the cache's arrays are arguments: one compilation per (M, kernel), not per cache
+_parts_batch = jax.jit(jax.vmap(_parts, in_axes=(None, 0, None)), static_argnums=2)
 
 
 class FastGP:
-    """Inducing-point cache of a fitted GP, with a measured widening of its uncertainty.
+    """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
 
     Parameters
     ----------
@@ -66,6 +137,9 @@ class FastGP:
         A fitted model.
     n_inducing : int
         ``M``, inducing inputs per component (default 32).
+    min_beta : float
+        The band ``m~ +- beta sigma~`` contains the exact band for every ``beta >= min_beta``
+        (default 1; the mean-error term of ``sigma~`` scales as ``1 / min_beta``).
     pivot_tol : float
         Stop adding inducing inputs once the largest residual prior variance is below
         ``pivot_tol * amplitude^2`` (default 1e-12: further points change nothing in float64).
@@ -73,154 +147,201 @@ class FastGP:
     Attributes
     ----------
     inducing_ : array of shape (k, M, n)
-        Inducing inputs per learned component (in the units of x).
-    widening_ : array of shape (k,)
-        Factors ``c_i >= 1`` applied to ``sigma~_i``; all 1 until :meth:`calibrate`.
+        Inducing inputs per learned component (in the units of x); padded rows repeat zeros.
+    n_inducing_ : array of shape (k,)
+        Inducing inputs actually used per component.
+    mean_error_norm_ : array of shape (k,)
+        ``E``: the RKHS norm bounding ``|m - m~| <= E r(x)`` (rounding allowance included).
+    inflation_at_training_ : array of shape (k,)
+        Fraction of training inputs where ``sigma~ > INFLATION_WARN * noise_``.
+
+    Warns
+    -----
+    InducingPointsWarning
+        When ``inflation_at_training_`` exceeds 1 % for some component: increase
+        ``n_inducing``.
+
+    Notes
+    -----
+    Each query costs ``M`` kernel evaluations and a ``2M x M`` matrix-vector product per
+    component, independent of ``Q``. docs/learning.md proves the two inequalities.
     """
 
     def __init__(
-        self, model: GaussianProcessModel, n_inducing: int = 32, *, pivot_tol: float = 1e-12
+        self,
+        model: GaussianProcessModel,
+        n_inducing: int = 32,
+        *,
+        min_beta: float = 1.0,
+        pivot_tol: float = 1e-12,
     ) -> None:
         model._check_fitted()
+        if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
+            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
         if int(n_inducing) < 1:
-            raise ParameterError(f"n_inducing must be >= 1, got {n_inducing!r}")
+            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
+        check_scalar_range("min_beta", min_beta, lower=0.0, strict_lower=True)
+        check_scalar_range("pivot_tol", pivot_tol, lower=0.0)
         self.model = model
+        self.min_beta = float(min_beta)
         self.n_states = model.n_states_
         self.components_ = model.components_
         xs = (model.x_train_ - model.x_offset_) / model.x_scale_
-        zs, ws, rs, ls_ = [], [], [], []
+        zs, maps_, ws, errs, rhos = [], [], [], [], []
         for j in range(len(model.components_)):
             amp = float(model.amplitude_[j])
-            kfn = _kernel(model.kernel, amp, jnp.asarray(model._lengthscale_std[j]))
-            idx = _pivoted_cholesky_indices(kfn, xs, amp * amp, int(n_inducing), pivot_tol)
+            eps = model.jitter * amp * amp
+            ls_j = jnp.asarray(model._lengthscale_std[j])
+
+            def kfn(x1, x2, amp=amp, ls_j=ls_j):
+                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
+            idx, _ = _pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol)
             z = xs[idx]
-            kzz = np.asarray(kfn(z, z)) + model.jitter * amp * amp * np.eye(len(idx))
+            m = len(idx)
+            kzz = np.asarray(kfn(z, z))
+            lj = np.linalg.cholesky(kzz + eps * np.eye(m))
+            li = np.linalg.solve(lj, np.eye(m))  # Lj^-1
             kzx = np.asarray(kfn(z, xs))
-            lz = np.linalg.cholesky(kzz)
-            # exact posterior at Z, whitened by Lz: mean Lz^-1 mu_Z, covariance
-            # T = Lz^-1 S_Z Lz^-T = I - W W^T with W = Lz^-1 K_ZX L^-T (L: chol of K + s^2 I)
-            a_train = np.linalg.solve(lz, kzx)  # (M, Q)
-            w = a_train @ model.alpha_[j]
-            wmat = np.asarray(
-                jax.scipy.linalg.solve_triangular(
-                    jnp.asarray(model.chol_[j]), jnp.asarray(a_train.T), lower=True
-                )
-            )  # (Q, M)
-            t = np.eye(len(idx)) - wmat.T @ wmat
-            evals, evecs = np.linalg.eigh(0.5 * (t + t.T))
-            rs.append((evecs * np.sqrt(np.maximum(evals, 0.0))).T)  # G^T G = T
-            ls_.append(lz)
+            phi = li @ kzx  # (M, Q): a(x_i) in columns
+            pmat = np.eye(m) + eps * (li @ li.T)
+            bmat = pmat @ phi
+            chol = jnp.asarray(model.chol_[j])
+            v = np.asarray(jax.scipy.linalg.solve_triangular(chol, bmat.T, lower=True))
+            u = np.asarray(jax.scipy.linalg.solve_triangular(chol.T, v, lower=False))  # A
+            g = _psd_root(np.eye(m) - v.T @ v)  # G^T G >= I - H (negative parts clipped)
+            c = _psd_root(u.T @ u)  # C^T C = A^T A
+            alpha = model.alpha_[j]
+            r_train = np.sqrt(np.maximum(amp * amp - np.sum(phi * phi, 0), 0.0) + _round(m, amp))
+            rho = float(np.sqrt(np.sum(r_train**2)))
+            e_sum = float(np.abs(alpha) @ r_train)
+            b = li.T @ (li @ (kzx @ alpha))
+            gap, err = _rkhs_gap(kfn, xs, alpha, z, b, kzz)
+            e_rkhs = float(np.sqrt(max(gap, 0.0) + err))
+            errs.append(min(e_sum, e_rkhs))
+            rhos.append(rho)
+            # per query: [a; G a; C a] = maps @ k, and m~ = mu + (Lj^-T B alpha) . k
+            maps_.append((li, g @ li, c @ li))
+            ws.append(li.T @ (bmat @ alpha))
             zs.append(z)
-            ws.append(w)
         m_max = max(len(z) for z in zs)
-        pad = lambda a, shape: np.pad(a, [(0, s - d) for s, d in zip(shape, a.shape, strict=True)])  # noqa: E731
         n = xs.shape[1]
 
-        def pad_chol(lz):  # identity on the padding keeps the triangular solve well posed
-            out = np.eye(m_max)
-            out[: lz.shape[0], : lz.shape[0]] = lz
-            return out
+        def pad(a, shape):
+            return np.pad(a, [(0, s - d) for s, d in zip(shape, a.shape, strict=True)])
 
-        # Pad to a common M (padded rows get zero weight and zero columns), then precompute
-        # the maps of a query's kernel vector k: a = Lz^-1 k and G a = (G Lz^-1) k, stacked so
-        # that a query is one small matrix-vector product (a triangular solve per query costs
-        # a LAPACK call, several times the arithmetic at M = 32).
-        maps, means = [], []
-        for lz, g, w in zip(ls_, rs, ws, strict=True):
-            lz_inv = np.linalg.solve(pad_chol(lz), np.eye(m_max))
-            g_pad = pad(g, (m_max, m_max))
-            maps.append(np.concatenate([lz_inv, g_pad @ lz_inv], 0))  # (2M, M)
-            means.append(lz_inv.T @ pad(w, (m_max,)))  # m~ = k . Lz^-T Lz^-1 mu_Z
+        # Pad to a common M (padded rows get zero kernel values and zero weights), then stack
+        # the three maps of a query's kernel vector k so that a query is one small product.
+        maps = [np.concatenate([pad(p_, (m_max, m_max)) for p_ in trio], 0) for trio in maps_]
         self._z = jnp.asarray(np.stack([pad(z, (m_max, n)) for z in zs]))
         self._maps = jnp.asarray(np.stack(maps))
-        self._wk = jnp.asarray(np.stack(means))
+        self._wk = jnp.asarray(np.stack([pad(w, (m_max,)) for w in ws]))
         self._mask = jnp.asarray(np.stack([np.arange(m_max) < len(z) for z in zs]))
+        self._err = jnp.asarray(np.array(errs))
+        self._rho = jnp.asarray(np.array(rhos))
+        self._round = jnp.asarray([_round(m_max, a) for a in model.amplitude_])
+        self._params = {
+            "offset": jnp.asarray(model.x_offset_),
+            "scale": jnp.asarray(model.x_scale_),
+            "amp": jnp.asarray(model.amplitude_),
+            "ls": jnp.asarray(model._lengthscale_std),
+            "z": self._z,
+            "wk": self._wk,
+            "maps": self._maps,
+            "mask": self._mask,
+            "err": self._err,
+            "rho": self._rho,
+            "round": self._round,
+        }
         self._m = m_max
         self.n_inducing_ = np.array([len(z) for z in zs])
         self.inducing_ = np.asarray(self._z) * model.x_scale_ + model.x_offset_
-        self.widening_ = np.ones(len(model.components_))
+        self.mean_error_norm_ = np.array(errs)
+        _, sd_c, merr = self._parts_batch(model.x_train_)
+        comps = list(model.components_)
+        ratio = (np.asarray(sd_c) + np.asarray(merr) / self.min_beta) / model.noise_
+        self.inflation_at_training_ = np.mean(ratio > INFLATION_WARN, axis=0)
+        for comp, frac in zip(comps, self.inflation_at_training_, strict=True):
+            if frac > 0.01:
+                warnings.warn(
+                    f"FastGP with n_inducing={n_inducing}: for component {comp}, at "
+                    f"{frac:.0%} of the training inputs the cache's std exceeds "
+                    f"{INFLATION_WARN:g} times the noise std, which bounds the exact posterior "
+                    "std there: the cache's band is needlessly wide; increase n_inducing",
+                    InducingPointsWarning,
+                    stacklevel=2,
+                )
 
-    def _mean_std_raw(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        m = self.model
-        z0 = (x - jnp.asarray(m.x_offset_)) / jnp.asarray(m.x_scale_)
-        amp = jnp.asarray(m.amplitude_)
-        ls = jnp.asarray(m._lengthscale_std)
+    def _mean_std_parts(self, x: jax.Array):
+        return _parts(self._params, x, self.model.kernel)
 
-        mm = self._m
-
-        def per_comp(a, l_, z, wk, maps, mask):
-            k = jnp.where(mask, _kernel(m.kernel, a, l_)(z, z0[None, :])[:, 0], 0.0)
-            both = maps @ k
-            v, gv = both[:mm], both[mm:]
-            # prior residual given f_Z (>= 0) plus the projected posterior covariance at Z
-            var = jnp.maximum(a * a - v @ v, 0.0) + gv @ gv
-            return k @ wk, jnp.sqrt(var)
-
-        mean_c, std_c = jax.vmap(per_comp)(amp, ls, self._z, self._wk, self._maps, self._mask)
-        comps = jnp.asarray(self.components_)
-        mean = jnp.zeros(self.n_states).at[comps].set(mean_c + jnp.asarray(m.mean_))
-        std = jnp.zeros(self.n_states).at[comps].set(std_c)
-        return mean, std
+    def _parts_batch(self, x: np.ndarray):
+        return _parts_batch(self._params, jnp.asarray(x), self.model.kernel)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Mean and *widened* standard deviation at one state (n,), jittable, O(M^2)."""
-        mean, std = self._mean_std_raw(x)
-        c = (
-            jnp.zeros(self.n_states)
-            .at[jnp.asarray(self.components_)]
-            .set(jnp.asarray(self.widening_))
-        )
-        return mean, c * std
+        """Mean and guaranteed std at one state of shape (n,); jittable, O(M^2).
 
-    def calibrate(self, x_check: Any, beta: Any, *, margin: float = 1.05) -> np.ndarray:
-        """Set :attr:`widening_` so the cache's band contains the exact band on ``x_check``.
+        The std is ``sqrt(v_Z) + E r / min_beta`` (module docstring): for every
+        ``beta >= min_beta``, ``m~ +- beta std`` contains the exact ``m +- beta sigma``.
+        """
+        mean_c, sd_c, merr = self._mean_std_parts(x)
+        comps = jnp.asarray(self.components_)
+        mean = jnp.zeros(self.n_states).at[comps].set(mean_c + jnp.asarray(self.model.mean_))
+        std = jnp.zeros(self.n_states).at[comps].set(sd_c + merr / self.min_beta)
+        return mean, std
 
-        For each learned component, ``c_i = margin * max_x (|m~_i - m_i| + beta_i sigma_i) /
-        (beta_i sigma~_i)`` over the check states, and at least 1.
+    def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and guaranteed std at states of shape (N, n), each (N, n); compiled once.
+
+        Raises
+        ------
+        DimensionError
+            If ``x`` is not of shape (N, n).
+        NonFiniteError
+            If ``x`` contains NaN or inf.
+        """
+        x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != self.n_states:
+            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
+        check_finite("x", x)
+        mean_c, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
+        comps = list(self.components_)
+        mean = np.zeros(x.shape)
+        std = np.zeros(x.shape)
+        mean[:, comps] = mean_c + np.asarray(self.model.mean_)
+        std[:, comps] = sd_c + merr / self.min_beta
+        return mean, std
+
+    def mean_error_bound(self, x: Any) -> np.ndarray:
+        """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""
+        x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != self.n_states:
+            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
+        check_finite("x", x)
+        return np.asarray(self._parts_batch(x)[2])
+
+    def coverage_of_exact_band(self, x: Any, beta: Any) -> np.ndarray:
+        """Fraction of states where the cache's band contains the exact band, per component.
 
         Parameters
         ----------
-        x_check : array of shape (N, n)
-            Held-out states from the region the controller will visit.
+        x : array of shape (N, n)
         beta : float or array of shape (n,)
-            The confidence scaling the controller will use.
-        margin : float
-            Extra factor >= 1 for states not in the check set.
 
         Returns
         -------
         array of shape (k,)
-            The widening factors.
+            1 wherever ``beta >= min_beta`` (up to rounding of the exact predictor).
         """
-        x_check = np.asarray(x_check, float)
-        if x_check.ndim != 2 or x_check.shape[1] != self.n_states:
-            raise DimensionError(
-                f"x_check must have shape (N, {self.n_states}), got {x_check.shape}"
-            )
-        check_finite("x_check", x_check)
-        check_scalar_range("beta", beta, lower=0.0, strict_lower=True)
-        check_scalar_range("margin", margin, lower=1.0)
-        comps = list(self.components_)
-        b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
-        m_ex, v_ex = self.model.predict(x_check)
-        m_fa, s_fa = jax.vmap(self._mean_std_raw)(jnp.asarray(x_check))
-        need = np.abs(np.asarray(m_fa) - np.asarray(m_ex)) + b * np.sqrt(np.asarray(v_ex))
-        need = need[:, comps]
-        have = b * np.maximum(np.asarray(s_fa)[:, comps], 1e-300)
-        self.widening_ = np.maximum(margin * np.max(need / have, axis=0), 1.0)
-        return self.widening_
-
-    def coverage_of_exact_band(self, x: Any, beta: Any) -> np.ndarray:
-        """Fraction of states where the widened band contains the exact band, per component."""
         x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != self.n_states:
+            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
+        check_finite("x", x)
+        check_scalar_range("beta", beta, lower=0.0)
         comps = list(self.components_)
         b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
-        m_ex, v_ex = self.model.predict(x)
-        m_fa, s_fa = jax.vmap(self.mean_std)(jnp.asarray(x))
-        lo_ok = (np.asarray(m_fa) - b * np.asarray(s_fa))[:, comps] <= (
-            np.asarray(m_ex) - b * np.sqrt(np.asarray(v_ex))
-        )[:, comps] + 1e-12
-        hi_ok = (np.asarray(m_fa) + b * np.asarray(s_fa))[:, comps] >= (
-            np.asarray(m_ex) + b * np.sqrt(np.asarray(v_ex))
-        )[:, comps] - 1e-12
+        mean_ex, var_ex = self.model.predict(x)
+        m_fa, s_fa = (a[:, comps] for a in self.predict(x))
+        m_ex, s_ex = np.asarray(mean_ex)[:, comps], np.sqrt(np.asarray(var_ex))[:, comps]
+        lo_ok = m_fa - b * s_fa <= m_ex - b * s_ex
+        hi_ok = m_fa + b * s_fa >= m_ex + b * s_ex
         return (lo_ok & hi_ok).mean(0)

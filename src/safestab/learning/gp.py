@@ -1,13 +1,17 @@
 """Independent Gaussian processes for the components of ``omega(x)`` (eqs. (12), (13)).
 
 Kernels and the marginal likelihood come from tinygp; hyperparameters are fitted by
-maximising the log marginal likelihood with SciPy's L-BFGS-B on JAX gradients. Prediction
-uses a Cholesky factor computed once at fit time.
+maximising the log marginal likelihood with SciPy's L-BFGS-B on JAX gradients, from several
+starts (data-driven and seeded random ones). Prediction uses a Cholesky factor computed once at
+fit time; the compiled predictor receives the training arrays as arguments, so compiling it
+costs the same at every ``Q``.
 """
 
 from __future__ import annotations
 
+import functools
 import json
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -16,37 +20,151 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 from jax.scipy.linalg import cho_solve, solve_triangular
-from tinygp import GaussianProcess, kernels, transforms
+from tinygp import GaussianProcess
 
-from .._validation import check_finite, check_scalar_range
-from ..errors import DimensionError, NumericalError, ParameterError
+from .._validation import check_finite, check_scalar_range, is_concrete
+from ..errors import (
+    ConvergenceWarning,
+    DataWarning,
+    DimensionError,
+    NumericalError,
+    ParameterError,
+)
+from ._checks import check_seed
+from ._kernels import kernel as _kernel
+from ._kernels import kernel_matrix
 
-__all__ = ["GaussianProcessModel", "KERNELS", "DEFAULT_JITTER"]
+__all__ = [
+    "GaussianProcessModel",
+    "KERNELS",
+    "DEFAULT_JITTER",
+    "MIN_ROWS_PER_HYPERPARAMETER",
+    "LOO_ROWS",
+    "LOO_MIN_COVERAGE",
+]
 
 KERNELS = ("se", "matern52")
 #: Added to the diagonal, relative to the signal variance ``amplitude^2``, before every
 #: Cholesky factorisation: 1e-10 keeps K + sigma^2 I positive definite in float64 for
-#: Q up to tens of thousands even with sigma = 0, and shifts the posterior variance by at
-#: most about 1e-10 amplitude^2.
+#: Q up to tens of thousands even with sigma = 0. It is part of the model's noise: the
+#: reported ``noise_`` is the effective ``sqrt(sigma^2 + jitter amplitude^2)``.
 DEFAULT_JITTER = 1e-10
-_FORMAT = "safestab-gp-v1"
-
-
-def _kernel(kind: str, amplitude, lengthscale):
-    # tinygp's Matern kernels default to the L1 distance, which is not positive definite in
-    # more than one dimension; the Matern 5/2 of GP regression (GPML, scikit-learn) is L2.
-    base: kernels.Kernel
-    if kind == "se":
-        base = kernels.ExpSquared()
-    else:
-        base = kernels.Matern52(distance=kernels.distance.L2Distance())
-    return amplitude**2 * transforms.Linear(1.0 / lengthscale, base)
+#: Fewer fitting rows than this many per hyperparameter raise a :class:`DataWarning`: a
+#: rule of thumb, not a theorem (with 5 rows for 5 hyperparameters the ACC fit covered 21 %
+#: of held-out states at beta = 2).
+MIN_ROWS_PER_HYPERPARAMETER = 5
+#: Rows (at most) of the leave-one-out check run after every fit.
+LOO_ROWS = 64
+#: A leave-one-out coverage at 2 predictive standard deviations below this raises a
+#: :class:`DataWarning` (a calibrated model gives 0.954; below 0.5 the predictive band is far
+#: too narrow, e.g. ``noise=0`` on noisy data).
+LOO_MIN_COVERAGE = 0.5
+#: Data-driven starts of the hyperparameter search (the others are seeded random ones).
+N_DATA_STARTS = 2
+_FORMAT = "safestab-gp-v2"  # v2: ``noise`` is the effective noise (jitter included)
+_FORMAT_V1 = "safestab-gp-v1"
 
 
 def _unpack(theta, n_features):
     log_amp, log_noise, mean = theta[0], theta[1], theta[2]
     log_ls = theta[3 : 3 + n_features]
     return jnp.exp(log_amp), jnp.exp(log_noise), mean, jnp.exp(log_ls)
+
+
+@functools.partial(jax.jit, static_argnames=("kind",))
+def _nll_value_and_grad(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, *, kind):
+    """Negative log marginal likelihood and its gradient in ``theta`` (GPML eq. (5.9)).
+
+    The data are arguments, so one compilation serves every component and every start. The
+    gradient ``-1/2 tr((alpha alpha^T - K^-1) dK/dtheta)`` is written out: three times
+    faster than reverse-mode through the Cholesky factorisation at Q = 500 (a test checks
+    it against ``jax.grad`` of tinygp's likelihood).
+    """
+    q, n = xs.shape
+    amp, noise, mean, ls = _unpack(theta, n)
+    z = xs / ls
+    diff2 = (z[:, None, :] - z[None, :, :]) ** 2  # (Q, Q, n)
+    r2 = jnp.sum(diff2, -1)
+    if kind == "se":
+        k0 = jnp.exp(-0.5 * r2)
+        dk0 = k0  # d k0 / d log ls_d = dk0 * diff2_d
+    else:
+        r = jnp.sqrt(5.0 * r2)
+        e = jnp.exp(-r)
+        k0 = (1.0 + r + r * r / 3.0) * e
+        dk0 = (5.0 / 3.0) * (1.0 + r) * e
+    noise_var = jnp.where(use_fixed, fixed_var, noise**2)
+    s2 = noise_var + jitter * amp**2
+    kmat = amp**2 * k0 + s2 * jnp.eye(q)
+    chol = jnp.linalg.cholesky(kmat)
+    resid = y - mean * use_mean
+    alpha = cho_solve((chol, True), resid)
+    value = 0.5 * resid @ alpha + jnp.sum(jnp.log(jnp.diag(chol))) + 0.5 * q * jnp.log(2 * jnp.pi)
+    w = jnp.outer(alpha, alpha) - cho_solve((chol, True), jnp.eye(q))
+    tr_w = jnp.trace(w)
+    g_amp = -0.5 * (2.0 * amp**2 * jnp.sum(w * k0) + 2.0 * jitter * amp**2 * tr_w)
+    g_noise = jnp.where(use_fixed, 0.0, -0.5 * tr_w * 2.0 * noise**2)
+    g_mean = -jnp.sum(alpha) * use_mean
+    g_ls = -0.5 * amp**2 * jnp.einsum("ij,ijd->d", w * dk0, diff2)
+    return value, jnp.concatenate([jnp.stack([g_amp, g_noise, g_mean]), g_ls])
+
+
+def _nll_tinygp(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, kind):
+    """The same negative log marginal likelihood through tinygp (reference for the tests)."""
+    amp, noise, mean, ls = _unpack(theta, xs.shape[1])
+    var = jnp.where(use_fixed, fixed_var, noise**2) + jitter * amp**2
+    gp = GaussianProcess(_kernel(kind, amp, ls), xs, diag=var, mean=mean * use_mean)
+    return -gp.log_probability(y)
+
+
+def _posterior_one(post, x, kind, n):
+    """Posterior mean and latent variance at one state (n,), from the arrays in ``post``."""
+    z = ((x - post["offset"]) / post["scale"])[None, :]
+
+    def per_comp(a, l_, al, chol, m):
+        kstar = _kernel(kind, a, l_)(post["xs"], z)[:, 0]
+        v = solve_triangular(chol, kstar, lower=True)
+        return kstar @ al + m, jnp.maximum(a**2 - v @ v, 0.0)
+
+    mean_c, var_c = jax.vmap(per_comp)(
+        post["amp"], post["ls"], post["alpha"], post["chol"], post["mu"]
+    )
+    mean = jnp.zeros(n, dtype=mean_c.dtype).at[post["comps"]].set(mean_c)
+    var = jnp.zeros(n, dtype=var_c.dtype).at[post["comps"]].set(var_c)
+    return mean, var
+
+
+# The training arrays enter as arguments, never as constants of the compiled program: with
+# constants the first predict at Q = 6,000 took 15.8 s and 5.35 GB (issue 14).
+_predict_batch = jax.jit(
+    jax.vmap(_posterior_one, in_axes=(None, 0, None, None)), static_argnums=(2, 3)
+)
+
+
+def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:
+    """Whether the projected gradient is below ``rtol (1 + |value|)``.
+
+    L-BFGS-B's line search stalls ("ABNORMAL") when the likelihood's rounding noise (about
+    1e-4 nats at Q = 500 on the ACC data, where the kernel matrix is ill-conditioned) exceeds
+    the decrease it looks for. With this test passed, changing any log-hyperparameter by 0.01
+    changes the log-likelihood by less than 1e-6 of its size: converged for any use.
+    """
+    g = np.asarray(grad, float)
+    g = np.where((theta <= lo) & (g > 0), 0.0, g)
+    g = np.where((theta >= hi) & (g < 0), 0.0, g)
+    g = np.where(lo == hi, 0.0, g)
+    return bool(np.isfinite(value) and np.max(np.abs(g)) <= rtol * (1.0 + abs(value)))
+
+
+def _nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
+    """Noise std estimated from nearest-neighbour differences (on at most 1,000 rows)."""
+    rows = rng.choice(len(xs), min(len(xs), 1000), replace=False)
+    xr, yr = xs[rows], y[rows]
+    d2 = np.sum((xr[:, None, :] - xr[None, :, :]) ** 2, -1)
+    np.fill_diagonal(d2, np.inf)
+    diff = yr - yr[np.argmin(d2, 1)]
+    # y_i - y_j ~ N(0, 2 s^2) where f is locally flat; median of a chi^2_1 is 0.4549
+    return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
 
 
 class GaussianProcessModel:
@@ -61,9 +179,12 @@ class GaussianProcessModel:
     noise : float or array of shape (k,), optional
         Known noise standard deviation ``sigma_epsilon`` per component; fitted when omitted.
     jitter : float
-        Relative diagonal jitter (see :data:`DEFAULT_JITTER`).
+        Relative diagonal jitter (see :data:`DEFAULT_JITTER`); part of the effective noise.
     max_iter : int
-        L-BFGS-B iteration limit per component.
+        L-BFGS-B iteration limit per start and component; 0 keeps the best start values (with
+        a :class:`~safestab.errors.ConvergenceWarning`).
+    n_restarts : int
+        Seeded random starts in addition to the :data:`N_DATA_STARTS` data-driven ones.
 
     Attributes
     ----------
@@ -71,15 +192,31 @@ class GaussianProcessModel:
     components_ : tuple of int
         The learned components; the others are treated as exact (mean 0, std 0).
     x_train_ : array of shape (Q, n)
-    amplitude_, noise_, mean_ : arrays of shape (k,)
+    amplitude_, mean_ : arrays of shape (k,)
+    noise_ : array of shape (k,)
+        Effective noise standard deviation ``sqrt(sigma^2 + jitter amplitude^2)``: the one the
+        likelihood and the posterior use.
     lengthscale_ : array of shape (k, n)
         In the units of ``x``.
     log_marginal_likelihood_ : array of shape (k,)
         At the fitted hyperparameters, on the data used to fit them.
+    n_starts_ : int
+        Optimiser starts per component.
+    start_log_marginal_likelihoods_ : array of shape (k, n_starts_)
+        Final log marginal likelihood of each start (-inf where it failed).
+    n_iter_ : array of shape (k,)
+        L-BFGS-B iterations of the retained start.
+    converged_ : array of shape (k,)
+        Whether the retained start met L-BFGS-B's convergence test.
+    optimizer_status_ : tuple of str
+        L-BFGS-B's message for the retained start, per component.
+    loo_coverage_ : array of shape (k,)
+        Leave-one-out coverage of the noisy targets at 2 predictive standard deviations, on
+        at most :data:`LOO_ROWS` rows (0.954 for a calibrated model).
     chol_ : array of shape (k, Q, Q)
-        Cholesky factor of ``K + (sigma^2 + jitter amplitude^2) I`` per component.
+        Cholesky factor of ``K + noise_^2 I`` per component.
     alpha_ : array of shape (k, Q)
-        ``(K + ...)^-1 (y - mean)``.
+        ``(K + noise_^2 I)^-1 (y - mean)``.
     """
 
     def __init__(
@@ -89,6 +226,7 @@ class GaussianProcessModel:
         noise: Any = None,
         jitter: float = DEFAULT_JITTER,
         max_iter: int = 200,
+        n_restarts: int = 2,
     ) -> None:
         if kernel not in KERNELS:
             raise ParameterError(f"kernel must be one of {KERNELS}, got {kernel!r}")
@@ -97,11 +235,15 @@ class GaussianProcessModel:
         if noise is not None:
             check_scalar_range("noise", noise, lower=0.0)
         check_scalar_range("jitter", jitter, lower=0.0)
+        for name, value in (("max_iter", max_iter), ("n_restarts", n_restarts)):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+                raise ParameterError(f"{name} must be an integer >= 0, got {value!r}")
         self.kernel = kernel
         self.mean = mean
         self.noise = noise
         self.jitter = float(jitter)
         self.max_iter = int(max_iter)
+        self.n_restarts = int(n_restarts)
 
     # ------------------------------------------------------------------------------ fit
 
@@ -121,14 +263,16 @@ class GaussianProcessModel:
         x : array of shape (Q, n)
             States.
         y : array of shape (Q, n)
-            Targets ``omega(x) + noise``.
+            Targets ``omega(x) + noise``. Only the learned components' columns are read (a
+            NaN in a skipped column is allowed).
         components : sequence of int, optional
             Components to learn (default: all). Components known to be exact are skipped.
         hyper_subset : int, optional
             Fit hyperparameters on a random subset of this many rows, then condition on all
             ``Q`` rows: cost ``O(hyper_subset^3)`` per optimiser step instead of ``O(Q^3)``.
         seed : int
-            Seeds the subset.
+            Integer in ``[0, 2**32 - 1]``; seeds the subset, the random starts and the rows of
+            the leave-one-out check.
 
         Returns
         -------
@@ -140,12 +284,33 @@ class GaussianProcessModel:
             If ``x`` and ``y`` are not (Q, n) arrays of equal shape, or a component index is
             out of range.
         NonFiniteError
-            If the data contain NaN or inf.
+            If ``x`` or a learned column of ``y`` contains NaN or inf.
         ParameterError
-            If there are too few samples for the hyperparameters.
+            If there are too few samples for the hyperparameters, or ``seed`` or
+            ``hyper_subset`` is invalid.
         NumericalError
-            If the Cholesky factorisation fails.
+            If every start fails or the Cholesky factorisation fails.
+
+        Warns
+        -----
+        DataWarning
+            Fewer than :data:`MIN_ROWS_PER_HYPERPARAMETER` rows per hyperparameter; exact
+            duplicate rows; a zero-mean prior on targets with a large offset; a leave-one-out
+            coverage below :data:`LOO_MIN_COVERAGE`.
+        ConvergenceWarning
+            The retained start did not converge, ``max_iter=0``, or the fitted noise or a
+            lengthscale sits at its lower bound.
+
+        Notes
+        -----
+        Starts: ``amplitude = scale(y)``, ``noise = 0.1 std(y)``, unit lengthscales (in
+        standardised inputs); ``noise`` from nearest-neighbour differences with lengthscales
+        3; and ``n_restarts`` draws with log-uniform amplitude (0.3 to 3 times the scale),
+        noise (1e-3 to 0.3 std(y)) and lengthscales (0.3 to 30). ``scale(y)`` is ``std(y)``
+        for ``mean="constant"`` and the root mean square of ``y`` for ``mean="zero"`` (a
+        zero-mean prior must explain the offset with its amplitude).
         """
+        seed = check_seed("seed", seed)
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         if x.ndim != 2:
@@ -154,20 +319,35 @@ class GaussianProcessModel:
             raise DimensionError(
                 f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}"
             )
-        check_finite("x", x)
-        check_finite("y", y)
         q, n = x.shape
         comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
         if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
             raise DimensionError(
                 f"components must be distinct indices in [0, {n}), got {components!r}"
             )
+        check_finite("x", x)
+        check_finite("y", y[:, list(comps)])  # skipped columns are never read
+        if hyper_subset is not None and (
+            isinstance(hyper_subset, bool)
+            or not isinstance(hyper_subset, int | np.integer)
+            or hyper_subset < 1
+        ):
+            raise ParameterError(f"hyper_subset must be an integer >= 1, got {hyper_subset!r}")
         n_hyper = n + 2 + (self.mean == "constant") - (self.noise is not None)
         n_fit = q if hyper_subset is None else min(int(hyper_subset), q)
         if n_fit <= n_hyper:
             raise ParameterError(
                 f"too few samples to fit {n_hyper} hyperparameters per component: got "
                 f"{n_fit}, need at least {n_hyper + 1} (more in practice, or fix noise=)"
+            )
+        if n_fit < MIN_ROWS_PER_HYPERPARAMETER * n_hyper:
+            warnings.warn(
+                f"only {n_fit} rows to fit {n_hyper} hyperparameters per component: the fit "
+                f"is unreliable (fewer than {MIN_ROWS_PER_HYPERPARAMETER} rows per "
+                "hyperparameter); collect more data or fix noise=, and check the band with "
+                "conformal_beta on held-out data",
+                DataWarning,
+                stacklevel=2,
             )
         noise = None
         if self.noise is not None:
@@ -179,19 +359,12 @@ class GaussianProcessModel:
         xs = (x - offset) / scale
         rng = np.random.default_rng(seed)
         idx = np.sort(rng.choice(q, n_fit, replace=False)) if n_fit < q else np.arange(q)
+        self._warn_about_data(x[idx], y[idx][:, list(comps)], comps)
 
-        amps, noises, means, lss, lmls = [], [], [], [], []
+        fits = []
         for j, comp in enumerate(comps):
             fixed = None if noise is None else float(noise[j])
-            theta, lml = self._fit_component(xs[idx], y[idx, comp], fixed)
-            amp, nz, mu, ls = (np.asarray(v) for v in _unpack(jnp.asarray(theta), n))
-            if fixed is not None:
-                nz = np.asarray(fixed)
-            amps.append(float(amp))
-            noises.append(float(nz))
-            means.append(float(mu) if self.mean == "constant" else 0.0)
-            lss.append(ls)
-            lmls.append(lml)
+            fits.append(self._fit_component(xs[idx], y[idx, comp], fixed, rng, comp))
 
         self.n_states_ = n
         self.components_ = comps
@@ -199,76 +372,193 @@ class GaussianProcessModel:
         self.y_train_ = y[:, list(comps)]
         self.x_offset_ = offset
         self.x_scale_ = scale
-        self.amplitude_ = np.array(amps)
-        self.noise_ = np.array(noises)
-        self.mean_ = np.array(means)
-        self._lengthscale_std = np.array(lss)
+        self.amplitude_ = np.array([f["amplitude"] for f in fits])
+        self.noise_ = np.array([f["noise"] for f in fits])
+        self.mean_ = np.array([f["mean"] for f in fits])
+        self._lengthscale_std = np.array([f["lengthscale"] for f in fits])
         self.lengthscale_ = self._lengthscale_std * scale
-        self.log_marginal_likelihood_ = np.array(lmls)
+        self.log_marginal_likelihood_ = np.array([f["lml"] for f in fits])
+        self.n_starts_ = len(fits[0]["start_lmls"])
+        self.start_log_marginal_likelihoods_ = np.array([f["start_lmls"] for f in fits])
+        self.n_iter_ = np.array([f["nit"] for f in fits], dtype=int)
+        self.converged_ = np.array([f["converged"] for f in fits], dtype=bool)
+        self.optimizer_status_ = tuple(f["message"] for f in fits)
         self._condition()
+        self.loo_coverage_ = self._loo_coverage(rng)
+        for comp, cov in zip(comps, self.loo_coverage_, strict=True):
+            if cov < LOO_MIN_COVERAGE:
+                warnings.warn(
+                    f"leave-one-out check of component {comp}: only {cov:.0%} of the training "
+                    "targets lie within 2 predictive standard deviations of the prediction "
+                    "from the other rows (0.954 expected): the model understates the noise "
+                    "or the function's variation; do not fix noise= below the sensor's noise, "
+                    "and check the band with conformal_beta",
+                    DataWarning,
+                    stacklevel=2,
+                )
         return self
 
-    def _nll(self, theta, xs, y, fixed_log_noise):
-        amp, noise, mean, ls = _unpack(theta, xs.shape[1])
-        if fixed_log_noise is not None:
-            noise = jnp.exp(fixed_log_noise)
+    def _warn_about_data(self, x: np.ndarray, y: np.ndarray, comps: tuple[int, ...]) -> None:
+        rows = np.unique(np.concatenate([x, y], 1), axis=0).shape[0]
+        if rows < x.shape[0]:
+            warnings.warn(
+                f"{x.shape[0] - rows} of the {x.shape[0]} fitting rows are exact duplicates "
+                "(same x and y): the likelihood reads them as noise-free repeats and drives the "
+                "noise down; remove them (np.unique(np.hstack([x, y]), axis=0)) or fix noise=",
+                DataWarning,
+                stacklevel=3,
+            )
         if self.mean == "zero":
-            mean = 0.0
-        gp = GaussianProcess(
-            _kernel(self.kernel, amp, ls), xs, diag=noise**2 + self.jitter * amp**2, mean=mean
-        )
-        return -gp.log_probability(y)
+            for j, comp in enumerate(comps):
+                mu, sd = float(np.mean(y[:, j])), float(np.std(y[:, j]))
+                if abs(mu) > 10 * sd:
+                    warnings.warn(
+                        f"component {comp}: the targets have mean {mu:.3g}, more than 10 times "
+                        f"their std {sd:.3g}; a zero-mean GP must explain the offset with its "
+                        "amplitude, whose relative jitter then swamps the variation: use "
+                        "mean='constant' or subtract the offset",
+                        DataWarning,
+                        stacklevel=3,
+                    )
 
-    def _fit_component(self, xs, y, fixed_noise):
+    def _fit_component(self, xs, y, fixed_noise, rng, comp):
         n = xs.shape[1]
-        sd = float(np.std(y)) or 1.0
-        theta0 = np.concatenate(
-            [
-                [
-                    np.log(sd),
-                    np.log(0.1 * sd),
-                    float(np.mean(y)) if self.mean == "constant" else 0.0,
-                ],
-                np.zeros(n),
-            ]
-        )
+        sd = float(np.std(y))
+        rms = float(np.sqrt(np.mean(y**2)))
+        sd = sd if sd > 0 else (rms if rms > 0 else 1.0)
+        amp_scale = max(rms, sd) if self.mean == "zero" else sd
+        mean0 = float(np.mean(y)) if self.mean == "constant" else 0.0
+        lo_amp, hi_amp = np.log(1e-6 * amp_scale), np.log(1e3 * amp_scale)
+        lo_noise, hi_noise = np.log(1e-6 * sd), np.log(10 * sd)
+        lo_ls, hi_ls = np.log(1e-3), np.log(1e5)  # long: irrelevant inputs, as in sklearn
+        nn = float(np.clip(_nn_noise(xs, y, rng), 1e-4 * sd, 0.5 * sd))
+        starts = [
+            np.concatenate([[np.log(amp_scale), np.log(0.1 * sd), mean0], np.zeros(n)]),
+            np.concatenate([[np.log(amp_scale), np.log(nn), mean0], np.full(n, np.log(3.0))]),
+        ]
+        for _ in range(self.n_restarts):
+            starts.append(
+                np.concatenate(
+                    [
+                        [
+                            np.log(amp_scale) + rng.uniform(np.log(0.3), np.log(3.0)),
+                            np.log(sd) + rng.uniform(np.log(1e-3), np.log(0.3)),
+                            mean0,
+                        ],
+                        rng.uniform(np.log(0.3), np.log(30.0), n),
+                    ]
+                )
+            )
+        if fixed_noise is not None:
+            noise_bound = (0.0, 0.0)  # unused: the fixed variance enters instead
+            for s in starts:
+                s[1] = 0.0
+        else:
+            noise_bound = (lo_noise, hi_noise)
         bounds = [
-            (np.log(1e-6 * sd), np.log(1e3 * sd)),
-            (np.log(1e-6 * sd), np.log(10 * sd)),
+            (lo_amp, hi_amp),
+            noise_bound,
             (None, None) if self.mean == "constant" else (0.0, 0.0),
-        ] + [(np.log(1e-3), np.log(1e3))] * n
-        fixed_log = None if fixed_noise is None else np.log(max(fixed_noise, 1e-300))
-        if fixed_noise is not None and fixed_noise == 0.0:
-            fixed_log = -np.inf  # exp(-inf) = 0: noise-free, jitter only
-        xs_j, y_j = jnp.asarray(xs), jnp.asarray(y)
-        vg = jax.jit(jax.value_and_grad(lambda t: self._nll(t, xs_j, y_j, fixed_log)))
+        ] + [(lo_ls, hi_ls)] * n
+        lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
+        hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
+        args = (
+            jnp.asarray(xs),
+            jnp.asarray(y),
+            jnp.asarray(0.0 if fixed_noise is None else fixed_noise**2),
+            jnp.asarray(fixed_noise is not None),
+            jnp.asarray(float(self.mean == "constant")),
+            jnp.asarray(self.jitter),
+        )
 
         def fun(t):
-            v, g = vg(jnp.asarray(t))
+            v, g = _nll_value_and_grad(jnp.asarray(t), *args, kind=self.kernel)
             return float(v), np.asarray(g, dtype=float)
 
-        res = scipy.optimize.minimize(
-            fun,
-            theta0,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-            options={"maxiter": self.max_iter},
-        )
-        if not np.isfinite(res.fun):
+        results = []
+        for s in starts:
+            s = np.clip(s, lo, hi)
+            if self.max_iter == 0:
+                results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
+                continue
+            with np.errstate(all="ignore"):
+                res = scipy.optimize.minimize(
+                    fun,
+                    s,
+                    jac=True,
+                    method="L-BFGS-B",
+                    bounds=bounds,
+                    options={"maxiter": self.max_iter},
+                )
+            nit = int(res.nit)
+            ok = res.status == 0 or _stationary(res.x, res.jac, lo, hi, res.fun)
+            results.append((float(res.fun), res.x, nit, ok, str(res.message)))
+        values = np.array([r[0] for r in results])
+        finite = np.isfinite(values)
+        if not np.any(finite):
             raise NumericalError(
-                "the marginal likelihood is not finite at the optimum; the kernel matrix is "
-                "not positive definite: try increasing the noise (noise=) or jitter="
+                f"the marginal likelihood of component {comp} is not finite at any of the "
+                f"{len(starts)} starts; the kernel matrix is not positive definite: try "
+                "increasing the noise (noise=) or jitter="
             )
-        return res.x, -float(res.fun)
+        best = int(np.argmin(np.where(finite, values, np.inf)))
+        fun_best, theta, nit, converged, message = results[best]
+        if self.max_iter == 0:
+            warnings.warn(
+                f"max_iter=0: component {comp} keeps the best of {len(starts)} start values; "
+                "the hyperparameters are not fitted",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
+        elif not converged:
+            warnings.warn(
+                f"the fit of component {comp} did not converge: L-BFGS-B stopped after {nit} "
+                f"iterations ({message}); raise max_iter= or check the data",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
+        amp, nz, mu, ls = (np.asarray(v) for v in _unpack(jnp.asarray(theta), n))
+        if fixed_noise is not None:
+            nz = np.asarray(fixed_noise)
+        elif self.max_iter > 0 and theta[1] <= lo_noise + 1e-6:
+            warnings.warn(
+                f"the fitted noise of component {comp} is at its lower bound (1e-6 std(y) = "
+                f"{1e-6 * sd:.3g}): the likelihood sees no noise (duplicate rows? an "
+                "interpolating fit?); fix noise= from the sensor's specification",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
+        noise_eff = float(np.sqrt(nz**2 + self.jitter * amp**2))
+        # a lengthscale at its lower bound matters only where the signal is not negligible
+        if self.max_iter > 0 and np.any(theta[3:] <= lo_ls + 1e-6) and amp > noise_eff:
+            dims = np.flatnonzero(theta[3:] <= lo_ls + 1e-6).tolist()
+            warnings.warn(
+                f"the fitted lengthscale of component {comp} along input(s) {dims} is at its "
+                "lower bound (1e-3 std(x)): the GP treats the rows as unrelated points and "
+                "predicts the prior mean between them (noise=0 or too small on noisy data? too "
+                "few rows?); fit the noise or give the sensor's noise",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
+        return {
+            "amplitude": float(amp),
+            "noise": noise_eff,
+            "mean": float(mu) if self.mean == "constant" else 0.0,
+            "lengthscale": ls,
+            "lml": -fun_best,
+            "start_lmls": np.where(finite, -values, -np.inf),
+            "nit": nit,
+            "converged": converged,
+            "message": message,
+        }
 
     def _condition(self) -> None:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
         chols, alphas = [], []
         for j in range(len(self.components_)):
             amp, nz = self.amplitude_[j], self.noise_[j]
-            k = _kernel(self.kernel, amp, jnp.asarray(self._lengthscale_std[j]))(xs, xs)
-            k = k + (nz**2 + self.jitter * amp**2) * jnp.eye(xs.shape[0])
+            k = kernel_matrix(amp, jnp.asarray(self._lengthscale_std[j]), xs, xs, kind=self.kernel)
+            k = k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
             chol = jnp.linalg.cholesky(k)
             if not bool(jnp.all(jnp.isfinite(chol))):
                 raise NumericalError(
@@ -278,38 +568,37 @@ class GaussianProcessModel:
                 )
             alphas.append(cho_solve((chol, True), jnp.asarray(self.y_train_[:, j]) - self.mean_[j]))
             chols.append(chol)
-        self.chol_ = np.asarray(jnp.stack(chols))
-        self.alpha_ = np.asarray(jnp.stack(alphas))
-        self._build_predictors()
+        chol_all = jnp.stack(chols)
+        del chols, k, chol  # one (k, Q, Q) factor in memory, not two (6 GB at Q = 10,000)
+        alpha_all = jnp.stack(alphas)
+        self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
+        self.alpha_ = np.asarray(alpha_all)
+        self._posterior = {
+            "xs": xs,
+            "offset": jnp.asarray(self.x_offset_),
+            "scale": jnp.asarray(self.x_scale_),
+            "chol": chol_all,
+            "alpha": alpha_all,
+            "amp": jnp.asarray(self.amplitude_),
+            "ls": jnp.asarray(self._lengthscale_std),
+            "mu": jnp.asarray(self.mean_),
+            "comps": jnp.asarray(self.components_),
+        }
 
-    def _build_predictors(self) -> None:
-        xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
-        offset, scale = jnp.asarray(self.x_offset_), jnp.asarray(self.x_scale_)
-        chol, alpha = jnp.asarray(self.chol_), jnp.asarray(self.alpha_)
-        amp, ls, mu = (
-            jnp.asarray(self.amplitude_),
-            jnp.asarray(self._lengthscale_std),
-            jnp.asarray(self.mean_),
-        )
-        comps = jnp.asarray(self.components_)
-        n, kind = self.n_states_, self.kernel
-
-        def one(x):
-            z = ((x - offset) / scale)[None, :]
-
-            def per_comp(a, l_, al, L, m):
-                kstar = _kernel(kind, a, l_)(xs, z)[:, 0]
-                v = solve_triangular(L, kstar, lower=True)
-                return kstar @ al + m, jnp.maximum(a**2 - v @ v, 0.0)
-
-            mean_c, var_c = jax.vmap(per_comp)(amp, ls, alpha, chol, mu)
-            mean = jnp.zeros(n).at[comps].set(mean_c)
-            var = jnp.zeros(n).at[comps].set(var_c)
-            return mean, var
-
-        self._predict_one = one
-        # built once: a fresh jit(vmap(...)) per predict() call would re-trace and recompile
-        self._predict_batch = jax.jit(jax.vmap(one))
+    def _loo_coverage(self, rng: np.random.Generator) -> np.ndarray:
+        # LOO residual alpha_i / [K^-1]_ii and variance 1 / [K^-1]_ii (GPML eq. (5.12)); the
+        # diagonal of K^-1 on r rows is |L^-1 e_i|^2, one triangular solve with r columns.
+        q = self.x_train_.shape[0]
+        rows = rng.choice(q, min(LOO_ROWS, q), replace=False)
+        e = np.zeros((q, len(rows)))
+        e[rows, np.arange(len(rows))] = 1.0
+        out = []
+        for j in range(len(self.components_)):
+            w = solve_triangular(jnp.asarray(self.chol_[j]), jnp.asarray(e), lower=True)
+            kinv = np.asarray(jnp.sum(w * w, 0))
+            z = self.alpha_[j, rows] / np.sqrt(kinv)
+            out.append(float(np.mean(np.abs(z) <= 2.0)))
+        return np.array(out)
 
     # -------------------------------------------------------------------------- predict
 
@@ -331,19 +620,35 @@ class GaussianProcessModel:
             Variance of the latent ``omega_i`` (without the noise); 0 for skipped components.
             Rounding can make ``k(x, x) - k_*^T (K + sigma^2 I)^-1 k_*`` slightly negative; it is
             floored at 0.
+
+        Raises
+        ------
+        DimensionError
+            If the last axis of ``x`` is not ``n``.
+        NonFiniteError
+            If ``x`` contains NaN or inf.
         """
         self._check_fitted()
         x = jnp.asarray(x, dtype=float)
         if x.ndim == 0 or x.shape[-1] != self.n_states_:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
+        check_finite("x", x)
         flat = x.reshape((-1, self.n_states_))
-        mean, var = self._predict_batch(flat)
+        mean, var = _predict_batch(self._posterior, flat, self.kernel, self.n_states_)
         return mean.reshape(x.shape), var.reshape(x.shape)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Mean and standard deviation at one state of shape (n,) (jittable)."""
+        """Mean and standard deviation at one state of shape (n,) (jittable).
+
+        Raises
+        ------
+        NonFiniteError
+            If a concrete ``x`` contains NaN or inf (not checked inside ``jax.jit``).
+        """
         self._check_fitted()
-        mean, var = self._predict_one(x)
+        if is_concrete(x):
+            check_finite("x", x)
+        mean, var = _posterior_one(self._posterior, x, self.kernel, self.n_states_)
         return mean, jnp.sqrt(var)
 
     @property
@@ -364,6 +669,7 @@ class GaussianProcessModel:
             "jitter": self.jitter,
             "components": list(self.components_),
             "n_states": self.n_states_,
+            "optimizer_status": list(getattr(self, "optimizer_status_", ())),
         }
         np.savez(
             Path(path),
@@ -381,10 +687,14 @@ class GaussianProcessModel:
 
     @classmethod
     def load(cls, path: str | Path) -> GaussianProcessModel:
-        """Read a model written by :meth:`save`; the Cholesky factor is recomputed."""
+        """Read a model written by :meth:`save`; the Cholesky factor is recomputed.
+
+        Files of format v1 stored the noise without the jitter; it is converted to the
+        effective noise on reading.
+        """
         with np.load(Path(path), allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
-            if meta.get("format") != _FORMAT:
+            if meta.get("format") not in (_FORMAT, _FORMAT_V1):
                 raise ValueError(
                     f"{path} is not a safestab GP file (format {meta.get('format')!r})"
                 )
@@ -397,9 +707,12 @@ class GaussianProcessModel:
             model.x_scale_ = data["x_scale"]
             model.amplitude_ = data["amplitude"]
             model.noise_ = data["noise"]
+            if meta["format"] == _FORMAT_V1:
+                model.noise_ = np.sqrt(model.noise_**2 + model.jitter * model.amplitude_**2)
             model.mean_ = data["mean"]
             model._lengthscale_std = data["lengthscale_std"]
             model.lengthscale_ = model._lengthscale_std * model.x_scale_
             model.log_marginal_likelihood_ = data["log_marginal_likelihood"]
+            model.optimizer_status_ = tuple(meta.get("optimizer_status", ()))
         model._condition()
         return model

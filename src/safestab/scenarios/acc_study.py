@@ -12,12 +12,20 @@ import numpy as np
 from .._io import atomic_write_json, replace_non_finite
 from ..controllers import UniversalController
 from ..formulas import Region
-from ..learning import Calibration, Dataset, GaussianProcessModel, calibration, collect_data
+from ..learning import (
+    Calibration,
+    Dataset,
+    GaussianProcessModel,
+    calibration,
+    collect_data,
+    conformal_beta,
+)
 from ..simulation import Trajectory, simulate
 from .acc import ACCScenario
 
 __all__ = [
     "CONTROLLERS",
+    "CONFORMAL_DELTA",
     "StudyResult",
     "collect_study_data",
     "fit_study_gp",
@@ -31,6 +39,12 @@ CONTROLLERS = ("true model", "mismatched model", "GP-corrected")
 
 Progress = Callable[[str, float], None]
 
+#: Miss probability of the calibrated (split conformal, per-trajectory) beta.
+CONFORMAL_DELTA = 0.05
+#: Calibration trajectories (>= 1/delta - 1 = 19 needed), states every 1 s along each.
+_CONFORMAL_TRAJECTORIES = 40
+_CONFORMAL_STRIDE_S = 1.0
+
 
 @dataclasses.dataclass
 class StudyResult:
@@ -43,6 +57,7 @@ class StudyResult:
     trajectories: dict[str, Trajectory]
     metrics: dict[str, dict[str, Any]]
     timings: dict[str, float]
+    conformal: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def metrics_document(self) -> dict[str, Any]:
         """The metrics of every controller, the GP calibration and timings, as strict JSON data.
@@ -67,6 +82,7 @@ class StudyResult:
                 "held_out_joint_coverage": self.calibration.joint,
                 "held_out_rmse": self.calibration.rmse,
                 "beta": self.scenario.gp_beta,
+                "conformal": self.conformal,
             },
             "timings_s": self.timings,
         }
@@ -260,6 +276,11 @@ def run_study(
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
+    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
+    nominal = scenario.system("nominal")
+    conformal = _conformal_check(scenario, gp, true_sys, nominal, span, seed, test)
+    timings["conformal_beta"] = conformal.pop("seconds")
+
     controllers = study_controllers(scenario, gp)
     trajectories: dict[str, Trajectory] = {}
     for i, (name, ctrl) in enumerate(controllers.items()):
@@ -280,5 +301,53 @@ def run_study(
         name: trajectory_metrics(tr, scenario, None if name == "true model" else ref)
         for name, tr in trajectories.items()
     }
+    # both betas on the GP-corrected run's own states (another distribution: no guarantee)
+    closed = np.asarray(trajectories["GP-corrected"].x)[:: max(1, int(round(1.0 / scenario.dt)))]
+    omega_cl = np.asarray(scenario.omega(closed))
+    for key, beta in (("chosen", scenario.gp_beta), ("conformal", conformal["beta"])):
+        cov = calibration(gp, closed, omega_cl, beta).per_component
+        conformal[f"closed_loop_coverage_{key}_beta"] = cov.tolist()
     report("done", 1.0)
-    return StudyResult(scenario, train, gp, calib, trajectories, metrics, timings)
+    return StudyResult(scenario, train, gp, calib, trajectories, metrics, timings, conformal)
+
+
+def _conformal_check(scenario, gp, true_sys, nominal, span, seed, test) -> dict[str, Any]:
+    """Per-trajectory split conformal beta on fresh trajectories, and both betas' coverage."""
+    import time
+
+    t0 = time.perf_counter()
+    per_traj = int(round(scenario.sample_horizon * scenario.sample_rate))
+    cal = collect_data(
+        true_sys,
+        nominal,
+        x0=(scenario.x0_low, scenario.x0_high),
+        u_low=-span,
+        u_high=span,
+        n_samples=_CONFORMAL_TRAJECTORIES * per_traj,
+        rate=scenario.sample_rate,
+        horizon=scenario.sample_horizon,
+        noise_std=scenario.noise_std,
+        seed=(seed + 2**31) % 2**32,  # an independent stream: trajectories not used to fit
+    )
+    stride = max(1, int(round(_CONFORMAL_STRIDE_S * scenario.sample_rate)))
+    cal = cal._take(np.arange(0, len(cal), stride))
+    omega_cal = np.asarray(scenario.omega(cal.x))
+    rep = conformal_beta(gp, cal.x, omega_cal, CONFORMAL_DELTA, groups=cal.trajectory)
+    beta_c = float(rep.beta[list(gp.components_)][0])
+    omega_test = np.asarray(scenario.omega(test.x))
+    return {
+        "beta": beta_c,
+        "chosen_beta": scenario.gp_beta,
+        "delta": CONFORMAL_DELTA,
+        "probability": rep.probability,
+        "n_trajectories": rep.n_calibration,
+        "states_per_trajectory": per_traj // stride,
+        "statement": rep.statement,
+        "held_out_coverage_chosen_beta": calibration(
+            gp, test.x, omega_test, scenario.gp_beta
+        ).per_component.tolist(),
+        "held_out_coverage_conformal_beta": calibration(
+            gp, test.x, omega_test, beta_c
+        ).per_component.tolist(),
+        "seconds": time.perf_counter() - t0,
+    }

@@ -1,0 +1,33 @@
+"""Argument checks shared by the learning modules (internal)."""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any
+
+from ..errors import ParameterError
+
+__all__ = ["SEED_MAX", "check_seed"]
+
+#: Largest accepted seed: NumPy's generators take any non-negative integer, but JAX's
+#: ``PRNGKey`` wraps negative seeds and overflows past 64 bits; one range for every seed keeps
+#: "the same seed" meaning the same thing in both.
+SEED_MAX = 2**32 - 1
+
+
+def check_seed(name: str, seed: Any) -> int:
+    """Return ``seed`` as an int after checking it is an integer in ``[0, 2**32 - 1]``.
+
+    Raises
+    ------
+    ParameterError
+        If ``seed`` is not an integer (bools and floats included) or is out of range.
+    """
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise ParameterError(
+            f"{name} must be an integer in [0, {SEED_MAX}], got {seed!r} "
+            f"of type {type(seed).__name__}"
+        )
+    if not 0 <= int(seed) <= SEED_MAX:
+        raise ParameterError(f"{name} must be an integer in [0, {SEED_MAX}], got {int(seed)}")
+    return int(seed)

@@ -97,3 +97,12 @@ def test_interval_covers_the_known_probability_at_the_stated_rate():
     assert misses < 7
     # and the pooled estimate: a two-sided exact binomial test at level 1e-3
     assert scipy.stats.binomtest(pooled, r * n, P_SAFE).pvalue > 1e-3
+
+
+def test_results_do_not_depend_on_the_batch_split():
+    run = _toy(lemma2=True)
+    w = _draw(5, 12)
+    whole = run(jnp.zeros(1), w)
+    parts = [run(jnp.zeros(1), w[i : i + 5]) for i in (0, 5, 10)]
+    for key, value in whole.items():
+        assert np.array_equal(np.concatenate([np.asarray(p[key]) for p in parts]), np.asarray(value))

@@ -179,10 +179,14 @@ def _local(scenario, spec, seed, datasets, chunks, pad, report):
     return models, results, t_data
 
 
-def start_ray(address: str | None = None, num_cpus: int | None = None) -> Any:
+def start_ray(
+    address: str | None = None, num_cpus: int | None = None, runtime_env: dict | None = None
+) -> Any:
     """Connect to a Ray cluster (``address``, else ``RAY_ADDRESS``) or start a local one.
 
-    A local cluster listens on the loopback interface only, with no dashboard.
+    A local cluster listens on the loopback interface only, with no dashboard. ``runtime_env``
+    is passed to ``ray.init`` (for example ``{"env_vars": {"JAX_COMPILATION_CACHE_DIR": d}}``
+    so that workers load compiled loops from a shared cache instead of compiling them).
     """
     try:
         import ray
@@ -194,11 +198,11 @@ def start_ray(address: str | None = None, num_cpus: int | None = None) -> Any:
         return ray
     address = address or os.environ.get("RAY_ADDRESS")
     if address:
-        ray.init(address=address)
+        ray.init(address=address, runtime_env=runtime_env)
     else:
         ray.init(
             num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
-            log_to_driver=False,
+            log_to_driver=False, runtime_env=runtime_env,
         )  # fmt: skip
     return ray
 

@@ -145,3 +145,51 @@ def ray_session(jax_cache):
 
 def test_ray_backend_is_identical_to_local(local_run, ray_session):
     _same(local_run, run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray"))
+
+
+def test_cli_mc_checks_inputs_before_work(tmp_path):
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    runner = CliRunner()
+    bad = [
+        (["--scenario", "nope"], "is neither a preset"),
+        (["--backend", "dask"], "--backend must be one of"),
+        (["--trials", "0"], "--trials must be >= 1, got 0"),
+        (["--chunk-size", "0"], "montecarlo.chunk_size must be an integer"),
+        (["--seed", "-1"], r"--seed must be in \[0, 2\*\*32 - 1\]"),
+    ]
+    for args, match in bad:
+        res = runner.invoke(app, ["mc", *args, "--out", str(tmp_path / "o")])
+        assert res.exit_code == 2, (args, res.output)
+        import re
+
+        assert re.search(match, res.output), (args, res.output)
+
+
+@pytest.mark.slow
+def test_cli_mc_writes_all_outputs(tmp_path):
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    text = (tmp_path / "tiny.toml")
+    from importlib import resources
+
+    base = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
+    base = base.replace("n_samples = 2000", "n_samples = 60").replace(
+        "hyper_subset = 500", "hyper_subset = 30").replace("t_final = 60.0", "t_final = 0.3")
+    base = base.replace('controllers = ["true model", "mismatched model", "GP mean", '
+                        '"GP-robust", "GP-robust Lemma 2"]',
+                        'controllers = ["mismatched model", "GP-robust"]')
+    text.write_text(base)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["mc", "--scenario", str(text), "--trials", "6", "--datasets",
+                                   "1", "--out", str(out), "--seed", "2", "--chunk-size", "3"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "mc_tiny_metrics.json").read_text())
+    assert doc["settings"]["trials"] == 6 and doc["status"] in ("ok", "non-finite")
+    with np.load(out / "mc_tiny_trials.npz") as z:
+        assert z["min_h"].shape == (6, 2)
+    assert (out / "mc_tiny.png").stat().st_size > 0

@@ -105,4 +105,5 @@ def test_results_do_not_depend_on_the_batch_split():
     whole = run(jnp.zeros(1), w)
     parts = [run(jnp.zeros(1), w[i : i + 5]) for i in (0, 5, 10)]
     for key, value in whole.items():
-        assert np.array_equal(np.concatenate([np.asarray(p[key]) for p in parts]), np.asarray(value))
+        got = np.concatenate([np.asarray(p[key]) for p in parts])
+        assert np.array_equal(got, np.asarray(value))

@@ -87,7 +87,16 @@ def main():
     parser.add_argument("--repeat", type=int, default=3000)
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
+    # Monte Carlo rows (issue 13): benchmarks/mc_rows.py, also runnable on their own
+    parser.add_argument("--only-mc", action="store_true", help="run only the Monte Carlo rows")
+    parser.add_argument("--mc-trials", type=int, default=10_000)
+    parser.add_argument("--mc-ray-trials", type=int, default=10_000, help="0 skips the Ray row")
     args = parser.parse_args()
+    if args.only_mc:
+        import mc_rows
+
+        mc_rows.main(args.out, args.mc_trials, args.mc_ray_trials)
+        return
     rng = np.random.default_rng(0)
     results: dict = {
         "machine": {
@@ -252,6 +261,9 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "performance.json").write_text(json.dumps(results, indent=2, default=float))
     write_markdown(results, args.out / "performance.md")
+    import mc_rows  # the Monte Carlo block of the last --only-mc run, kept in the page
+
+    mc_rows.update_markdown(args.out / "performance.md", args.out / "performance_mc.json")
     print(f"wrote {args.out / 'performance.json'} and performance.md")
 
 

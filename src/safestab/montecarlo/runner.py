@@ -187,6 +187,15 @@ def start_ray(
     A local cluster listens on the loopback interface only, with no dashboard. ``runtime_env``
     is passed to ``ray.init`` (for example ``{"env_vars": {"JAX_COMPILATION_CACHE_DIR": d}}``
     so that workers load compiled loops from a shared cache instead of compiling them).
+
+    Notes
+    -----
+    Ray gives each worker ``OMP_NUM_THREADS=1`` by default; BLAS then sums in another order
+    than in this process, and the GP's hyperparameter optimiser can end elsewhere (measured:
+    amplitudes differing by 1e-2 at Q = 800). So the workers get this process's
+    ``OMP_NUM_THREADS`` (default: the CPU count, BLAS's own default), which makes their
+    results identical to the local backend's on the same machine. On a cluster of other
+    machines, give the workers the same thread settings (and hardware) for identical bits.
     """
     try:
         import ray
@@ -196,6 +205,12 @@ def start_ray(
         ) from None
     if ray.is_initialized():
         return ray
+    env = dict(runtime_env or {})
+    env["env_vars"] = {
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
+        **env.get("env_vars", {}),
+    }
+    runtime_env = env
     address = address or os.environ.get("RAY_ADDRESS")
     if address:
         ray.init(address=address, runtime_env=runtime_env)

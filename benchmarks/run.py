@@ -286,9 +286,18 @@ def main():
         "native controller rows; each merged into the existing performance.json",
     )  # fmt: skip
     parser.add_argument("--gp-scaling-worker", type=int, help=argparse.SUPPRESS)
+    # Monte Carlo rows (issue 13): benchmarks/mc_rows.py, also runnable on their own
+    parser.add_argument("--only-mc", action="store_true", help="run only the Monte Carlo rows")
+    parser.add_argument("--mc-trials", type=int, default=10_000)
+    parser.add_argument("--mc-ray-trials", type=int, default=10_000, help="0 skips the Ray row")
     args = parser.parse_args()
     if args.gp_scaling_worker is not None:
         print(json.dumps(gp_scaling_worker(args.gp_scaling_worker), default=float))
+        return
+    if args.only_mc:
+        import mc_rows
+
+        mc_rows.main(args.out, args.mc_trials, args.mc_ray_trials)
         return
     if args.only == "gp":
         main_gp_only(args)
@@ -449,6 +458,9 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "performance.json").write_text(json.dumps(results, indent=2, default=float))
     write_markdown(results, args.out / "performance.md")
+    import mc_rows  # the Monte Carlo block of the last --only-mc run, kept in the page
+
+    mc_rows.update_markdown(args.out / "performance.md", args.out / "performance_mc.json")
     print(f"wrote {args.out / 'performance.json'} and performance.md")
 
 

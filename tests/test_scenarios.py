@@ -263,7 +263,8 @@ def test_unreadable_file_named_error(tmp_path, monkeypatch):
 
 
 def test_unknown_scenario():
-    with pytest.raises(ScenarioError, match=r"'nope' is neither a preset \('paper', 'stress'\)"):
+    presets = r"\('paper', 'stress', 'stress-ood'\)"
+    with pytest.raises(ScenarioError, match=rf"'nope' is neither a preset {presets}"):
         load_scenario("nope")
 
 

@@ -17,7 +17,10 @@ from typing import Any
 
 from ..errors import ScenarioError
 
-__all__ = ["FIELDS", "LIMITS", "ScenarioLimits", "check_structure", "check_values"]
+__all__ = [
+    "FIELDS", "LIMITS", "ScenarioLimits", "check_structure", "check_values", "fail", "choice",
+    "integer", "real",
+]  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,6 +115,10 @@ def _show(value: Any) -> str:
 
 def _fail(source: str, path: str, expected: str, value: Any) -> ScenarioError:
     return ScenarioError(f"{source}: {path} must be {expected}, got {_show(value)}")
+
+
+#: The message of a bad value, for the other tables' schemas (``[montecarlo]``).
+fail = _fail
 
 
 def _num(x: float) -> str:

@@ -28,10 +28,13 @@ from ..certificates import CBF, CLF, LieTerms
 from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
 from ._acc_schema import FIELDS, LIMITS, ScenarioLimits, check_structure, check_values
+from ._mc_schema import MonteCarloSpec, check_montecarlo
 
-__all__ = ["ACCScenario", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits"]
+__all__ = [
+    "ACCScenario", "MonteCarloSpec", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits",
+]  # fmt: skip
 
-PRESETS = ("paper", "stress")
+PRESETS = ("paper", "stress", "stress-ood")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,9 +95,16 @@ class ACCScenario:
     excitation_limit: float  # fraction of M g spanned by the excitation
     hyper_subset: int  # rows used to fit GP hyperparameters (then conditioned on all)
     seed: int
+    #: The optional ``[montecarlo]`` table (trial distributions); ``None`` when absent.
+    montecarlo: MonteCarloSpec | None = None
 
     def __post_init__(self) -> None:
         check_values(_flatten(self), f"scenario {self.name!r}")
+        if self.montecarlo is not None and not isinstance(self.montecarlo, MonteCarloSpec):
+            raise ScenarioError(
+                f"scenario {self.name!r}: montecarlo must be a MonteCarloSpec or None, got "
+                f"{type(self.montecarlo).__name__}"
+            )
 
     def replace(self, **changes: Any) -> ACCScenario:
         """A copy with some fields changed, checked like a loaded file.
@@ -243,19 +253,23 @@ def _flatten(sc: ACCScenario) -> dict[str, Any]:
     return flat
 
 
-def _build(v: dict[str, Any]) -> ACCScenario:
+def _build(v: dict[str, Any], montecarlo: MonteCarloSpec | None = None) -> ACCScenario:
     fields = {attr: v[key] for attr, key in _KEYS.items()}
     drag = {
         which: Drag(*(v[f"drag.{which}.{k}"] for k in ("f0", "f1", "f2")))
         for which in ("true", "nominal")
     }
     return ACCScenario(
-        name=v["name"], drag_true=drag["true"], drag_nominal=drag["nominal"], **fields
+        name=v["name"],
+        drag_true=drag["true"],
+        drag_nominal=drag["nominal"],
+        montecarlo=montecarlo,
+        **fields,
     )
 
 
 def load_scenario(name_or_path: str | Path) -> ACCScenario:
-    """Load a preset by name (``"paper"``, ``"stress"``) or a TOML file by path.
+    """Load a preset by name (``"paper"``, ``"stress"``, ``"stress-ood"``) or a TOML file by path.
 
     Every key is checked for type, finiteness and range here, before any data collection,
     GP fit or simulation (bounds in docs/acc.md, "Scenario files", and :data:`LIMITS`).
@@ -295,6 +309,7 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: invalid TOML: {exc}") from None
+    table = doc.pop("montecarlo", None)  # optional; checked after the required tables
     flat = check_structure(doc, source)
     if "name" not in flat:
         try:
@@ -303,4 +318,6 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
             raise ScenarioError(
                 f'{exc} (the file has no name key, so its stem was used; add name = "...")'
             ) from None
-    return _build(check_values(flat, source))
+    values = check_values(flat, source)
+    spec = None if table is None else check_montecarlo(table, source)
+    return _build(values, spec)

@@ -1,0 +1,50 @@
+"""Monte Carlo verification of the probabilistic safety guarantee (issue 13).
+
+``run_montecarlo`` runs ``N`` closed loops of every compared controller over ``K`` fitted GPs,
+batched (``lax.scan`` inside ``vmap``, in chunks) on one machine or as Ray tasks on a cluster;
+``summarize`` gives the safety rates with exact Clopper-Pearson intervals. See
+docs/montecarlo.md.
+"""
+
+from ..scenarios import MonteCarloSpec
+from .acc_trials import DataSetModel, draw_trials, fit_dataset, lead_acceleration, run_chunk
+from .gpbatch import (
+    BatchedUncertainty,
+    ExactPosterior,
+    Hyperparameters,
+    InducingCache,
+    condition,
+    inducing_cache,
+)
+from .loop import RECORD_FIELDS, trial_function
+from .report import metrics_document, plot_montecarlo, trials_npz_bytes
+from .runner import BACKENDS, MonteCarloRun, plan_chunks, run_montecarlo, start_ray
+from .stats import clopper_pearson, safe_mask, summarize
+
+__all__ = [
+    "BACKENDS",
+    "RECORD_FIELDS",
+    "BatchedUncertainty",
+    "DataSetModel",
+    "ExactPosterior",
+    "Hyperparameters",
+    "InducingCache",
+    "MonteCarloRun",
+    "MonteCarloSpec",
+    "clopper_pearson",
+    "condition",
+    "draw_trials",
+    "fit_dataset",
+    "inducing_cache",
+    "lead_acceleration",
+    "metrics_document",
+    "plan_chunks",
+    "plot_montecarlo",
+    "run_chunk",
+    "run_montecarlo",
+    "safe_mask",
+    "start_ray",
+    "summarize",
+    "trial_function",
+    "trials_npz_bytes",
+]

@@ -1,0 +1,251 @@
+"""Run a Monte Carlo study on one machine or on a Ray cluster.
+
+The work is a list of tasks: one per data set (collect data, fit or condition the GP) and one
+per chunk of trials of a data set. The local backend runs them in this process; the Ray
+backend sends them to a cluster as Ray tasks. Both call the same pure functions
+(:mod:`safestab.montecarlo.acc_trials`) with the same chunk shapes, so their results are
+identical, bit for bit, and so are results for any ``chunk_size``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..scenarios import ACCScenario, MonteCarloSpec
+from .acc_trials import DataSetModel, conformal_beta_function, fit_dataset, run_chunk
+from .loop import RECORD_FIELDS
+
+__all__ = ["BACKENDS", "MonteCarloRun", "plan_chunks", "run_montecarlo", "start_ray"]
+
+BACKENDS = ("local", "ray")
+#: Called after each finished chunk as ``progress(chunks_done, chunks_total)``.
+Progress = Callable[[int, int], None]
+
+
+@dataclasses.dataclass
+class MonteCarloRun:
+    """The raw outcome of a study: per-trial records and the data sets.
+
+    Attributes
+    ----------
+    scenario : ACCScenario
+    spec : MonteCarloSpec
+    seed : int
+    controllers : tuple of str
+    records : dict of str to array of shape (N, C)
+        Trial ``i`` is row ``i``; keys :data:`~safestab.montecarlo.loop.RECORD_FIELDS`.
+    dataset_index : int array of shape (N,)
+        The data set of each trial (``i mod K``).
+    datasets : list of DataSetModel
+    backend : str
+    timings : dict of str to float
+        Wall-clock seconds: ``"datasets"``, ``"trials"``, ``"total"``.
+    """
+
+    scenario: ACCScenario
+    spec: MonteCarloSpec
+    seed: int
+    controllers: tuple[str, ...]
+    records: dict[str, np.ndarray]
+    dataset_index: np.ndarray
+    datasets: list[DataSetModel]
+    backend: str
+    timings: dict[str, float]
+
+
+def plan_chunks(n_trials: int, n_datasets: int, chunk_size: int) -> list[tuple[int, np.ndarray]]:
+    """``(data set, trial indices)`` per chunk: trial ``i`` belongs to data set ``i mod K``."""
+    chunks = []
+    for j in range(n_datasets):
+        idx = np.arange(j, n_trials, n_datasets)
+        for start in range(0, idx.size, chunk_size):
+            chunks.append((j, idx[start : start + chunk_size]))
+    return chunks
+
+
+def _check(scenario: Any, spec: Any, trials: int, datasets: int, seed: int, backend: str) -> None:
+    if not isinstance(scenario, ACCScenario):
+        raise ParameterError(f"scenario must be an ACCScenario, got {type(scenario).__name__}")
+    if not isinstance(spec, MonteCarloSpec):
+        raise ParameterError(f"spec must be a MonteCarloSpec, got {type(spec).__name__}")
+    for name, value, low in (("trials", trials, 1), ("datasets", datasets, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            raise ParameterError(f"{name} must be an integer >= {low}, got {value!r}")
+    if seed > 2**32 - 1:
+        raise ParameterError(f"seed must be <= 2**32 - 1 (a JAX key word), got {seed!r}")
+    if datasets > trials:
+        raise ParameterError(
+            f"datasets must be <= trials (each data set needs a trial), got datasets={datasets} "
+            f"and trials={trials}"
+        )
+    if backend not in BACKENDS:
+        raise ParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if "GP-robust conformal" in spec.controllers and conformal_beta_function() is None:
+        raise ParameterError(
+            "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
+            "(issue 14), which this installation does not provide; remove it from "
+            "montecarlo.controllers"
+        )
+
+
+def run_montecarlo(
+    scenario: ACCScenario,
+    *,
+    trials: int | None = None,
+    datasets: int | None = None,
+    seed: int = 0,
+    backend: str = "local",
+    spec: MonteCarloSpec | None = None,
+    chunk_size: int | None = None,
+    address: str | None = None,
+    progress: Progress | None = None,
+) -> MonteCarloRun:
+    """Run ``trials`` closed loops of every controller over ``datasets`` fitted GPs.
+
+    Parameters
+    ----------
+    scenario : ACCScenario
+    trials, datasets : int, optional
+        ``N`` and ``K``; default from the spec.
+    seed : int
+        Trial ``i`` depends on ``(seed, i)`` only, data set ``j`` on ``(seed, j)``.
+    backend : {"local", "ray"}
+    spec : MonteCarloSpec, optional
+        Defaults to the scenario's ``[montecarlo]`` table, or :class:`MonteCarloSpec()`.
+    chunk_size : int, optional
+        Overrides the spec's; results do not depend on it.
+    address : str, optional
+        Ray cluster address; defaults to ``RAY_ADDRESS``, else a local cluster is started.
+    progress : callable, optional
+        ``progress(chunks_done, chunks_total)``.
+
+    Returns
+    -------
+    MonteCarloRun
+
+    Raises
+    ------
+    ParameterError
+        For a bad count, seed or backend, ``datasets > trials``, or a controller whose beta
+        cannot be computed here; raised before any work.
+    ImportError
+        For ``backend="ray"`` without Ray installed (``pip install "safestab[ray]"``).
+    """
+    spec = spec or scenario.montecarlo or MonteCarloSpec()
+    trials = spec.trials if trials is None else trials
+    datasets = spec.datasets if datasets is None else datasets
+    if chunk_size is not None:
+        spec = spec.replace(chunk_size=chunk_size)
+    _check(scenario, spec, trials, datasets, seed, backend)
+    chunks = plan_chunks(trials, datasets, spec.chunk_size)
+    pad = min(spec.chunk_size, -(-trials // datasets))
+    report = progress or (lambda done, total: None)
+    t0 = time.perf_counter()
+    if backend == "local":
+        models, results, t_data = _local(scenario, spec, seed, datasets, chunks, pad, report)
+    else:
+        models, results, t_data = _ray(scenario, spec, seed, datasets, chunks, pad, report, address)
+    t_total = time.perf_counter() - t0
+    records = {k: np.empty((trials, len(spec.controllers)), dtype=results[0][k].dtype)
+               for k in RECORD_FIELDS}  # fmt: skip
+    for (_, idx), res in zip(chunks, results, strict=True):
+        for k in RECORD_FIELDS:
+            records[k][idx] = res[k]
+    return MonteCarloRun(
+        scenario=scenario, spec=spec, seed=seed, controllers=tuple(spec.controllers),
+        records=records, dataset_index=np.arange(trials) % datasets, datasets=models,
+        backend=backend,
+        timings={"datasets": t_data, "trials": t_total - t_data, "total": t_total},
+    )  # fmt: skip
+
+
+def _local(scenario, spec, seed, datasets, chunks, pad, report):
+    t0 = time.perf_counter()
+    first = fit_dataset(scenario, spec, seed, 0)
+    hyper = first.hyper if spec.hyperparameters == "reuse" else None
+    models = [first] + [fit_dataset(scenario, spec, seed, j, hyper) for j in range(1, datasets)]
+    t_data = time.perf_counter() - t0
+    results = []
+    for done, (j, idx) in enumerate(chunks, 1):
+        results.append(run_chunk(scenario, spec, models[j], seed, idx, pad_to=pad))
+        report(done, len(chunks))
+    return models, results, t_data
+
+
+def start_ray(
+    address: str | None = None, num_cpus: int | None = None, runtime_env: dict | None = None
+) -> Any:
+    """Connect to a Ray cluster (``address``, else ``RAY_ADDRESS``) or start a local one.
+
+    A local cluster listens on the loopback interface only, with no dashboard. ``runtime_env``
+    is passed to ``ray.init`` (for example ``{"env_vars": {"JAX_COMPILATION_CACHE_DIR": d}}``
+    so that workers load compiled loops from a shared cache instead of compiling them).
+
+    Notes
+    -----
+    Ray gives each worker ``OMP_NUM_THREADS=1`` by default; BLAS then sums in another order
+    than in this process, and the GP's hyperparameter optimiser can end elsewhere (measured:
+    amplitudes differing by 1e-2 at Q = 800). So the workers get this process's
+    ``OMP_NUM_THREADS`` (default: the CPU count, BLAS's own default), which makes their
+    results identical to the local backend's on the same machine. On a cluster of other
+    machines, give the workers the same thread settings (and hardware) for identical bits.
+    """
+    try:
+        import ray
+    except ImportError:
+        raise ImportError(
+            'backend="ray" needs Ray: pip install "safestab[ray]" (or "ray>=2.9")'
+        ) from None
+    if ray.is_initialized():
+        return ray
+    env = dict(runtime_env or {})
+    env["env_vars"] = {
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
+        **env.get("env_vars", {}),
+    }
+    runtime_env = env
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, runtime_env=runtime_env)
+    else:
+        ray.init(
+            num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
+            log_to_driver=False, runtime_env=runtime_env,
+        )  # fmt: skip
+    return ray
+
+
+def _ray(scenario, spec, seed, datasets, chunks, pad, report, address):
+    ray = start_ray(address)
+    fit_task = ray.remote(fit_dataset)
+    chunk_task = ray.remote(run_chunk)
+    t0 = time.perf_counter()
+    first = fit_task.remote(scenario, spec, seed, 0)
+    if spec.hyperparameters == "reuse":
+        hyper_ref = ray.remote(lambda m: m.hyper).remote(first)
+        rest = [fit_task.remote(scenario, spec, seed, j, hyper_ref) for j in range(1, datasets)]
+    else:
+        rest = [fit_task.remote(scenario, spec, seed, j) for j in range(1, datasets)]
+    model_refs = [first] + rest
+    pending = {
+        chunk_task.remote(scenario, spec, model_refs[j], seed, idx, pad): k
+        for k, (j, idx) in enumerate(chunks)
+    }
+    models = ray.get(model_refs)  # the chunks already submitted run as their data sets finish
+    t_data = time.perf_counter() - t0
+    results: list[Any] = [None] * len(chunks)
+    done = 0
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        for ref in ready:
+            results[pending.pop(ref)] = ray.get(ref)
+            done += 1
+            report(done, len(chunks))
+    return models, results, t_data

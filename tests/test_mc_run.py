@@ -1,0 +1,195 @@
+"""The ACC Monte Carlo study end to end on tiny settings: determinism, Ray, the simulator."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import safestab as ss
+from safestab.errors import ParameterError
+from safestab.montecarlo import (
+    RECORD_FIELDS,
+    draw_trials,
+    lead_acceleration,
+    metrics_document,
+    run_chunk,
+    run_montecarlo,
+    start_ray,
+    summarize,
+    trial_function,
+)
+from safestab.scenarios import load_scenario
+
+# tiny: 60 GP samples, 0.3 s horizon (30 steps), two controllers; the point is the machinery
+SC = load_scenario("stress").replace(n_samples=60, hyper_subset=30, t_final=0.3)
+SPEC = SC.montecarlo.replace(controllers=("mismatched model", "GP-robust"), chunk_size=5)
+N, K = 10, 2
+
+
+pytestmark = pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # Ray starts processes
+
+
+@pytest.fixture(scope="module")
+def jax_cache(tmp_path_factory):
+    """A persistent compilation cache shared with the Ray workers (they skip compiling)."""
+    folder = str(tmp_path_factory.mktemp("jax_cache"))
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", folder)
+    yield folder
+    jax.config.update("jax_compilation_cache_dir", old)
+
+
+@pytest.fixture(scope="module")
+def local_run(jax_cache):
+    return run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3)
+
+
+def _same(a, b):
+    assert set(a.records) == set(RECORD_FIELDS)
+    for key in RECORD_FIELDS:
+        assert np.array_equal(a.records[key], b.records[key], equal_nan=True), key
+
+
+def test_records_have_one_row_per_trial(local_run):
+    for key in RECORD_FIELDS:
+        assert local_run.records[key].shape == (N, 2)
+    assert np.array_equal(local_run.dataset_index, np.arange(N) % K)
+    assert np.all(local_run.records["lemma2_violations"][:, 0] == -1)  # no GP
+    assert np.all(local_run.records["lemma2_violations"][:, 1] >= 0)
+
+
+@pytest.mark.slow  # one more compilation (the chunk shape); the toy covers chunking quickly
+def test_identical_for_any_chunk_size(local_run):
+    # the same data sets, the trials of data set 0 in chunks of 2 instead of 5
+    spec = SPEC.replace(chunk_size=2)
+    idx = np.arange(0, N, K)
+    rows = [run_chunk(SC, spec, local_run.datasets[0], 3, idx[i : i + 2], pad_to=2)
+            for i in range(0, idx.size, 2)]  # fmt: skip
+    for key in RECORD_FIELDS:
+        got = np.concatenate([r[key] for r in rows])
+        assert np.array_equal(got, local_run.records[key][idx], equal_nan=True), key
+
+
+def test_trial_draws_depend_on_seed_and_index_only():
+    x_all, p_all = draw_trials(SC, SPEC, 7, np.arange(20))
+    x_some, p_some = draw_trials(SC, SPEC, 7, np.array([13, 2]))
+    assert np.array_equal(np.asarray(x_all)[[13, 2]], np.asarray(x_some))
+    assert np.array_equal(np.asarray(p_all["acc"])[[13, 2]], np.asarray(p_some["acc"]))
+    x_other, _ = draw_trials(SC, SPEC, 8, np.arange(20))
+    assert not np.array_equal(np.asarray(x_all), np.asarray(x_other))
+    lo, hi = np.array(SPEC.initial_low), np.array(SPEC.initial_high)
+    assert np.all((np.asarray(x_all) >= lo) & (np.asarray(x_all) <= hi))
+    g = SC.gravity
+    acc = np.asarray(p_all["acc"])
+    assert np.all((acc >= -SPEC.lead_decel_max * g) & (acc <= SPEC.lead_accel_max * g))
+
+
+@pytest.mark.slow  # compiles a 2-controller loop and two simulations
+def test_fixed_trial_reproduces_the_simulator():
+    # fixed initial state and lead profile: the batched loop's min h for the mismatched
+    # controller equals ss.simulate's (an independent code path) on the same closed loop
+    spec = SPEC.replace(initial_distribution="fixed", lead_kind="fixed")
+    sc = SC.replace(t_final=3.0)
+    x0, params = draw_trials(sc, spec, 0, np.arange(1))
+    clf, cbf = sc.certificates()
+    p = dict(kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
+             slack_weight=sc.slack_weight)  # fmt: skip
+    ctrls = [ss.UniversalController(sc.system(w), clf, cbf, **p) for w in ("true", "nominal")]
+    run = trial_function(ctrls, plant=sc.system("true"), n_steps=300, dt=sc.dt,
+                         exogenous=lead_acceleration)  # fmt: skip
+    rec = jax.jit(jax.vmap(run))(x0, params)
+    for c, ctrl in enumerate(ctrls):
+        traj = ss.simulate(ctrl, np.asarray(sc.x0), t_final=sc.t_final, dt=sc.dt,
+                           plant=sc.system("true"), exogenous=sc.exogenous)  # fmt: skip
+        # the same arithmetic in another order (one RK4 per step either way): rounding only
+        assert float(rec["min_h"][0, c]) == pytest.approx(float(np.min(traj.h)), abs=1e-9)
+        assert float(rec["final_V"][0, c]) == pytest.approx(float(traj.V[-1]), rel=1e-9)
+
+
+def test_summary_and_strict_json(local_run):
+    s = summarize(local_run)
+    for entry in s["controllers"].values():
+        lo, hi = entry["safe"]["ci95"]
+        assert lo <= entry["safe"]["rate"] <= hi
+    assert "lemma2_every_state" in s["controllers"]["GP-robust"]
+    assert "lemma2_every_state" not in s["controllers"]["mismatched model"]
+    text = json.dumps(metrics_document(local_run), allow_nan=False)
+    assert json.loads(text)["settings"]["trials"] == N
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(trials=0), r"trials must be an integer >= 1, got 0"),
+        (dict(trials=2, datasets=3), r"datasets must be <= trials"),
+        (dict(seed=-1), r"seed must be an integer >= 0"),
+        (dict(backend="dask"), r"backend must be one of \('local', 'ray'\), got 'dask'"),
+        (dict(spec=SPEC.replace(controllers=("GP-robust conformal",))),
+         r"'GP-robust conformal' needs safestab.learning.conformal_beta"),
+    ],
+)  # fmt: skip
+def test_bad_arguments_raise_before_work(kwargs, match):
+    kwargs = {"spec": SPEC, "trials": N, **kwargs}
+    with pytest.raises(ParameterError, match=match):
+        run_montecarlo(SC, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def ray_session(jax_cache):
+    ray = pytest.importorskip("ray")
+    start_ray(num_cpus=2, runtime_env={"env_vars": {"JAX_COMPILATION_CACHE_DIR": jax_cache}})
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_backend_is_identical_to_local(local_run, ray_session):
+    _same(local_run, run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray"))
+
+
+def test_cli_mc_checks_inputs_before_work(tmp_path):
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    runner = CliRunner()
+    bad = [
+        (["--scenario", "nope"], "is neither a preset"),
+        (["--backend", "dask"], "--backend must be one of"),
+        (["--trials", "0"], "--trials must be >= 1, got 0"),
+        (["--chunk-size", "0"], "montecarlo.chunk_size must be an integer"),
+        (["--seed", "-1"], r"--seed must be in \[0, 2\*\*32 - 1\]"),
+    ]
+    for args, match in bad:
+        res = runner.invoke(app, ["mc", *args, "--out", str(tmp_path / "o")])
+        assert res.exit_code == 2, (args, res.output)
+        import re
+
+        assert re.search(match, res.output), (args, res.output)
+
+
+@pytest.mark.slow
+def test_cli_mc_writes_all_outputs(tmp_path):
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    text = (tmp_path / "tiny.toml")
+    from importlib import resources
+
+    base = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
+    base = base.replace("n_samples = 2000", "n_samples = 60").replace(
+        "hyper_subset = 500", "hyper_subset = 30").replace("t_final = 60.0", "t_final = 0.3")
+    base = base.replace('controllers = ["true model", "mismatched model", "GP mean", '
+                        '"GP-robust", "GP-robust Lemma 2"]',
+                        'controllers = ["mismatched model", "GP-robust"]')
+    text.write_text(base)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["mc", "--scenario", str(text), "--trials", "6", "--datasets",
+                                   "1", "--out", str(out), "--seed", "2", "--chunk-size", "3"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "mc_tiny_metrics.json").read_text())
+    assert doc["settings"]["trials"] == 6 and doc["status"] in ("ok", "non-finite")
+    with np.load(out / "mc_tiny_trials.npz") as z:
+        assert z["min_h"].shape == (6, 2)
+    assert (out / "mc_tiny.png").stat().st_size > 0

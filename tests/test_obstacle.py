@@ -300,7 +300,8 @@ def test_overrides_are_checked_like_the_file(sc):
 
 @pytest.fixture(scope="module")
 def study(sc):
-    return run_obstacle_study(sc)
+    """The preset study (a coarser map grid): about 1.5 to 5 minutes on 2 shared cores."""
+    return run_obstacle_study(sc.replace(map_n_x1=61, map_n_x2=41))
 
 
 @pytest.mark.slow
@@ -355,3 +356,112 @@ def test_study_maps_agree_with_the_public_verdicts_for_the_fitted_gp(study):
     doc = json.loads(json.dumps(study.metrics_document(), allow_nan=False))
     assert doc["status"] == "ok"
     assert set(doc["runs"]) == {f"{c} / {lim}" for c in CONTROLLERS for lim in LIMIT_SETTINGS}
+
+
+# -- the command line -------------------------------------------------------------------
+
+# Reduced sizes; the starts lie outside every certified domain of attraction (V >= 49 m^2),
+# so no compatible-formula runs are compiled: 6 closed loops instead of 9. The run's cost is
+# almost all XLA compilation (about 4 to 12 s per closed loop on 2 shared cores), not sizes.
+SMALL = [
+    "--n-samples", "30", "--t-final", "2.0",
+    "--set", "learning.hyper_subset=30", "--set", "learning.n_inducing=8",
+    "--set", "starts.x1=[-8.0, -7.0]", "--set", "starts.n_x1=2", "--set", "starts.n_x2=3",
+    "--set", "map.n_x1=11", "--set", "map.n_x2=5",
+]  # fmt: skip
+
+
+def _run(*args):
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    return CliRunner().invoke(app, ["run", *map(str, args)])
+
+
+@pytest.mark.slow
+def test_cli_run_obstacle_smoke(tmp_path):
+    res = _run("--scenario", "obstacle", "--out", tmp_path, *SMALL)
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == [
+        "obstacle_obstacle.pdf",
+        "obstacle_obstacle.png",
+        "obstacle_obstacle_maps.pdf",
+        "obstacle_obstacle_maps.png",
+        "obstacle_obstacle_metrics.json",
+    ]
+    doc = json.loads((tmp_path / "obstacle_obstacle_metrics.json").read_text())
+    assert doc["status"] == "ok"
+    assert doc["settings"]["n_samples"] == 30 and doc["settings"]["t_final_s"] == 2.0
+    assert doc["maps"]["grid"] == [11, 5]
+    assert len(doc["runs"]) == 6
+    assert all(r["n_starts"] == doc["settings"]["n_starts"] == 6 for r in doc["runs"].values())
+    assert all(r["compatible_formula_starts"] == 0 for r in doc["runs"].values())
+    assert "Obstacle study 'obstacle'" in res.output and "GP-robust" in res.output
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--set", "starts.n_x1=0"], r"starts\.n_x1 must be an integer in \[1, 1000\], got 0"),
+        (["--set", "starts.nx1=3"], r"unknown key 'starts\.nx1'"),
+        (["--set", "seed"], r"--set must be KEY=VALUE"),
+        (["--n-samples", "5"], r"learning\.n_samples must be an integer in \[10, "),
+        (["--t-final", "-1"], r"simulation\.t_final must be"),
+    ],
+)
+def test_cli_run_rejects_bad_input_before_work(tmp_path, args, message):
+    import re
+
+    out = tmp_path / "out"
+    res = _run("--scenario", "obstacle", "--out", out, *args)
+    assert res.exit_code == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ScenarioError: ")
+    assert re.search(message, lines[0])
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_run_dispatches_acc_presets(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    import matplotlib.pyplot as plt
+
+    import safestab.plotting
+    from safestab.scenarios import acc_study
+
+    seen = []
+
+    def fake_run_study(scenario, **kwargs):
+        seen.append(scenario.name)
+        return SimpleNamespace(
+            scenario=scenario,
+            dataset=[None] * scenario.n_samples,
+            metrics={
+                "true model": {
+                    "min_h_m": 1.0,
+                    "time_h_negative_s": 0.0,
+                    "rms_speed_error_mps": 1.0,
+                    "incompatible_steps": 0,
+                }
+            },
+            calibration=SimpleNamespace(per_component=[1.0], joint=1.0, rmse=[0.0]),
+            metrics_document=lambda: {"status": "ok"},
+        )
+
+    def fake_plot(result):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [0, 1])
+        return fig
+
+    monkeypatch.setattr(acc_study, "run_study", fake_run_study)
+    monkeypatch.setattr(safestab.plotting, "plot_acc_study", fake_plot)
+    res = _run("--scenario", "stress", "--out", tmp_path, "--set", "learning.seed=3")
+    assert res.exit_code == 0, res.output
+    assert seen == ["stress"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "acc_stress.pdf",
+        "acc_stress.png",
+        "acc_stress_metrics.json",
+    ]

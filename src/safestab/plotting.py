@@ -240,7 +240,7 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
         ax.set_xlabel("$x_1$ (m)")
         ax.set_ylabel("$x_2$ (m)")
         ax.set_title(title, fontsize=9)
-        handles = [
+        handles: list[Any] = [
             Patch(facecolor=c, edgecolor="0.3", label=lab)
             for c, lab in zip(colors, labels, strict=True)
         ]

@@ -238,7 +238,7 @@ class ObstacleScenario:
         The x2 values are symmetric about 0 (exactly 0 in the middle when ``n_x2`` is odd),
         so that an odd grid has starts on the axis through the goal and the obstacle.
         """
-        x1 = np.linspace(*self.starts_x1, self.starts_n_x1)
+        x1 = np.linspace(self.starts_x1[0], self.starts_x1[1], self.starts_n_x1)
         x2 = _symmetric(self.starts_x2_half_width, self.starts_n_x2)
         grid = np.stack(np.meshgrid(x1, x2, indexing="ij"), -1).reshape(-1, 2)
         return grid[np.asarray(self.h(grid)) > 0]
@@ -246,7 +246,7 @@ class ObstacleScenario:
     def map_axes(self) -> tuple[np.ndarray, np.ndarray]:
         """The compatibility-map grid axes: x1 of shape (n_x1,), x2 of shape (n_x2,), m."""
         return (
-            np.linspace(*self.map_x1, self.map_n_x1),
+            np.linspace(self.map_x1[0], self.map_x1[1], self.map_n_x1),
             _symmetric(self.map_x2_half_width, self.map_n_x2),
         )
 

@@ -94,7 +94,7 @@ def classify_outcomes(
     )
 
 
-def _params(sc: ObstacleScenario) -> dict[str, float]:
+def _params(sc: ObstacleScenario) -> dict[str, Any]:
     return {"kappa": sc.kappa, "rho": sc.rho, "phi": sc.phi, "varphi": sc.varphi}
 
 
@@ -473,7 +473,9 @@ def run_obstacle_study(
             report(f"simulating: {name}, {limits}", 0.3 + 0.7 * k / n_runs)
             k += 1
             t0 = time.perf_counter()
-            box = {"u_min": u_min, "u_max": u_max} if limits == "input limits" else {}
+            box: dict[str, Any] = {}
+            if limits == "input limits":
+                box = {"u_min": u_min, "u_max": u_max}
             parts = {}
             for hard, sel in ((True, inside), (False, ~inside)):
                 if not np.any(sel):

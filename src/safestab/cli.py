@@ -54,10 +54,10 @@ def _guard(step: Callable[[], T], *, debug: bool, code: int) -> T:
         raise typer.Exit(code=code) from None
 
 
-def _console():
+def _console(width: int = 100):
     from rich.console import Console
 
-    return Console(width=max(100, Console().width))
+    return Console(width=max(width, Console().width))
 
 
 def _with_progress(console, work):
@@ -152,7 +152,7 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
 
     from .scenarios import obstacle_study
 
-    console = _console()
+    console = _console(width=130)
     result = _guard(
         lambda: _with_progress(
             console, lambda r: obstacle_study.run_obstacle_study(sc, progress=r)
@@ -177,7 +177,7 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
 
     table = Table(title=f"Obstacle study '{sc.name}' ({len(sc.start_states())} starts)")
     columns = ("controller", "limits", *obstacle_study.OUTCOMES, "min h [m^2]",
-               "stuck ends incompat.", "c* [m^2]")  # fmt: skip
+               "stuck incompat.", "c* [m^2]")  # fmt: skip
     for col in columns:
         table.add_column(col, justify="right", no_wrap=True)
     for (name, limits), run in result.runs.items():

@@ -108,6 +108,16 @@ def test_doa_level_matches_the_hand_lemma1_on_the_axis(sc):
     assert np.all(t * A + B <= 0)
 
 
+def test_verdict_rejects_unknown_controller_and_missing_model(sc):
+    from safestab import ParameterError
+    from safestab.scenarios.obstacle_study import verdict
+
+    with pytest.raises(ParameterError, match=r"controller must be one of .*got 'exact'"):
+        verdict(sc, "exact", np.zeros((1, 2)))
+    with pytest.raises(ParameterError, match=r"'GP-robust' verdict needs uncertainty="):
+        verdict(sc, "GP-robust", np.zeros((1, 2)))
+
+
 def test_classify_outcomes_by_hand():
     t = np.linspace(0, 1, 3)[None, :, None]
     x = np.concatenate(
@@ -283,6 +293,13 @@ def test_kind_dispatch_and_errors(tmp_path):
 
 
 def test_overrides_are_checked_like_the_file(sc):
+    from safestab.scenarios import parse_override
+
+    assert parse_override("learning.kernel=se") == ("learning.kernel", "se")  # bare string
+    assert parse_override(" starts.x1 = [-8.0, -7] ") == ("starts.x1", [-8.0, -7])
+    assert parse_override("learning.seed=3") == ("learning.seed", 3)
+    with pytest.raises(ScenarioError, match=r"--set must be KEY=VALUE .*got '=3'"):
+        parse_override("=3")
     got = load_obstacle_scenario("obstacle", overrides={"starts.n_x1": 3, "learning.seed": 4})
     assert (got.starts_n_x1, got.seed) == (3, 4)
     with pytest.raises(ScenarioError, match=r"with overrides starts\.n_x1: starts\.n_x1 must be"):

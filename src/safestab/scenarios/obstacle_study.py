@@ -27,6 +27,7 @@ import numpy as np
 from .._io import atomic_write_json, replace_non_finite
 from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
+from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
 from ..learning import FastGP, GaussianProcessModel, collect_data
 from ..robust import probabilistic_compatibility, robust_margins
@@ -123,7 +124,17 @@ def verdict(
     Returns
     -------
     bool array of shape (...,)
+
+    Raises
+    ------
+    ParameterError
+        If ``controller`` is not one of :data:`CONTROLLERS`, or is ``"GP-robust"`` without
+        an uncertainty model.
     """
+    if controller not in CONTROLLERS:
+        raise ParameterError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
+    if controller == "GP-robust" and uncertainty is None:
+        raise ParameterError("the 'GP-robust' verdict needs uncertainty= (a model of omega)")
     x = jnp.asarray(x, dtype=float)
     which = "true" if controller == "true model" else "nominal"
     flat = x.reshape(-1, 2)

@@ -6,7 +6,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_acc_study", "plot_trajectory_h"]
+__all__ = [
+    "OUTCOME_COLORS",
+    "plot_acc_study",
+    "plot_compatibility_maps",
+    "plot_obstacle_plane",
+    "plot_trajectory_h",
+]
 
 _STYLES = {
     "true model": {"color": "black", "ls": "-"},
@@ -75,4 +81,174 @@ def plot_acc_study(result: Any, axes: Any = None) -> Any:
     ax_u.set_ylabel("$u / (M g)$")
     ax_u.legend(fontsize=7, loc="best")
     fig.suptitle(f"ACC study: scenario '{sc.name}'", fontsize=10)
+    return fig
+
+
+# -- the obstacle scenario (the paper's Fig. 2) -----------------------------------------
+
+#: Colours of the trajectory outcomes of the obstacle study.
+OUTCOME_COLORS = {
+    "converged": "tab:blue",
+    "stuck": "goldenrod",
+    "unsafe": "tab:red",
+    "moving": "0.45",
+}
+
+
+def _plane(ax: Any, sc: Any, level: float | None) -> None:
+    """Safe set (green), obstacle (red disc), level sets of V (grey), ``{V <= level}`` (black)."""
+    from matplotlib.patches import Circle
+
+    lo, hi = sc.map_x1
+    hw = sc.map_x2_half_width
+    x1, x2 = np.linspace(lo, hi, 241), np.linspace(-hw, hw, 161)
+    X1, X2 = np.meshgrid(x1, x2)
+    V = np.asarray(sc.V(np.stack([X1, X2], -1)))
+    ax.set_facecolor("#e3f2e1")  # the safe set C = {h >= 0}
+    ax.add_patch(Circle(tuple(sc.obstacle_center), sc.radius, color="tab:red", alpha=0.3, lw=0))
+    ax.add_patch(Circle(tuple(sc.obstacle_center), sc.radius, fill=False, color="tab:red", lw=1))
+    levels = np.geomspace(0.5, max(float(V.max()), 1.0), 8)
+    ax.contour(X1, X2, V, levels=levels, colors="0.65", linewidths=0.5)
+    if level is not None and np.isfinite(level):
+        ax.contour(X1, X2, V, levels=[level], colors="black", linewidths=1.3)
+    ax.plot(0, 0, marker="*", color="black", ms=9, zorder=5)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-hw, hw)
+    ax.set_aspect("equal")
+    ax.set_xlabel("$x_1$ (m)")
+    ax.set_ylabel("$x_2$ (m)")
+
+
+def plot_obstacle_plane(result: Any, axes: Any = None) -> Any:
+    """The paper's Fig. 2 for each controller and limit setting.
+
+    Each panel shows the safe set (green), the obstacle (red), level sets of ``V`` (grey),
+    the certified domain of attraction ``{V <= doa_fraction c*}`` of that controller (black
+    ellipse), and the closed-loop trajectories from every start coloured by outcome
+    (:data:`OUTCOME_COLORS`); the end points of stuck and unsafe runs are marked ``x``.
+
+    Parameters
+    ----------
+    result : ObstacleStudyResult
+    axes : array of matplotlib axes of shape (2, 3), optional
+        Rows: no limits, input limits; columns: true model, mismatched model, GP-robust.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    from .scenarios.obstacle_study import CONTROLLERS, LIMIT_SETTINGS
+
+    sc = result.scenario
+    if axes is None:
+        fig, axes = plt.subplots(2, 3, figsize=(15, 7.2), constrained_layout=True)
+    else:
+        fig = axes[0][0].figure
+    for i, limits in enumerate(LIMIT_SETTINGS):
+        for j, name in enumerate(CONTROLLERS):
+            ax = axes[i][j]
+            run = result.runs[(name, limits)]
+            _plane(ax, sc, sc.doa_fraction * result.doa[name])
+            for k in range(len(run.x0)):
+                color = OUTCOME_COLORS[str(run.outcome[k])]
+                ax.plot(run.x[k, :, 0], run.x[k, :, 1], color=color, lw=0.8, alpha=0.85)
+                ax.plot(*run.x0[k], marker="o", ms=2.5, color=color)
+                if run.outcome[k] in ("stuck", "unsafe"):
+                    ax.plot(*run.x[k, -1], marker="x", ms=7, mew=1.8, color="black", zorder=6)
+            counts = ", ".join(
+                f"{int(np.sum(run.outcome == o))} {o}" for o in OUTCOME_COLORS
+                if np.any(run.outcome == o)
+            )
+            ax.set_title(
+                f"{name}, {limits}\n{counts}; min h = {np.min(run.h):.3g} m$^2$", fontsize=8
+            )
+    handles = [Line2D([], [], color=c, label=o) for o, c in OUTCOME_COLORS.items()]
+    handles += [
+        Line2D([], [], color="black", lw=1.3, label=r"$\{V \leq c\}$ certified"),
+        Line2D([], [], color="black", marker="x", ls="", label="end of stuck/unsafe run"),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=6, fontsize=8)
+    fig.suptitle(
+        f"Obstacle scenario '{sc.name}': closed loops under the current "
+        f"(gain {sc.gain_true:g} vs {sc.gain_nominal:g} nominal)",
+        fontsize=10,
+    )
+    return fig
+
+
+def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
+    """Compatibility over the plane: Lemma 1 (nominal model) and eq. (20) (GP-robust terms).
+
+    Left: the region of the compatible formula on the nominal terms (P1 to P4; black where
+    Lemma 1 says incompatible). Right: the probabilistic verdict for the GP-robust terms
+    (black: incompatible; orange: compatible by eq. (20) only; light blue: also by Lemma 4's
+    sufficient condition), with the stated probability. Both panels mark the incompatible
+    points of the parallel set (thick black) and the end points of the runs of the matching
+    controller that came to rest outside the goal ball (``x``; stuck, or unsafe and at rest).
+
+    Parameters
+    ----------
+    result : ObstacleStudyResult
+    axes : sequence of 2 matplotlib axes, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    from .scenarios.obstacle_study import LIMIT_SETTINGS
+
+    sc, maps = result.scenario, result.maps
+    if axes is None:
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4.6), constrained_layout=True)
+    else:
+        fig = axes[0].figure
+    region_colors = ["black", "#9ecae1", "#fdae6b", "#c7a0d8", "#d9d9d9"]  # INCOMPATIBLE, P1..P4
+    robust_class = np.where(~maps.robust_updated, 0, np.where(maps.robust_lemma4, 2, 1))
+    panels = [
+        (maps.nominal_region, region_colors, "mismatched model",
+         "Lemma 1, nominal model: regions of the compatible formula",
+         ["incompatible", "P1", "P2", "P3", "P4"]),
+        (robust_class, ["black", "#fdae6b", "#9ecae1"], "GP-robust",
+         f"eq. (20), GP-robust terms ($\\beta$ = {sc.gp_beta:g}), stated probability "
+         f"$(1-\\delta)^2$ = {maps.probability:.4f}",
+         ["incompatible", "compatible (eq. 20)", "compatible (eq. 20 and Lemma 4)"]),
+    ]  # fmt: skip
+    for ax, (z, colors, name, title, labels) in zip(axes, panels, strict=True):
+        ax.pcolormesh(
+            maps.x1, maps.x2, np.asarray(z).T, shading="nearest",
+            cmap=ListedColormap(colors), vmin=-0.5, vmax=len(colors) - 0.5,
+        )  # fmt: skip
+        ax.add_artist(
+            plt.Circle(tuple(sc.obstacle_center), sc.radius, fill=False, color="tab:red", lw=1.2)
+        )
+        bad = ~result.parallel_verdicts[name]
+        pts = result.parallel_set[bad]
+        ax.plot(pts[:, 0], pts[:, 1], ".", color="black", ms=3)
+        for limits in LIMIT_SETTINGS:
+            run = result.runs[(name, limits)]
+            ends = run.x[run.stopped(sc.ball_radius, sc.rest_speed), -1]
+            ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=8, mew=2)
+        ax.plot(0, 0, marker="*", color="black", ms=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("$x_1$ (m)")
+        ax.set_ylabel("$x_2$ (m)")
+        ax.set_title(title, fontsize=9)
+        handles: list[Any] = [
+            Patch(facecolor=c, edgecolor="0.3", label=lab)
+            for c, lab in zip(colors, labels, strict=True)
+        ]
+        handles.append(
+            plt.Line2D([], [], color="tab:red", marker="x", ls="", label=f"rest points, {name}")
+        )
+        ax.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
+    fig.suptitle(
+        f"Obstacle scenario '{sc.name}': where the CLF and CBF are compatible", fontsize=10
+    )
     return fig

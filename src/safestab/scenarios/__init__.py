@@ -1,5 +1,21 @@
 """Ready-made problems with parameter presets."""
 
-from .acc import LIMITS, PRESETS, ACCScenario, MonteCarloSpec, ScenarioLimits, load_scenario
+from ._schema import LIMITS, ScenarioLimits
+from .acc import PRESETS, ACCScenario, MonteCarloSpec, load_scenario
+from .loading import KINDS, load, parse_override, scenario_kind
+from .obstacle import ObstacleScenario, load_obstacle_scenario
 
-__all__ = ["LIMITS", "PRESETS", "ACCScenario", "MonteCarloSpec", "ScenarioLimits", "load_scenario"]
+__all__ = [
+    "KINDS",
+    "LIMITS",
+    "PRESETS",
+    "ACCScenario",
+    "MonteCarloSpec",
+    "ObstacleScenario",
+    "ScenarioLimits",
+    "load",
+    "load_obstacle_scenario",
+    "load_scenario",
+    "parse_override",
+    "scenario_kind",
+]

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..errors import ScenarioError
-from ._acc_schema import LIMITS, choice, fail, integer, real
+from ._schema import LIMITS, choice, fail, integer, real
 
 __all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_montecarlo"]
 

@@ -17,8 +17,7 @@ depends on ``v_l``.
 from __future__ import annotations
 
 import dataclasses
-import tomllib
-from importlib import resources
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,7 @@ from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
 from ._acc_schema import FIELDS, LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
+from ._schema import apply_overrides, read_document
 
 __all__ = [
     "ACCScenario", "MonteCarloSpec", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits",
@@ -268,12 +268,22 @@ def _build(v: dict[str, Any], montecarlo: MonteCarloSpec | None = None) -> ACCSc
     )
 
 
-def load_scenario(name_or_path: str | Path) -> ACCScenario:
+def load_scenario(
+    name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
+) -> ACCScenario:
     """Load a preset by name (``"paper"``, ``"stress"``, ``"stress-ood"``) or a TOML file by path.
 
     Every key is checked for type, finiteness and range here, before any data collection,
     GP fit or simulation (bounds in docs/acc.md, "Scenario files", and :data:`LIMITS`).
-    ``name`` is optional and defaults to the preset name or the file's stem.
+    ``name`` is optional and defaults to the preset name or the file's stem; ``kind``
+    is optional and must be ``"acc"`` when present.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+    overrides : mapping of str to value, optional
+        ``{"table.key": value}`` set in the document before it is checked (the command
+        line's ``--set``); checked exactly like the file's own values.
 
     Raises
     ------
@@ -283,32 +293,8 @@ def load_scenario(name_or_path: str | Path) -> ACCScenario:
         out of range. The message names the file and the key with its table path, what was
         received and what was expected.
     """
-    if str(name_or_path) in PRESETS:
-        name = str(name_or_path)
-        data = resources.files(__package__).joinpath(f"{name}.toml").read_bytes()
-        source = f"preset {name!r}"
-    else:
-        path = Path(name_or_path)
-        if not path.is_file():
-            raise ScenarioError(
-                f"scenario {str(name_or_path)!r} is neither a preset {PRESETS} nor a file"
-            )
-        name, source = path.stem, str(path)
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise ScenarioError(f"{source}: cannot read the file ({exc.strerror})") from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ScenarioError(
-            f"{source}: a scenario file must be UTF-8 text (TOML), got byte "
-            f"{data[exc.start]:#04x} at offset {exc.start}, which is not UTF-8"
-        ) from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{source}: invalid TOML: {exc}") from None
+    doc, name, source = read_document(name_or_path, PRESETS, __package__)
+    source = apply_overrides(doc, overrides or {}, source)
     table = doc.pop("montecarlo", None)  # optional; checked after the required tables
     flat = check_structure(doc, source)
     if "name" not in flat:

@@ -1,0 +1,549 @@
+"""The obstacle study end to end: data, GP fit, three controllers with and without limits, maps.
+
+For each controller (true model, mismatched model, GP-robust) and each limit setting (none,
+the box ``|u_i| <= input_limit``) the closed loop is simulated from every start of the grid.
+The formula is chosen per start where its theorem applies: the compatible formula (Theorem 1,
+or Theorem 2 for the GP-robust controller) from starts inside that controller's certified
+domain of attraction ``{V < doa_fraction c*}`` (``c*`` the smallest ``V`` at which its
+conditions are incompatible in the safe set) in the runs without input limits, and the
+relaxed formula (Theorem 3) elsewhere: outside that set, and everywhere in the runs with
+limits, where the projection (eq. (26)) voids Theorem 1's guarantee. Each trajectory ends
+as ``converged``, ``stuck`` (at rest outside the goal ball), ``unsafe`` (``h < 0`` at some
+sample) or ``moving`` (none of these at ``t_final``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._io import atomic_write_json, replace_non_finite
+from ..certificates import LieTerms, lie_terms_point
+from ..controllers import UniversalController
+from ..errors import ParameterError
+from ..formulas import clf_cbf, compatibility
+from ..learning import FastGP, GaussianProcessModel, collect_data
+from ..robust import probabilistic_compatibility, robust_margins
+from ..simulation import simulate
+from .obstacle import ObstacleScenario
+
+__all__ = [
+    "CONTROLLERS",
+    "LIMIT_SETTINGS",
+    "OUTCOMES",
+    "CompatibilityMaps",
+    "ObstacleRun",
+    "ObstacleStudyResult",
+    "classify_outcomes",
+    "compatibility_maps",
+    "doa_level",
+    "run_obstacle_study",
+    "verdict",
+]
+
+#: The three controllers, as in the ACC study.
+CONTROLLERS = ("true model", "mismatched model", "GP-robust")
+#: The runs without and with the input box.
+LIMIT_SETTINGS = ("no limits", "input limits")
+#: How a trajectory ends, in order of precedence.
+OUTCOMES = ("unsafe", "converged", "stuck", "moving")
+
+Progress = Callable[[str, float], None]
+
+
+def classify_outcomes(
+    x: Any, h: Any, dt: float, ball_radius: float, rest_speed: float
+) -> np.ndarray:
+    """The outcome of each trajectory: ``unsafe``, ``converged``, ``stuck`` or ``moving``.
+
+    Parameters
+    ----------
+    x : array of shape (N, T, 2)
+        Positions, m (``T >= 2`` samples).
+    h : array of shape (N, T)
+        CBF values, m^2.
+    dt : float
+        Sample spacing, s.
+    ball_radius : float
+        Radius of the goal ball, m.
+    rest_speed : float
+        Speed below which the end state counts as at rest, m/s.
+
+    Returns
+    -------
+    array of str of shape (N,)
+        ``unsafe`` if ``h < 0`` at some sample (or is not finite); else ``converged`` if
+        ``|x(T)| <= ball_radius``; else ``stuck`` if ``|x(T) - x(T-1)| / dt <= rest_speed``;
+        else ``moving``.
+    """
+    x = np.asarray(x, float)
+    h = np.asarray(h, float)
+    unsafe = ~np.all(h >= 0, axis=-1)  # NaN counts as unsafe
+    end = x[:, -1]
+    speed = np.linalg.norm(x[:, -1] - x[:, -2], axis=-1) / dt
+    converged = np.linalg.norm(end, axis=-1) <= ball_radius
+    stuck = speed <= rest_speed
+    return np.where(
+        unsafe, "unsafe", np.where(converged, "converged", np.where(stuck, "stuck", "moving"))
+    )
+
+
+def _params(sc: ObstacleScenario) -> dict[str, Any]:
+    return {"kappa": sc.kappa, "rho": sc.rho, "phi": sc.phi, "varphi": sc.varphi}
+
+
+def verdict(
+    sc: ObstacleScenario,
+    controller: str,
+    x: Any,
+    uncertainty: Any = None,
+) -> np.ndarray:
+    """Whether the controller's CLF and CBF conditions are compatible at ``x``.
+
+    ``"true model"`` and ``"mismatched model"``: :func:`~safestab.compatibility` (Lemma 1) on
+    the true or nominal Lie terms. ``"GP-robust"``: the ``updated`` verdict (eq. (20),
+    corrected) of :func:`~safestab.probabilistic_compatibility` on the nominal terms with the
+    margins of ``uncertainty`` at ``beta = gp_beta``.
+
+    Parameters
+    ----------
+    sc : ObstacleScenario
+    controller : str
+        One of :data:`CONTROLLERS`.
+    x : array of shape (..., 2)
+    uncertainty : UncertaintyModel, optional
+        Required for ``"GP-robust"``.
+
+    Returns
+    -------
+    bool array of shape (...,)
+
+    Raises
+    ------
+    ParameterError
+        If ``controller`` is not one of :data:`CONTROLLERS`, or is ``"GP-robust"`` without
+        an uncertainty model.
+    """
+    if controller not in CONTROLLERS:
+        raise ParameterError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
+    if controller == "GP-robust" and uncertainty is None:
+        raise ParameterError("the 'GP-robust' verdict needs uncertainty= (a model of omega)")
+    x = jnp.asarray(x, dtype=float)
+    which = "true" if controller == "true model" else "nominal"
+    flat = x.reshape(-1, 2)
+    terms = _terms(sc, which, flat)
+    if controller != "GP-robust":
+        out = compatibility(*terms, **_params(sc)).compatible
+    else:
+        out = _robust(sc, uncertainty, flat, terms).updated
+    return np.asarray(out).reshape(x.shape[:-1])
+
+
+def _terms(sc: ObstacleScenario, which: str, x: jax.Array) -> LieTerms:
+    """Autodiff Lie terms at states (N, 2), compiled once per call."""
+    system = sc.system(which)
+    clf, cbf = sc.certificates()
+    return jax.jit(jax.vmap(lambda s: lie_terms_point(system, clf, cbf, s)))(x)
+
+
+def _robust(sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerms) -> Any:
+    """:func:`probabilistic_compatibility` of the GP-robust terms at states (N, 2)."""
+    clf, cbf = sc.certificates()
+
+    @jax.jit
+    def margins(x):
+        mean, std = jax.vmap(uncertainty.mean_std)(x)
+        return robust_margins(
+            clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta)
+        )
+
+    return probabilistic_compatibility(
+        terms, margins(x), **_params(sc), delta=sc.delta, n_components=2
+    )
+
+
+def doa_level(
+    sc: ObstacleScenario, controller: str, uncertainty: Any = None, verdicts: Any = None
+) -> float:
+    """``c*``: the smallest ``V`` at which the controller's conditions are incompatible in C.
+
+    Incompatibility needs ``b`` and ``d`` pointing the same way, which happens only on
+    :meth:`ObstacleScenario.parallel_set`; ``c*`` is the minimum of ``V`` over the points of
+    that set with ``h >= 0`` that :func:`verdict` calls incompatible (``inf`` if none).
+    Theorem 1's hypothesis holds on ``{V < c*} ∩ C``. ``verdicts`` (shape (K,), on
+    ``sc.parallel_set()``) may be passed when already computed.
+    """
+    pts = sc.parallel_set()
+    if verdicts is None:
+        verdicts = verdict(sc, controller, pts, uncertainty)
+    bad = ~np.asarray(verdicts) & (np.asarray(sc.h(pts)) >= 0)
+    return float(np.min(np.asarray(sc.V(pts[bad])))) if np.any(bad) else float("inf")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObstacleRun:
+    """The closed loops of one controller with one limit setting, from every start.
+
+    Attributes
+    ----------
+    controller, limits : str
+        From :data:`CONTROLLERS` and :data:`LIMIT_SETTINGS`.
+    x0 : array of shape (N, 2)
+    compatible_formula : bool array of shape (N,)
+        True where the compatible formula was used (start inside the certified domain of
+        attraction, no input limits), False where the relaxed formula was.
+    t : array of shape (T,)
+    x, u : arrays of shape (N, T, 2)
+    V, h : arrays of shape (N, T)
+    compatible : bool array of shape (N, T)
+        The controller's own compatibility flag per step.
+    status : int array of shape (N, T)
+    outcome : str array of shape (N,)
+        See :func:`classify_outcomes`.
+    end_verdict : bool array of shape (N,)
+        :func:`verdict` recomputed at each end point.
+    """
+
+    controller: str
+    limits: str
+    x0: np.ndarray
+    compatible_formula: np.ndarray
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    V: np.ndarray
+    h: np.ndarray
+    compatible: np.ndarray
+    status: np.ndarray
+    outcome: np.ndarray
+    end_verdict: np.ndarray
+
+    def stopped(self, ball_radius: float, rest_speed: float) -> np.ndarray:
+        """Runs at rest outside the goal ball at the end, safe or not; bool (N,)."""
+        speed = np.linalg.norm(self.x[:, -1] - self.x[:, -2], axis=-1) / (self.t[1] - self.t[0])
+        return (speed <= rest_speed) & (np.linalg.norm(self.x[:, -1], axis=-1) > ball_radius)
+
+    def summary(self) -> dict[str, Any]:
+        """Counts per outcome, min h, stuck end points with their verdicts, largest |u|."""
+        stuck = np.flatnonzero(self.outcome == "stuck")
+        unsafe = np.flatnonzero(self.outcome == "unsafe")
+        return {
+            "n_starts": int(len(self.x0)),
+            "outcomes": {o: int(np.sum(self.outcome == o)) for o in OUTCOMES},
+            "compatible_formula_starts": int(np.sum(self.compatible_formula)),
+            "min_h_m2": float(np.min(self.h)),
+            "max_abs_u_mps": float(np.max(np.abs(self.u))),
+            "status": "ok" if np.all(self.status == 0) else "non-finite steps",
+            "stuck": [
+                {
+                    "x0_m": self.x0[i].tolist(),
+                    "end_m": self.x[i, -1].tolist(),
+                    "end_h_m2": float(self.h[i, -1]),
+                    "end_V_m2": float(self.V[i, -1]),
+                    "end_flag_compatible": bool(self.compatible[i, -1]),
+                    "end_verdict_compatible": bool(self.end_verdict[i]),
+                }
+                for i in stuck
+            ],
+            "unsafe": [
+                {"x0_m": self.x0[i].tolist(), "min_h_m2": float(np.min(self.h[i]))}
+                for i in unsafe
+            ],
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class CompatibilityMaps:
+    """Compatibility verdicts over the map grid.
+
+    Attributes
+    ----------
+    x1 : array of shape (n1,)
+    x2 : array of shape (n2,)
+    nominal_region : int array of shape (n1, n2)
+        :class:`~safestab.formulas.Region` of the compatible formula on the nominal terms.
+    nominal_compatible : bool array of shape (n1, n2)
+        Lemma 1 (:func:`~safestab.compatibility`) on the nominal terms.
+    robust_updated : bool array of shape (n1, n2)
+        Eq. (20), corrected, for the GP-robust terms
+        (:func:`~safestab.probabilistic_compatibility`).
+    robust_lemma4 : bool array of shape (n1, n2)
+        Lemma 4's sufficient condition (nominal compatibility and eqs. (18), (19)).
+    probability : float
+        ``(1 - delta)^2``, the probability stated with the robust verdict.
+    """
+
+    x1: np.ndarray
+    x2: np.ndarray
+    nominal_region: np.ndarray
+    nominal_compatible: np.ndarray
+    robust_updated: np.ndarray
+    robust_lemma4: np.ndarray
+    probability: float
+
+
+def compatibility_maps(sc: ObstacleScenario, uncertainty: Any) -> CompatibilityMaps:
+    """Evaluate the Lemma 1 and the probabilistic verdicts over the map grid.
+
+    Parameters
+    ----------
+    sc : ObstacleScenario
+    uncertainty : UncertaintyModel
+        The model of ``omega`` the GP-robust controller uses.
+    """
+    x1, x2 = sc.map_axes()
+    grid = jnp.asarray(np.stack(np.meshgrid(x1, x2, indexing="ij"), -1).reshape(-1, 2))
+    terms = _terms(sc, "nominal", grid)
+    params = _params(sc)
+    comp = compatibility(*terms, **params)
+    region = clf_cbf(*terms, **params).region
+    pc = _robust(sc, uncertainty, grid, terms)
+    shape = (len(x1), len(x2))
+    return CompatibilityMaps(
+        x1=x1,
+        x2=x2,
+        nominal_region=np.asarray(region).reshape(shape),
+        nominal_compatible=np.asarray(comp.compatible).reshape(shape),
+        robust_updated=np.asarray(pc.updated).reshape(shape),
+        robust_lemma4=np.asarray(pc.lemma4).reshape(shape),
+        probability=pc.probability,
+    )
+
+
+@dataclasses.dataclass
+class ObstacleStudyResult:
+    """Everything the obstacle study produced."""
+
+    scenario: ObstacleScenario
+    gp: GaussianProcessModel
+    uncertainty: Any  #: the model the GP-robust controller used (the GP or a FastGP)
+    coverage: dict[str, Any]
+    doa: dict[str, float]  #: c* per controller, m^2
+    runs: dict[tuple[str, str], ObstacleRun]
+    maps: CompatibilityMaps
+    parallel_set: np.ndarray  #: (K, 2) points where b, d point the same way
+    parallel_verdicts: dict[str, np.ndarray]  #: per controller, (K,) bool
+    timings: dict[str, float]
+
+    def metrics_document(self) -> dict[str, Any]:
+        """Outcomes per run, ``c*``, GP coverage, map counts and timings, as strict JSON data.
+
+        Non-finite numbers become ``None`` (JSON ``null``), listed under ``non_finite`` with
+        ``status = "non-finite"``; otherwise ``status = "ok"``.
+        """
+        sc = self.scenario
+        doc = {
+            "scenario": sc.name,
+            "kind": "obstacle",
+            "settings": {
+                "seed": sc.seed,
+                "n_samples": sc.n_samples,
+                "t_final_s": sc.t_final,
+                "dt_s": sc.dt,
+                "n_starts": int(len(sc.start_states())),
+                "gp_controller": "exact" if sc.n_inducing == 0 else f"FastGP M={sc.n_inducing}",
+            },
+            "doa_c_star_m2": self.doa,
+            "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},
+            "runs": {
+                f"{c} / {lim}": run.summary() for (c, lim), run in self.runs.items()
+            },
+            "gp": self.coverage,
+            "maps": {
+                "grid": [len(self.maps.x1), len(self.maps.x2)],
+                "nominal_incompatible_points": int(np.sum(~self.maps.nominal_compatible)),
+                "robust_incompatible_points": int(np.sum(~self.maps.robust_updated)),
+                "robust_lemma4_points": int(np.sum(self.maps.robust_lemma4)),
+                "stated_probability": self.maps.probability,
+            },
+            "timings_s": self.timings,
+        }
+        clean, found = replace_non_finite(doc)
+        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+
+    def write_metrics(self, path: str | Path) -> None:
+        """Write :meth:`metrics_document` as strict JSON, atomically."""
+        atomic_write_json(path, self.metrics_document())
+
+
+def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray) -> dict[str, Any]:
+    """Held-out coverage of ``|omega_i - m_i| <= beta sigma_i`` against the true current."""
+    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
+    err = np.abs(np.asarray(sc.omega(x)) - np.asarray(mean))
+    inside = err <= sc.gp_beta * np.asarray(std)
+    return {
+        "n_held_out": int(len(x)),
+        "per_component": inside.mean(0).tolist(),
+        "joint": float(np.all(inside, -1).mean()),
+        "rmse_mps": np.sqrt((err**2).mean(0)).tolist(),
+        "beta": sc.gp_beta,
+        "delta": sc.delta,
+        "stated_probability": (1 - sc.delta) ** 2,
+    }
+
+
+def run_obstacle_study(
+    scenario: ObstacleScenario,
+    *,
+    seed: int | None = None,
+    progress: Progress | None = None,
+    n_samples: int | None = None,
+    t_final: float | None = None,
+) -> ObstacleStudyResult:
+    """Run the obstacle study for a scenario.
+
+    Parameters
+    ----------
+    scenario : ObstacleScenario
+    seed : int, optional
+        Overrides the scenario's seed (data collection, GP subset).
+    progress : callable, optional
+        Called as ``progress(message, fraction_done)``.
+    n_samples, t_final : optional
+        Override ``Q`` and the horizon; checked like the file, recorded in the result.
+
+    Returns
+    -------
+    ObstacleStudyResult
+
+    Raises
+    ------
+    ScenarioError
+        If an override is invalid; raised before any work.
+    """
+    report = progress or (lambda msg, frac: None)
+    overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
+    sc = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
+    true_sys, nominal = sc.system("true"), sc.system("nominal")
+    clf, cbf = sc.certificates()
+    params = _params(sc)
+    u_min, u_max = sc.input_limits()
+    timings: dict[str, float] = {}
+
+    report("collecting data", 0.0)
+    t0 = time.perf_counter()
+    q = sc.n_samples
+    n_test = max(50, q // 4)
+    n_check = n_test if sc.n_inducing > 0 else 0
+    span = sc.excitation_limit
+    data = collect_data(
+        true_sys,
+        nominal,
+        x0=(sc.x0_low, sc.x0_high),
+        u_low=-span,
+        u_high=span,
+        n_samples=q + n_test + n_check,
+        rate=sc.sample_rate,
+        horizon=sc.sample_horizon,
+        noise_std=sc.noise_std,
+        seed=sc.seed,
+    )
+    timings["collect_data"] = time.perf_counter() - t0
+
+    report(f"fitting the GP (Q = {q}, n = 2)", 0.1)
+    t0 = time.perf_counter()
+    gp = GaussianProcessModel(kernel=sc.kernel).fit(  # type: ignore[arg-type]
+        data.x[:q], data.y[:q], hyper_subset=min(sc.hyper_subset, q), seed=sc.seed
+    )
+    uncertainty: Any = gp
+    if sc.n_inducing > 0:
+        # the cache's band provably contains the exact band for beta >= min_beta (1.0)
+        uncertainty = FastGP(gp, sc.n_inducing)
+    timings["fit_gp"] = time.perf_counter() - t0
+    coverage = _coverage(sc, uncertainty, data.x[q : q + n_test])
+
+    report("domains of attraction and maps", 0.2)
+    t0 = time.perf_counter()
+    unc_of = {"true model": None, "mismatched model": None, "GP-robust": uncertainty}
+    pset = sc.parallel_set()
+    pverd = {c: verdict(sc, c, pset, unc_of[c]) for c in CONTROLLERS}
+    doa = {c: doa_level(sc, c, verdicts=pverd[c]) for c in CONTROLLERS}
+    maps = compatibility_maps(sc, uncertainty)
+    timings["doa_and_maps"] = time.perf_counter() - t0
+
+    x0 = sc.start_states()
+    v0 = np.asarray(sc.V(x0))
+    runs: dict[tuple[str, str], ObstacleRun] = {}
+    model_of = {"true model": true_sys, "mismatched model": nominal, "GP-robust": nominal}
+    n_runs, k = len(CONTROLLERS) * len(LIMIT_SETTINGS), 0
+    for name in CONTROLLERS:
+        extra: dict[str, Any] = {}
+        if unc_of[name] is not None:
+            extra = {"uncertainty": unc_of[name], "gp_beta": sc.gp_beta}
+        for limits in LIMIT_SETTINGS:
+            # Theorem 1 (2) applies inside the certified sublevel set and without limits
+            inside = (v0 < sc.doa_fraction * doa[name]) & (limits == "no limits")
+            report(f"simulating: {name}, {limits}", 0.3 + 0.7 * k / n_runs)
+            k += 1
+            t0 = time.perf_counter()
+            box: dict[str, Any] = {}
+            if limits == "input limits":
+                box = {"u_min": u_min, "u_max": u_max}
+            parts = {}
+            for hard, sel in ((True, inside), (False, ~inside)):
+                if not np.any(sel):
+                    continue
+                ctrl = UniversalController(
+                    model_of[name],
+                    clf,
+                    cbf,
+                    slack_weight=None if hard else sc.slack_weight,
+                    **params,
+                    **box,
+                    **extra,
+                )
+                tr = simulate(ctrl, x0[sel], t_final=sc.t_final, dt=sc.dt, plant=true_sys)
+                parts[hard] = (sel, tr)
+            runs[(name, limits)] = _merge(sc, name, limits, x0, inside, parts, unc_of[name])
+            timings[f"simulate {name}, {limits}"] = time.perf_counter() - t0
+    report("done", 1.0)
+    return ObstacleStudyResult(
+        scenario=sc,
+        gp=gp,
+        uncertainty=uncertainty,
+        coverage=coverage,
+        doa=doa,
+        runs=runs,
+        maps=maps,
+        parallel_set=pset,
+        parallel_verdicts=pverd,
+        timings=timings,
+    )
+
+
+def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
+    """Put the compatible-formula and relaxed-formula batches back in start order."""
+    n = len(x0)
+    fields: dict[str, np.ndarray] = {}
+    t = None
+    for sel, tr in parts.values():
+        t = np.asarray(tr.t)
+        for f in ("x", "u", "V", "h", "compatible", "status"):
+            arr = np.asarray(getattr(tr, f))
+            if f not in fields:
+                fields[f] = np.empty((n,) + arr.shape[1:], arr.dtype)
+            fields[f][sel] = arr
+    assert t is not None  # at least one part: x0 is not empty
+    outcome = classify_outcomes(fields["x"], fields["h"], sc.dt, sc.ball_radius, sc.rest_speed)
+    end = fields["x"][:, -1]
+    finite = np.all(np.isfinite(end), -1)
+    end_verdict = np.zeros(n, bool)
+    if np.any(finite):
+        end_verdict[finite] = verdict(sc, name, end[finite], uncertainty)
+    return ObstacleRun(
+        controller=name,
+        limits=limits,
+        x0=x0,
+        compatible_formula=inside,
+        t=t,
+        outcome=outcome,
+        end_verdict=end_verdict,
+        **fields,
+    )

@@ -15,6 +15,7 @@ from safestab.learning import (
     calibration,
     collect_data,
     confidence,
+    conformal_beta,
     information_gain,
 )
 from safestab.scenarios import load_scenario
@@ -86,13 +87,19 @@ def test_recover_acc_drag_mismatch():
         sc.system("true"), sc.system("nominal"), x0=(sc.x0_low, sc.x0_high),
         u_low=-0.3, u_high=0.3, n_samples=600, rate=10, horizon=10, noise_std=1e-3, seed=1,
     )  # fmt: skip
-    train, test = data.split(0.33, seed=0)
+    train, rest = data.split(0.5, seed=0)
+    calib, test = rest.split(0.5, seed=1)
     gp = GaussianProcessModel().fit(train.x, train.y, components=[0])
     omega = np.asarray(sc.omega(test.x))
-    cal = calibration(gp, test.x, omega, 2.0)
     assert np.mean(np.abs(omega[:, 0])) > 0.3  # the mismatch is about 0.6 m/s^2
-    assert cal.rmse[0] < 1e-3  # stated accuracy: 1 mm/s^2, i.e. < 0.2 % of the mismatch
-    assert cal.per_component[0] >= NOMINAL_COVERAGE_BETA2
+    assert calibration(gp, test.x, omega, 2.0).rmse[0] < 1e-3  # 1 mm/s^2: < 0.2 % of it
+    # A chosen beta = 2 promises no coverage on a deterministic target (issue 14: the
+    # multi-start maximum-likelihood fit gives 0.87 here); the conformal beta calibrated on
+    # separate states does. Split conformal gives coverage >= 0.95 in expectation over the
+    # calibration draw; on ~150 test states 0.9 leaves about three standard deviations.
+    rep = conformal_beta(gp, calib.x, np.asarray(sc.omega(calib.x)), 0.05)
+    beta_c = float(np.asarray(rep.beta)[0])
+    assert calibration(gp, test.x, omega, beta_c).per_component[0] >= 0.9
     _, std = gp.predict(test.x)
     assert np.all(np.asarray(std)[:, 1:] == 0)  # skipped components are exact
 

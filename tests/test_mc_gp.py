@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safestab.learning import FastGP, GaussianProcessModel, collect_data
+from safestab.learning import GaussianProcessModel, collect_data
 from safestab.montecarlo import (
     BatchedUncertainty,
     Hyperparameters,
@@ -40,22 +40,25 @@ def test_conditioning_matches_the_model(fitted):
     np.testing.assert_allclose(s**2, var, atol=1e-8 * gp.amplitude_.max() ** 2)
 
 
-def test_inducing_cache_matches_fastgp(fitted):
+def test_inducing_cache_widened_band_contains_the_exact_band_where_calibrated(fitted):
+    """The Monte Carlo cache (inducing points, measured widening, as FastGP was before issue 14)
+    against the exact posterior: its mean is close, and on the states it was calibrated on its
+    widened band contains the exact band (what the measured widening promises, no more)."""
     gp, post, x_check, x = fitted
-    fast = FastGP(gp, 16)
-    fast.calibrate(x_check, 2.0)
     cache = inducing_cache(post, 16, x_check=x_check, beta=2.0)
-    np.testing.assert_array_equal(
-        np.sort(cache.mask.sum(1)), np.sort(fast.n_inducing_.astype(float))
-    )
-    mf, sf = (np.asarray(a) for a in jax.vmap(fast.mean_std)(jnp.asarray(x)))
-    mc, sc = (np.asarray(a) for a in cache.mean_std_batch(jnp.asarray(x)))
-    amp2 = gp.amplitude_.max() ** 2
-    # same construction, other kernel code and factorisation: agreement to rounding, amplified
-    # by the prior-residual cancellation k(x,x) - |a|^2 (fast.py's docstring): 1e-9 amp^2
-    np.testing.assert_allclose(mc, mf, atol=1e-6 * np.abs(mf).max())
-    np.testing.assert_allclose(sc**2, sf**2, atol=1e-9 * amp2)
-    np.testing.assert_allclose(np.asarray(cache.widening), fast.widening_, rtol=1e-3)
+    assert int(cache.mask.sum()) >= 16  # every component has its inducing points
+    mc, sc = (np.asarray(a) for a in cache.mean_std_batch(jnp.asarray(x_check)))
+    me, se = (np.asarray(a) for a in post.mean_std_batch(jnp.asarray(x_check)))
+    comps = list(gp.components_)
+    lo_c, hi_c = mc - 2.0 * sc, mc + 2.0 * sc
+    lo_e, hi_e = me - 2.0 * se, me + 2.0 * se
+    # containment to rounding (1e-9 of the amplitude) on the calibration states
+    tol = 1e-9 * gp.amplitude_.max()
+    assert np.all(lo_c[:, comps] <= lo_e[:, comps] + tol)
+    assert np.all(hi_c[:, comps] >= hi_e[:, comps] - tol)
+    # 16 of 200 points carry the posterior mean to a small fraction of its range
+    span = np.abs(me[:, comps]).max()
+    assert np.abs(mc[:, comps] - me[:, comps]).max() <= 0.05 * span
 
 
 def test_batched_uncertainty_rule_equals_the_batch(fitted):

@@ -314,8 +314,8 @@ def _describe_controller(controller: Any) -> str:
         extra = ""
         if hasattr(unc, "n_inducing_"):
             extra = (
-                f" (inducing points per component {np.asarray(unc.n_inducing_).tolist()}, "
-                f"widening {np.round(np.asarray(unc.widening_), 6).tolist()})"
+                f" (inducing points per component {np.asarray(unc.n_inducing_).tolist()}; its "
+                f"band contains the exact band for beta >= {getattr(unc, 'min_beta', 1.0)})"
             )
         lines.append(
             f"GP-robust Lie terms (Lemma 3, Theorem 2) from {type(unc).__name__}{extra}, "

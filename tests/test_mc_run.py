@@ -125,8 +125,6 @@ def test_summary_and_strict_json(local_run):
         (dict(trials=2, datasets=3), r"datasets must be <= trials"),
         (dict(seed=-1), r"seed must be an integer >= 0"),
         (dict(backend="dask"), r"backend must be one of \('local', 'ray'\), got 'dask'"),
-        (dict(spec=SPEC.replace(controllers=("GP-robust conformal",))),
-         r"'GP-robust conformal' needs safestab.learning.conformal_beta"),
     ],
 )  # fmt: skip
 def test_bad_arguments_raise_before_work(kwargs, match):

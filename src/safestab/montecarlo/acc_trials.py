@@ -199,9 +199,9 @@ def fit_dataset(
                 "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
                 "(issue 14), which this installation does not provide"
             )
-        betas["GP-robust conformal"] = np.asarray(
-            conformal(BatchedUncertainty(cache), x_test, omega_test, spec.delta), float
-        )
+        report = conformal(BatchedUncertainty(cache), x_test, omega_test, spec.delta)
+        # issue 14's conformal_beta returns a report whose beta has shape (n,)
+        betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
     coverage = {
         name: float(np.mean(np.all(np.abs(omega_test - mean) <= b * std, axis=1)))
         for name, b in betas.items()

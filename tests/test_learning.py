@@ -92,7 +92,17 @@ def test_recover_acc_drag_mismatch():
     cal = calibration(gp, test.x, omega, 2.0)
     assert np.mean(np.abs(omega[:, 0])) > 0.3  # the mismatch is about 0.6 m/s^2
     assert cal.rmse[0] < 1e-3  # stated accuracy: 1 mm/s^2, i.e. < 0.2 % of the mismatch
-    assert cal.per_component[0] >= NOMINAL_COVERAGE_BETA2
+    # beta = 2 is hand-chosen: no guarantee (here 0.87; 0.84 to 1.0 over ten data seeds in
+    # docs/learning.md). A conformal beta from a random half of the held-out rows (a random
+    # split makes the halves exchangeable) covers the other half at >= 0.95 in expectation;
+    # one draw of 99 rows: 3 binomial standard deviations below is 0.885.
+    from safestab.learning import conformal_beta
+
+    perm = np.random.default_rng(0).permutation(len(test))
+    half_a, half_b = test._take(perm[: len(test) // 2]), test._take(perm[len(test) // 2 :])
+    rep = conformal_beta(gp, half_a.x, np.asarray(sc.omega(half_a.x)), 0.05)
+    cov = calibration(gp, half_b.x, np.asarray(sc.omega(half_b.x)), rep.beta).per_component[0]
+    assert cov >= 0.95 - 3 * np.sqrt(0.05 * 0.95 / len(half_b))
     _, std = gp.predict(test.x)
     assert np.all(np.asarray(std)[:, 1:] == 0)  # skipped components are exact
 

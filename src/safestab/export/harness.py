@@ -31,7 +31,7 @@ DEFAULT_RTOL = {"double": 1e-12, "float": 1e-5}
 _INPUT_LEAVES = ("u", "u_unconstrained")
 
 
-def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
+def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray]:
     """Per output leaf, the magnitude its rounding error is relative to.
 
     Parameters
@@ -39,7 +39,9 @@ def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
     controller : UniversalController
         The controller whose step produced ``out``.
     out : ControlOutput
-        The JAX step at states of shape (N, n) (leaves with a leading axis N).
+        The JAX step at ``states`` (leaves with a leading axis N).
+    states : array of shape (N, n)
+        The states of ``out``.
 
     Returns
     -------
@@ -47,15 +49,32 @@ def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
         One per leaf (in pytree order), broadcastable to the leaf: for ``u`` and
         ``u_unconstrained``, ``|lambda1| |b| + |lambda2| |d|`` per state (the terms the formula
         subtracts; multipliers from :func:`~safestab.clf_cbf` or
-        :func:`~safestab.clf_cbf_relaxed` on the step's own Lie terms), plus in region P3
-        the magnitudes of the products in the multipliers' numerators over the Gram
-        determinant (the products may cancel); for other real leaves
-        the largest magnitude of that leaf over the N states; zeros for integer leaves.
+        :func:`~safestab.clf_cbf_relaxed` on the step's own Lie terms), plus the sensitivity of
+        ``u`` to the rounding of the margins ``A = a + kappa zeta`` and ``B = rho Gamma - c``
+        (in P1 and P2 ``|b| / |b|^2`` and ``|d| / |d|^2`` times their magnitudes, in P3 the
+        products in the multipliers' numerators over the Gram determinant); for other real
+        leaves the largest magnitude of that leaf over the N states; zeros for integer leaves.
+
+    Notes
+    -----
+    The magnitude of a margin is that of its summands, not of its value: ``a`` and ``c`` are
+    themselves sums (``L_f V = dV/dx . f`` term by term, the class-K term, and with a GP
+    ``dV/dx . m + sum_i |dV/dx_i| beta_i sigma_i``), which can cancel to far below their parts.
+    With a :class:`~safestab.learning.FastGP` the std's own rounding scale
+    (:meth:`~safestab.learning.FastGP.std_rounding_scale`, its variance is a difference) is
+    included as well.
     """
     from .. import Region, clf_cbf, clf_cbf_relaxed
+    from ..certificates import lie_terms_point
 
+    x = np.asarray(states, float)
+    xj = jax.numpy.asarray(x)
     a, b, c, d = (np.asarray(t) for t in out.terms)
+    if x.ndim != 2 or x.shape[0] != a.shape[0]:
+        raise DimensionError(f"states must have shape ({a.shape[0]}, n), got {x.shape}")
     p = dict(controller.params)
+    phi, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(xj))
+    p.update(phi=phi, varphi=varphi)
     if controller.slack_weight is None:
         res = clf_cbf(a, b, c, d, parallel_rtol=controller.parallel_rtol, **p)
     else:
@@ -64,16 +83,36 @@ def comparison_scales(controller: Any, out: Any) -> list[np.ndarray]:
     bn = np.linalg.norm(b, axis=-1)
     dn = np.linalg.norm(d, axis=-1)
     u_scale = lam[..., 0] * bn + lam[..., 1] * dn
-    # The margins A = a + kappa zeta and B = rho Gamma - c can be small differences of large
-    # numbers (a < 0, c > 0): their rounding is relative to |a| + kappa zeta and |c| + rho
-    # Gamma. In region P3 the multipliers are (w, v) / det with v = A b.d + B |b|^2 and
-    # w = A |d|^2 + B b.d (Gram form; relaxed: |b|^2 + 1/slack_weight), whose two products
-    # can cancel as well.
+
+    # magnitudes of the summands of a and c
+    sys_, clf, cbf = controller.system, controller.clf, controller.cbf
+    grad_v = np.abs(np.asarray(jax.vmap(clf.grad)(xj)))
+    grad_h = np.abs(np.asarray(jax.vmap(cbf.grad)(xj)))
+    f = np.asarray(jax.vmap(sys_.f)(xj))
+    nominal = jax.vmap(lambda s: lie_terms_point(sys_, clf, cbf, s))(xj)
+    a_class_k = np.abs(np.asarray(nominal.a) - np.sum(np.asarray(jax.vmap(clf.grad)(xj)) * f, -1))
+    c_class_k = np.abs(np.asarray(nominal.c) - np.sum(np.asarray(jax.vmap(cbf.grad)(xj)) * f, -1))
+    a_sum = np.sum(grad_v * np.abs(f), -1) + a_class_k
+    c_sum = np.sum(grad_h * np.abs(f), -1) + c_class_k
+    if controller.uncertainty is not None:
+        unc = controller.uncertainty
+        mean, std = (np.asarray(t) for t in jax.vmap(unc.mean_std)(xj))
+        beta = np.broadcast_to(np.asarray(controller.gp_beta, float), (x.shape[1],))
+        spread = np.abs(mean) + beta * std
+        if hasattr(unc, "std_rounding_scale"):
+            spread = spread + beta * np.asarray(unc.std_rounding_scale(x))
+        a_sum = a_sum + np.sum(grad_v * spread, -1)
+        c_sum = c_sum + np.sum(grad_h * spread, -1)
+
+    # The margins A = a + kappa zeta and B = rho Gamma - c: their rounding is relative to the
+    # summands' magnitudes. In region P3 the multipliers are (w, v) / det with
+    # v = A b.d + B |b|^2 and w = A |d|^2 + B b.d (Gram form; relaxed: |b|^2 + 1/slack_weight),
+    # whose two products can cancel as well.
     inv_slack = 0.0 if controller.slack_weight is None else 1.0 / controller.slack_weight
-    kappa, rho, phi, varphi = (controller.params[k] for k in ("kappa", "rho", "phi", "varphi"))
+    kappa, rho = controller.params["kappa"], controller.params["rho"]
     bb, dd, bd = bn**2 + inv_slack, dn**2, np.abs(np.sum(b * d, axis=-1))
-    a_mag = np.abs(a) + kappa * np.sqrt(a * a + phi * bn**4)
-    b_mag = np.abs(c) + rho * np.sqrt(c * c + varphi * dn**4)
+    a_mag = np.abs(a) + a_sum + kappa * np.sqrt(a * a + phi * bn**4)
+    b_mag = np.abs(c) + c_sum + rho * np.sqrt(c * c + varphi * dn**4)
     cross = b[..., :, None] * d[..., None, :] - b[..., None, :] * d[..., :, None]
     det = 0.5 * np.sum(cross * cross, axis=(-2, -1)) + inv_slack * dd
     region = np.asarray(out.region)

@@ -148,7 +148,7 @@ def export_scenario(
     states = rng.uniform(sc.x0_low, sc.x0_high, size=(int(cases), len(sc.x0_low)))
     expected = ctrl.step_fn(states)
     harness = write_harness(
-        exported, states, expected, out, scales=comparison_scales(ctrl, expected)
+        exported, states, expected, out, scales=comparison_scales(ctrl, expected, states)
     )
     files = (out / f"{name}.c", out / f"{name}.h", harness)
     build = (

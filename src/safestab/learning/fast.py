@@ -340,6 +340,36 @@ class FastGP:
         std[:, comps] = sd_c + merr / self.min_beta
         return mean, std
 
+    def std_rounding_scale(self, x: Any) -> np.ndarray:
+        """Magnitude relative to which the std at ``x`` is rounded; shape (N, n).
+
+        The std is formed from ``r^2 = amp^2 - |a|^2`` (a difference) and the variance
+        ``r^2 + ...``, whose rounding is relative to ``S = (M + 2 + cond(Lj)) amp^2`` (the
+        allowance ``rnd = 2 u S`` of the module docstring). Through ``sqrt`` that becomes
+        ``S / (2 sd)`` in ``sqrt(v~)`` and ``(E / min_beta) S / (2 r)`` in the mean-error term,
+        so two float64 evaluations of :meth:`mean_std` (XLA's and the exported C, say) agree
+        to a small multiple of ``u`` times the returned value, not of ``u`` times the std.
+        Zero for components that are not learned.
+
+        Parameters
+        ----------
+        x : array of shape (N, n)
+        """
+        x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != self.n_states:
+            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
+        check_finite("x", x)
+        _, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
+        big = np.asarray(self._round) / (2 * _U)  # S per component
+        err = np.asarray(self._err)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sd_part = big / (2 * sd_c)
+            # merr = E r, so E / (2 r) = E^2 / (2 merr); zero where E = 0
+            mean_part = np.where(err > 0, big * err**2 / (2 * merr), 0.0) / self.min_beta
+        out = np.zeros(x.shape)
+        out[:, list(self.components_)] = sd_part + mean_part
+        return out
+
     def mean_error_bound(self, x: Any) -> np.ndarray:
         """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""
         x = np.asarray(x, float)

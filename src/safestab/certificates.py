@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, check_scalar_range
 from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
@@ -101,9 +102,11 @@ class _Certificate:
         rate: float | None,
         grad: Callable[[jax.Array], jax.Array] | None = None,
         class_k: Callable[[jax.Array], jax.Array] | None = None,
+        params: Any = None,
     ) -> None:
         if not callable(fn):
             raise TypeError(f"{self._fn_name} must be a callable taking a state of shape (n,)")
+        spec = make_spec(params, f"{self._kind} {self._fn_name}")
         if grad is not None and not callable(grad):
             raise TypeError("grad must be None or a callable returning shape (n,)")
         if (rate is None) == (class_k is None):
@@ -125,9 +128,15 @@ class _Certificate:
         self.class_k = class_k
         self.grad = grad if grad is not None else jax.grad(fn)
         self.hand_gradient = grad is not None
+        #: The declared run-time parameters (None: ``fn`` and ``grad`` take the state only).
+        self.params_spec: ParamSpec | None = spec
+        #: ``fn`` and ``grad`` as functions of ``(x, p)`` whether or not they take parameters.
+        self.fn_of = bind(fn, spec is not None)
+        self.grad_of = bind(self.grad, spec is not None)
         #: 1 for a plain certificate; 2 for :func:`high_order_cbf` (whose ``base`` is ``h``)
         self.relative_degree = 1
         self.base: Callable | None = None
+        #: gradient of ``base`` as a function of ``(x, p)`` (high-order CBFs only)
         self.base_grad: Callable | None = None
 
     def rate_term(self, value: jax.Array) -> jax.Array:
@@ -144,43 +153,64 @@ class _Certificate:
         DimensionError
             If the function is not scalar-valued or the gradient has the wrong shape.
         """
-        probe = jax.ShapeDtypeStruct((n_states,), jnp.float64)
-        out = jax.eval_shape(self.fn, probe)
+        spec = self.params_spec
+        out = trace_shape(self._fn_name, self.fn, n_states, spec)
         shape = getattr(out, "shape", None)
         if not isinstance(out, jax.ShapeDtypeStruct) or shape != ():
             got = f"shape {shape}" if shape is not None else type(out).__name__
             raise DimensionError(f"{self._fn_name} must return a scalar, got {got}")
-        gshape = getattr(jax.eval_shape(self.grad, probe), "shape", None)
+        gshape = getattr(
+            trace_shape(f"grad of {self._fn_name}", self.grad, n_states, spec), "shape", None
+        )
         if gshape != (n_states,):
             raise DimensionError(
                 f"grad of {self._fn_name} must return shape ({n_states},), got {gshape}"
             )
 
-    def relative_degree_holds(self, system: ControlAffineSystem, x: jax.Array) -> jax.Array:
+    def relative_degree_holds(
+        self, system: ControlAffineSystem, x: jax.Array, p: Any = None
+    ) -> jax.Array:
         """Whether ``L_g`` of the base constraint is zero at one state (True for degree 1).
 
         For :func:`high_order_cbf`: ``|L_g h| <= RELATIVE_DEGREE_RTOL (|grad h| |g|)``.
+        ``p``: the run-time parameters (unchecked), when the system or ``h`` takes them.
         """
         if self.relative_degree == 1 or self.base_grad is None:
             return jnp.asarray(True)
-        gh, g = self.base_grad(x), system.g(x)
+        gh, g = self.base_grad(x, p), system.g_of(x, p)
         return jnp.all(jnp.abs(gh @ g) <= RELATIVE_DEGREE_RTOL * (jnp.abs(gh) @ jnp.abs(g)))
 
-    def value(self, x: jax.Array) -> jax.Array:
-        """The function's value: shape (..., n) to (...,)."""
-        return over_batch(self.fn, x)
+    def value(self, x: jax.Array, params: Any = None) -> jax.Array:
+        """The function's value: shape (..., n) to (...,) (``params`` if it takes them)."""
+        p = resolve(self.params_spec, params, f"{self._kind} {self._fn_name}")
+        return over_batch(lambda s: self.fn_of(s, p), x)
 
-    def gradient(self, x: jax.Array) -> jax.Array:
-        """The gradient: shape (..., n) to (..., n)."""
-        return over_batch(self.grad, x)
+    def gradient(self, x: jax.Array, params: Any = None) -> jax.Array:
+        """The gradient: shape (..., n) to (..., n) (``params`` if it takes them)."""
+        p = resolve(self.params_spec, params, f"{self._kind} {self._fn_name}")
+        return over_batch(lambda s: self.grad_of(s, p), x)
 
-    def _lie_point(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        grad = self.grad(x)
-        return grad @ system.f(x) + self.rate_term(self.fn(x)), grad @ system.g(x)
+    def lie_point(
+        self, system: ControlAffineSystem, x: jax.Array, p: Any = None
+    ) -> tuple[jax.Array, jax.Array]:
+        """``(L_f + rate) value`` and ``L_g value`` at one state, unchecked and jittable.
 
-    def lie(self, system: ControlAffineSystem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        ``p``: the run-time parameters (unchecked), passed to whichever of ``f``, ``g`` and
+        the certificate take them.
+        """
+        grad = self.grad_of(x, p)
+        return (
+            grad @ system.f_of(x, p) + self.rate_term(self.fn_of(x, p)),
+            grad @ system.g_of(x, p),
+        )
+
+    def lie(
+        self, system: ControlAffineSystem, x: jax.Array, params: Any = None
+    ) -> tuple[jax.Array, jax.Array]:
         """``(L_f + rate) value`` of shape (...,) and ``L_g value`` of shape (..., m)."""
-        return over_batch(lambda s: self._lie_point(system, s), x)
+        spec = merge_specs([system.params_spec, self.params_spec])
+        p = resolve(spec, params, f"the {self._kind} with its system")
+        return over_batch(lambda s: self.lie_point(system, s, p), x)
 
 
 class CLF(_Certificate):
@@ -197,6 +227,9 @@ class CLF(_Certificate):
     gamma : callable, optional
         Instead of ``lam``: an extended class-K function (``gamma(0) = 0``, strictly
         increasing), scalar to scalar, giving ``a = L_f V + gamma(V)``.
+    params : pytree, optional
+        An example of run-time parameters; when given, ``V`` (and ``grad``) take ``(x, p)``
+        (a moving set-point, say). Controllers pass the ``p`` of each call.
 
     Raises
     ------
@@ -221,8 +254,9 @@ class CLF(_Certificate):
         grad: Callable | None = None,
         *,
         gamma: Callable | None = None,
+        params: Any = None,
     ) -> None:
-        super().__init__(V, lam, grad, gamma)
+        super().__init__(V, lam, grad, gamma, params)
 
     @property
     def V(self) -> Callable:
@@ -254,6 +288,9 @@ class CBF(_Certificate):
     alpha : callable, optional
         Instead of ``beta``: an extended class-K function (``alpha(0) = 0``, strictly
         increasing), scalar to scalar, giving ``c = L_f h + alpha(h)``.
+    params : pytree, optional
+        An example of run-time parameters; when given, ``h`` (and ``grad``) take ``(x, p)``
+        (a moving obstacle, say). Controllers pass the ``p`` of each call.
 
     Raises
     ------
@@ -278,8 +315,9 @@ class CBF(_Certificate):
         grad: Callable | None = None,
         *,
         alpha: Callable | None = None,
+        params: Any = None,
     ) -> None:
-        super().__init__(h, beta, grad, alpha)
+        super().__init__(h, beta, grad, alpha, params)
 
     @property
     def h(self) -> Callable:
@@ -305,6 +343,7 @@ def high_order_cbf(
     beta: float | None = None,
     alpha: Callable[[jax.Array], jax.Array] | None = None,
     probe: Any = None,
+    params: Any = None,
 ) -> CBF:
     """A CBF of relative degree 2 (a high-order / exponential CBF), built by autodiff.
 
@@ -328,6 +367,9 @@ def high_order_cbf(
     probe : array of shape (k, n), optional
         States at which ``L_g h = 0`` is checked at construction (default: the origin and 16
         seeded standard-normal states).
+    params : pytree, optional
+        An example of run-time parameters; when given, ``h`` takes ``(x, p)``. The returned
+        CBF takes ``(x, p)`` when ``h`` or the system does (the probe check uses the example).
 
     Returns
     -------
@@ -354,9 +396,19 @@ def high_order_cbf(
             return rate1 * v
 
     grad_h = jax.grad(h)
+    spec = merge_specs([system.params_spec, make_spec(params, "high_order_cbf's h")])
+    takes = params is not None
+    h_of, grad_h_of = bind(h, takes), bind(grad_h, takes)
+    psi1: Callable
+    if spec is None:
 
-    def psi1(x: jax.Array) -> jax.Array:
-        return grad_h(x) @ system.f(x) + first(h(x))
+        def psi1(x: jax.Array) -> jax.Array:
+            return grad_h(x) @ system.f(x) + first(h(x))
+
+    else:
+
+        def psi1(x: jax.Array, p: Any) -> jax.Array:
+            return grad_h_of(x, p) @ system.f_of(x, p) + first(h_of(x, p))
 
     n = system.n_states
     pts = (
@@ -364,7 +416,8 @@ def high_order_cbf(
         if probe is not None
         else np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
     )
-    lgh, scale = _lg_h(system, grad_h, jnp.asarray(pts))
+    example = None if spec is None else spec.example
+    lgh, scale = _lg_h(system, grad_h_of, jnp.asarray(pts), example)
     bad = np.flatnonzero(
         ~(np.abs(np.asarray(lgh)) <= RELATIVE_DEGREE_RTOL * np.asarray(scale)).all(-1)
     )
@@ -374,24 +427,28 @@ def high_order_cbf(
             f"h does not have relative degree 2: L_g h = {np.asarray(lgh)[i].tolist()} != 0 at "
             f"x = {pts[i].tolist()}; use a plain CBF, or a constraint the input does not act on"
         )
-    cbf = CBF(psi1, beta=beta, alpha=alpha)
+    cbf = CBF(psi1, beta=beta, alpha=alpha, params=example)
     cbf.relative_degree = 2
     cbf.base = h
-    cbf.base_grad = grad_h
+    cbf.base_grad = grad_h_of
     return cbf
 
 
-def _lg_h(system: ControlAffineSystem, grad_h: Callable, x: jax.Array) -> tuple[Any, Any]:
+def _lg_h(
+    system: ControlAffineSystem, grad_h_of: Callable, x: jax.Array, p: Any
+) -> tuple[Any, Any]:
     """``L_g h`` (..., m) and the scale ``|grad h| |g|`` (..., m) of its rounding."""
 
     def point(s: jax.Array) -> tuple[jax.Array, jax.Array]:
-        gh, g = grad_h(s), system.g(s)
+        gh, g = grad_h_of(s, p), system.g_of(s, p)
         return gh @ g, jnp.abs(gh) @ jnp.abs(g)
 
     return over_batch(point, x)
 
 
-def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTerms:
+def lie_terms(
+    system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any, *, params: Any = None
+) -> LieTerms:
     """Compute ``(a, b, c, d)`` at states ``x`` of shape (..., n).
 
     Parameters
@@ -400,6 +457,9 @@ def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTer
     clf : CLF
     cbf : CBF
     x : array of shape (..., n)
+    params : pytree, optional
+        The run-time parameters, when the system or a certificate declared them (the same
+        ``p`` for every state of the batch).
 
     Returns
     -------
@@ -414,16 +474,27 @@ def lie_terms(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any) -> LieTer
         If ``x`` has the wrong last axis, or ``V`` or ``h`` does not return a scalar.
     NonFiniteError
         If ``x`` contains NaN or inf.
+    ParameterError
+        If ``params`` is missing where a function takes parameters, given where none does,
+        or of another structure than the declared example (a wrong leaf shape is a
+        ``DimensionError``).
     """
     check_real("x", x)
     x = system.check_state(x)
     clf.check(system.n_states)
     cbf.check(system.n_states)
-    return over_batch(lambda s: lie_terms_point(system, clf, cbf, s), x)
+    spec = merge_specs([system.params_spec, clf.params_spec, cbf.params_spec])
+    p = resolve(spec, params, "lie_terms' system and certificates")
+    return over_batch(lambda s: lie_terms_point(system, clf, cbf, s, p), x)
 
 
-def lie_terms_point(system: ControlAffineSystem, clf: CLF, cbf: CBF, x: jax.Array) -> LieTerms:
-    """``(a, b, c, d)`` at one state of shape (n,), unchecked and jittable."""
-    a, b = clf._lie_point(system, x)
-    c, d = cbf._lie_point(system, x)
+def lie_terms_point(
+    system: ControlAffineSystem, clf: CLF, cbf: CBF, x: jax.Array, p: Any = None
+) -> LieTerms:
+    """``(a, b, c, d)`` at one state of shape (n,), unchecked and jittable.
+
+    ``p``: the run-time parameters (unchecked), when the system or a certificate takes them.
+    """
+    a, b = clf.lie_point(system, x, p)
+    c, d = cbf.lie_point(system, x, p)
     return LieTerms(a, b, c, d)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
@@ -151,6 +152,24 @@ class UniversalController:
         certificates are still evaluated, so the flags and ``compatible`` report on both
         conditions, for comparison studies (see :class:`SontagController`,
         :class:`CBFController`).
+    params : pytree, optional
+        An example of run-time parameters for the controller's own callables: with it,
+        callable ``phi`` and ``varphi`` take ``(x, p)``. The system and the certificates
+        declare their own (``params=`` on each); all declared examples must agree, and one
+        ``p`` reaches every function: ``step(x, params=p)``, ``step_fn(x, p)``,
+        ``simulate(..., params=p)``. New values of ``p`` never recompile.
+
+    Attributes
+    ----------
+    params : dict
+        The constants ``kappa``, ``rho``, ``phi``, ``varphi`` (not the run-time parameters).
+    params_spec : ParamSpec or None
+        The run-time parameters' structure shared by every function (None: none).
+    step_fn : callable
+        The fused, jitted step ``step_fn(x)`` or, with run-time parameters,
+        ``step_fn(x, p)``; unchecked.
+    input_fn : callable
+        Like ``step_fn``, returning only ``u``.
 
     Raises
     ------
@@ -184,16 +203,18 @@ class UniversalController:
         gp_beta: Any = 2.0,
         parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
         formula: Literal["combined", "sontag", "cbf"] = "combined",
+        params: Any = None,
     ) -> None:
         if formula not in ("combined", "sontag", "cbf"):
             raise ParameterError(f"formula must be 'combined', 'sontag' or 'cbf', got {formula!r}")
         if formula != "combined" and slack_weight is not None:
             raise ParameterError(f"slack_weight applies to the combined formula, not {formula!r}")
         check_params((), kappa=kappa, rho=rho, parallel_rtol=parallel_rtol)
+        own_spec = make_spec(params, "the controller")
         for name, weight in (("phi", phi), ("varphi", varphi)):
             if callable(weight):
-                probe = jax.ShapeDtypeStruct((system.n_states,), jnp.float64)
-                shape = getattr(jax.eval_shape(weight, probe), "shape", None)
+                out = trace_shape(name, weight, system.n_states, own_spec)
+                shape = getattr(out, "shape", None)
                 if shape != ():
                     raise DimensionError(
                         f"{name}(x) must return a scalar for a state of shape "
@@ -205,6 +226,9 @@ class UniversalController:
             check_params((), slack_weight=slack_weight)
         clf.check(system.n_states)
         cbf.check(system.n_states)
+        self.params_spec: ParamSpec | None = merge_specs(
+            [system.params_spec, clf.params_spec, cbf.params_spec, own_spec]
+        )
         m = system.n_inputs
         if (u_min is None) != (u_max is None):
             raise ParameterError("give both u_min and u_max, or neither")
@@ -232,6 +256,9 @@ class UniversalController:
             "phi": phi if callable(phi) else float(phi),
             "varphi": varphi if callable(varphi) else float(varphi),
         }
+        takes = own_spec is not None
+        self._phi_of = bind(phi, takes) if callable(phi) else None
+        self._varphi_of = bind(varphi, takes) if callable(varphi) else None
         self.slack_weight = None if slack_weight is None else float(slack_weight)
         self.u_min = u_min
         self.u_max = u_max
@@ -241,10 +268,11 @@ class UniversalController:
         self.parallel_rtol = float(parallel_rtol)
         self.formula = formula
         #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
-        #: for one state (n,) or a batch (..., n); for loops and benchmarks.
+        #: for one state (n,) or a batch (..., n); for loops and benchmarks. With run-time
+        #: parameters: ``step_fn(x, p)`` (``p`` shared by the batch).
         self.step_fn = jax.jit(self._step)
         #: Like ``step_fn`` but returning only ``u``, so XLA drops the diagnostics.
-        self.input_fn = jax.jit(lambda x: self._step(x).u)
+        self.input_fn = jax.jit(lambda x, p=None: self._step(x, p).u)
 
     @staticmethod
     def _limit(name: str, value: Any, m: int) -> np.ndarray:
@@ -266,21 +294,26 @@ class UniversalController:
 
     # -- the pipeline, one state at a time (vmapped for batches) --------------------------
 
-    def terms_point(self, x: jax.Array) -> LieTerms:
-        """The (GP-robust when an uncertainty model is set) Lie terms at one state."""
-        return self._terms_status_point(x)[0]
+    def terms_point(self, x: jax.Array, p: Any = None) -> LieTerms:
+        """The (GP-robust when an uncertainty model is set) Lie terms at one state.
 
-    def _weights_point(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        ``p``: the run-time parameters (unchecked), when the controller takes them.
+        """
+        return self._terms_status_point(x, p)[0]
+
+    def _weights_point(self, x: jax.Array, p: Any = None) -> tuple[jax.Array, jax.Array]:
         """``phi`` and ``varphi`` at one state (constants or functions of the state)."""
         phi, varphi = self.params["phi"], self.params["varphi"]
         return (
-            jnp.asarray(phi(x) if callable(phi) else phi, dtype=float),
-            jnp.asarray(varphi(x) if callable(varphi) else varphi, dtype=float),
+            jnp.asarray(self._phi_of(x, p) if self._phi_of is not None else phi, dtype=float),
+            jnp.asarray(
+                self._varphi_of(x, p) if self._varphi_of is not None else varphi, dtype=float
+            ),
         )
 
-    def _terms_status_point(self, x: jax.Array) -> tuple[LieTerms, jax.Array, tuple]:
-        terms = lie_terms_point(self.system, self.clf, self.cbf, x)
-        weights = self._weights_point(x)
+    def _terms_status_point(self, x: jax.Array, p: Any = None) -> tuple[LieTerms, jax.Array, tuple]:
+        terms = lie_terms_point(self.system, self.clf, self.cbf, x, p)
+        weights = self._weights_point(x, p)
         S = StepStatus
         model_ok = jnp.where(
             _all_finite(*terms, *weights),
@@ -288,7 +321,7 @@ class UniversalController:
             S.NONFINITE_MODEL,
         )
         model_ok = jnp.where(
-            (model_ok == S.OK) & ~self.cbf.relative_degree_holds(self.system, x),
+            (model_ok == S.OK) & ~self.cbf.relative_degree_holds(self.system, x, p),
             S.RELATIVE_DEGREE,
             model_ok,
         )
@@ -296,7 +329,8 @@ class UniversalController:
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             beta = jnp.asarray(self.gp_beta)
-            terms = robust_lie_terms(terms, self.clf.grad(x), self.cbf.grad(x), mean, std, beta)
+            grads = self.clf.grad_of(x, p), self.cbf.grad_of(x, p)
+            terms = robust_lie_terms(terms, *grads, mean, std, beta)
             status = jnp.where(
                 status != S.OK,
                 status,
@@ -308,8 +342,8 @@ class UniversalController:
             )
         return terms, status.astype(jnp.int32), weights
 
-    def _step(self, x: jax.Array) -> ControlOutput:
-        terms, status, (phi, varphi) = over_batch(self._terms_status_point, x)
+    def _step(self, x: jax.Array, p: Any = None) -> ControlOutput:
+        terms, status, (phi, varphi) = over_batch(lambda s: self._terms_status_point(s, p), x)
         a, b, c, d = terms
         p = self.params
         # a negative weight is reported by the status; the formula runs on 0 meanwhile
@@ -357,27 +391,29 @@ class UniversalController:
 
     # -- public, checked entry points ---------------------------------------------------
 
-    def diagnose(self, x: Any) -> str:
+    def diagnose(self, x: Any, params: Any = None) -> str:
         """Name the parts of the model that are not finite or invalid at one state ``x``.
 
         Evaluates ``f``, ``g``, ``V``, ``h``, their gradients and the uncertainty model at
-        ``x`` (shape (n,)) eagerly; for messages and debugging.
+        ``x`` (shape (n,)) eagerly (with the run-time ``params``, when the controller takes
+        them); for messages and debugging.
         """
         x = jnp.asarray(x, dtype=float)
+        p = resolve(self.params_spec, params, "the controller")
         parts = {
             "x": x,
-            "f(x)": self.system.f(x),
-            "g(x)": self.system.g(x),
-            "V(x)": self.clf.fn(x),
-            "grad V(x)": self.clf.grad(x),
-            "h(x)": self.cbf.fn(x),
-            "grad h(x)": self.cbf.grad(x),
+            "f(x)": self.system.f_of(x, p),
+            "g(x)": self.system.g_of(x, p),
+            "V(x)": self.clf.fn_of(x, p),
+            "grad V(x)": self.clf.grad_of(x, p),
+            "h(x)": self.cbf.fn_of(x, p),
+            "grad h(x)": self.cbf.grad_of(x, p),
         }
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             parts["uncertainty mean"] = mean
             parts["uncertainty std"] = std
-        phi, varphi = self._weights_point(x)
+        phi, varphi = self._weights_point(x, p)
         parts["phi(x)"], parts["varphi(x)"] = phi, varphi
         bad = [name for name, val in parts.items() if not bool(np.all(np.isfinite(val)))]
         if self.uncertainty is not None and bool(np.any(np.asarray(parts["uncertainty std"]) < 0)):
@@ -385,7 +421,9 @@ class UniversalController:
         bad += [f"{n} (negative)" for n, w in (("phi(x)", phi), ("varphi(x)", varphi)) if w < 0]
         return ", ".join(bad) if bad else "none"
 
-    def _raise_for_status(self, x: jax.Array, out: ControlOutput, strict: bool) -> None:
+    def _raise_for_status(
+        self, x: jax.Array, out: ControlOutput, strict: bool, p: Any = None
+    ) -> None:
         status = np.atleast_1d(np.asarray(out.status))
         xs = np.asarray(x).reshape((-1, self.system.n_states))
         flat = status.reshape(-1)
@@ -411,11 +449,12 @@ class UniversalController:
             if flat[i] == StepStatus.NEGATIVE_WEIGHT:
                 raise ModelError(
                     f"controller step failed with status {name} at state index {i} "
-                    f"(x = {xs[i].tolist()}): {self.diagnose(xs[i])}; phi and varphi must be >= 0"
+                    f"(x = {xs[i].tolist()}): {self.diagnose(xs[i], p)}; phi and varphi must be "
+                    ">= 0"
                 )
             raise NonFiniteError(
                 f"controller step failed with status {name} at state index {i} "
-                f"(x = {xs[i].tolist()}); not finite: {self.diagnose(xs[i])}"
+                f"(x = {xs[i].tolist()}); not finite: {self.diagnose(xs[i], p)}"
             )
         infeasible = np.asarray(out.region == Region.INCOMPATIBLE) | ~np.asarray(out.cbf_satisfied)
         if np.any(infeasible):
@@ -426,12 +465,16 @@ class UniversalController:
                 "use slack_weight for the relaxed formula or relax the input limits"
             )
 
-    def step(self, x: Any, *, strict: bool = False) -> ControlOutput:
+    def step(self, x: Any, *, params: Any = None, strict: bool = False) -> ControlOutput:
         """Compute the input and its diagnostics at states ``x`` of shape (..., n).
 
         Parameters
         ----------
         x : array of shape (..., n)
+        params : pytree, optional
+            The run-time parameters, required when the system, a certificate or the
+            controller declared ``params=example`` (same structure and leaf shapes; shared by
+            every state of the batch). One compiled step serves every value.
         strict : bool
             Raise if at some state the step did not produce a finite input (naming the cause
             and the non-finite parts of the model), the conditions are incompatible, or the
@@ -444,11 +487,15 @@ class UniversalController:
         Raises
         ------
         InputTypeError
-            If ``x`` is bool, complex or a string.
+            If ``x`` (or a leaf of ``params``) is bool, complex or a string.
         DimensionError
-            If ``x`` has the wrong last axis.
+            If ``x`` has the wrong last axis, or a leaf of ``params`` the wrong shape.
+        ParameterError
+            If ``params`` is missing where declared, given where not, or has another
+            structure than the declared example.
         NonFiniteError
-            If ``x`` contains NaN or inf; with ``strict=True``, if a step's status is not OK.
+            If ``x`` or ``params`` contains NaN or inf; with ``strict=True``, if a step's
+            status is not OK.
         ModelError
             If the uncertainty model returns a negative standard deviation (always); with
             ``strict=True``, if ``phi(x)`` or ``varphi(x)`` is negative.
@@ -458,13 +505,14 @@ class UniversalController:
         """
         check_real("x", x)
         x = self.system.check_state(x)
-        out = self.step_fn(x)
-        self._raise_for_status(x, out, strict)
+        p = resolve(self.params_spec, params, "the controller")
+        out = self.step_fn(x) if p is None else self.step_fn(x, p)
+        self._raise_for_status(x, out, strict, p)
         return out
 
-    def __call__(self, x: Any) -> jax.Array:
+    def __call__(self, x: Any, params: Any = None) -> jax.Array:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
-        return self.step(x).u
+        return self.step(x, params=params).u
 
 
 class SontagController(UniversalController):

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real
 from .certificates import CBF, CLF
 from .controllers import StepStatus
@@ -105,6 +106,11 @@ class SafetyFilter:
     uncertainty : UncertaintyModel, optional
         GP-robust terms (Lemma 3) for every row.
     gp_beta : float or array of shape (n,)
+    params : pytree, optional
+        An example of run-time parameters for the filter's own callable: with it, a callable
+        ``u_nom`` takes ``(x, p)`` (a set-point, say). The system and the certificates declare
+        their own; all declared examples must agree, and one ``p`` reaches every function:
+        ``step(x, params=p)``, ``step_fn(x, p)``. New values of ``p`` never recompile.
 
     Raises
     ------
@@ -129,6 +135,7 @@ class SafetyFilter:
         u_max: Any = None,
         uncertainty: UncertaintyModel | None = None,
         gp_beta: Any = 2.0,
+        params: Any = None,
     ) -> None:
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
@@ -151,17 +158,20 @@ class SafetyFilter:
         rows = len(self.clfs) + len(self.cbfs) + (2 * m if u_min is not None else 0)
         if rows > MAX_ROWS:
             raise ParameterError(f"a safety filter handles at most {MAX_ROWS} rows, got {rows}")
+        own_spec = make_spec(params, "the filter")
+        u_nom_of: Callable | None = None
         if u_nom is not None and callable(u_nom):
-            probe = jax.ShapeDtypeStruct((n,), jnp.float64)
-            shape = getattr(jax.eval_shape(u_nom, probe), "shape", None)
+            shape = getattr(trace_shape("u_nom", u_nom, n, own_spec), "shape", None)
             if shape != (m,):
                 raise DimensionError(f"u_nom(x) must return shape ({m},), got {shape}")
+            u_nom_of = bind(u_nom, own_spec is not None)
         elif u_nom is not None:
             check_real("u_nom", u_nom)
             if np.shape(u_nom) != (m,):
                 raise DimensionError(f"u_nom must have shape ({m},), got {np.shape(u_nom)}")
             const = jnp.asarray(u_nom, dtype=float)
             u_nom = lambda x: const  # noqa: E731
+            u_nom_of = bind(u_nom, False)
         if H is not None:
             check_real("H", H)
             Hn = np.asarray(H, dtype=float)
@@ -175,55 +185,63 @@ class SafetyFilter:
         if uncertainty is not None:
             check_uncertainty_model(uncertainty, n)
             gp_beta = check_beta(gp_beta, n)
+        #: The run-time parameters' structure shared by every function (None: none).
+        self.params_spec: ParamSpec | None = merge_specs(
+            [system.params_spec, *(c.params_spec for c in self.clfs + self.cbfs), own_spec]
+        )
         self.system = system
         self.u_nom = u_nom
+        self._u_nom_of = u_nom_of
         self.H = H
         self.params = {"kappa": kappa, "rho": rho, "phi": phi, "varphi": varphi}
         self.slack_weight = slack_weight
         self.u_min, self.u_max = u_min, u_max
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
-        #: The fused, jitted step without argument checks, for one state or a batch.
+        #: The fused, jitted step without argument checks, for one state or a batch;
+        #: ``step_fn(x, p)`` with run-time parameters (``p`` shared by the batch).
         self.step_fn = jax.jit(self._step)
 
-    def _point(self, x: jax.Array):
-        f, g = self.system.f(x), self.system.g(x)
+    def _point(self, x: jax.Array, p: Any = None):
+        f, g = self.system.f_of(x, p), self.system.g_of(x, p)
         a = (
-            jnp.stack([cl.grad(x) @ f + cl.rate_term(cl.fn(x)) for cl in self.clfs])
+            jnp.stack([cl.grad_of(x, p) @ f + cl.rate_term(cl.fn_of(x, p)) for cl in self.clfs])
             if self.clfs
             else jnp.zeros(0)
         )
         b = (
-            jnp.stack([cl.grad(x) @ g for cl in self.clfs])
+            jnp.stack([cl.grad_of(x, p) @ g for cl in self.clfs])
             if self.clfs
             else jnp.zeros((0, g.shape[1]))
         )
-        c = jnp.stack([cb.grad(x) @ f + cb.rate_term(cb.fn(x)) for cb in self.cbfs])
-        d = jnp.stack([cb.grad(x) @ g for cb in self.cbfs])
+        c = jnp.stack([cb.grad_of(x, p) @ f + cb.rate_term(cb.fn_of(x, p)) for cb in self.cbfs])
+        d = jnp.stack([cb.grad_of(x, p) @ g for cb in self.cbfs])
         S = StepStatus
         status = jnp.where(jnp.all(jnp.isfinite(x)), S.OK, S.NONFINITE_STATE)
         finite = jnp.all(jnp.isfinite(a)) & jnp.all(jnp.isfinite(b)) & jnp.all(jnp.isfinite(c))
         finite = finite & jnp.all(jnp.isfinite(d))
         status = jnp.where((status == S.OK) & ~finite, S.NONFINITE_MODEL, status)
         degree_ok = jnp.all(
-            jnp.stack([cb.relative_degree_holds(self.system, x) for cb in self.cbfs])
+            jnp.stack([cb.relative_degree_holds(self.system, x, p) for cb in self.cbfs])
         )
         status = jnp.where((status == S.OK) & ~degree_ok, S.RELATIVE_DEGREE, status)
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             beta = jnp.asarray(self.gp_beta)
             for i, cl in enumerate(self.clfs):
-                a = a.at[i].add(robust_margins(cl.grad(x), cl.grad(x), mean, std, beta).delta_V)
+                gv = cl.grad_of(x, p)
+                a = a.at[i].add(robust_margins(gv, gv, mean, std, beta).delta_V)
             for i, cb in enumerate(self.cbfs):
-                c = c.at[i].add(robust_margins(cb.grad(x), cb.grad(x), mean, std, beta).delta_h)
+                gh = cb.grad_of(x, p)
+                c = c.at[i].add(robust_margins(gh, gh, mean, std, beta).delta_h)
             unc_ok = jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(std))
             status = jnp.where((status == S.OK) & ~unc_ok, S.NONFINITE_UNCERTAINTY, status)
             status = jnp.where((status == S.OK) & jnp.any(std < 0), S.NEGATIVE_STD, status)
-        u_nom = self.u_nom(x) if self.u_nom is not None else None
+        u_nom = self._u_nom_of(x, p) if self._u_nom_of is not None else None
         return (a, b, c, d, u_nom), status.astype(jnp.int32)
 
-    def _step(self, x: jax.Array) -> FilterOutput:
-        (a, b, c, d, u_nom), status = over_batch(self._point, x)
+    def _step(self, x: jax.Array, p: Any = None) -> FilterOutput:
+        (a, b, c, d, u_nom), status = over_batch(lambda s: self._point(s, p), x)
         p = self.params
         batch = x.shape[:-1]
         inv = None if self.slack_weight is None else np.asarray(1.0 / np.sqrt(self.slack_weight))
@@ -256,13 +274,30 @@ class SafetyFilter:
             clf_satisfied=ok[..., None] & clf_ok,
         )
 
-    def step(self, x: Any, *, strict: bool = False) -> FilterOutput:
+    def step(self, x: Any, *, params: Any = None, strict: bool = False) -> FilterOutput:
         """The filtered input and diagnostics at states ``x`` of shape (..., n).
+
+        Parameters
+        ----------
+        x : array of shape (..., n)
+        params : pytree, optional
+            The run-time parameters, required when the system, a certificate or the filter
+            declared ``params=example`` (shared by every state of the batch).
+        strict : bool
+            Raise where a step failed, a fallback was used or a CBF condition is violated.
+
+        Returns
+        -------
+        FilterOutput
 
         Raises
         ------
         InputTypeError, DimensionError, NonFiniteError
-            For an invalid ``x``; with ``strict=True`` also where a step failed.
+            For an invalid ``x`` or ``params`` leaf; with ``strict=True`` also where a step
+            failed.
+        ParameterError
+            If ``params`` is missing where declared, given where not, or has another
+            structure than the declared example.
         ModelError
             If the uncertainty model returns a negative standard deviation.
         InfeasibleError
@@ -270,7 +305,8 @@ class SafetyFilter:
         """
         check_real("x", x)
         x = self.system.check_state(x)
-        out = self.step_fn(x)
+        p = resolve(self.params_spec, params, "the filter")
+        out = self.step_fn(x) if p is None else self.step_fn(x, p)
         status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
         if np.any(status == StepStatus.NEGATIVE_STD):
             raise ModelError("the uncertainty model returned a negative standard deviation")
@@ -290,6 +326,6 @@ class SafetyFilter:
                 )
         return out
 
-    def __call__(self, x: Any) -> jax.Array:
+    def __call__(self, x: Any, params: Any = None) -> jax.Array:
         """The filtered input at states ``x`` of shape (..., n); shape (..., m)."""
-        return self.step(x).u
+        return self.step(x, params=params).u

@@ -185,11 +185,21 @@ class ReferenceController:
         A qpsolvers name: ``"clarabel"`` (default), ``"osqp"``, ``"quadprog"``, ...
     tight : bool
         Tight tolerances for Clarabel and OSQP.
+
+    Raises
+    ------
+    ParameterError
+        If the controller takes run-time parameters (not supported here).
     """
 
     def __init__(self, controller: Any, solver: str = "clarabel", *, tight: bool = True) -> None:
         import jax
 
+        if getattr(controller, "params_spec", None) is not None:
+            raise ParameterError(
+                "ReferenceController does not support controllers with run-time parameters "
+                "(params=...); solve_formula_qp on the controller's terms_point(x, p) instead"
+            )
         self.controller = controller
         self.solver = solver
         self.tight = tight

@@ -10,9 +10,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._params import ParamSpec, merge_specs, resolve
 from ._validation import check_real, check_scalar_range
 from .controllers import StepStatus, UniversalController
-from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
+from .errors import (
+    DimensionError,
+    InfeasibleError,
+    InputTypeError,
+    ModelError,
+    NonFiniteError,
+    ParameterError,
+)
 from .formulas import Region
 from .systems import ControlAffineSystem
 
@@ -116,27 +124,34 @@ jax.tree_util.register_dataclass(
 )
 
 
-def _closed_loop(controller, plant, exogenous, n_steps, dt):
+def _closed_loop(controller, plant, exogenous, n_steps, dt, params_at):
+    """The closed loop as a function of ``(x0, params)``.
+
+    ``params_at(t, params)`` gives the run-time parameters at time ``t`` (``None`` without
+    them): the controller sees them at the sampling instants, the plant at every RK4 stage.
+    """
     clf, cbf = controller.clf, controller.cbf
 
-    def rhs(t, x, u):
-        xdot = plant.f(x) + plant.g(x) @ u
+    def rhs(t, x, u, params):
+        p = params_at(t, params)
+        xdot = plant.f_of(x, p) + plant.g_of(x, p) @ u
         return xdot if exogenous is None else xdot + exogenous(t)
 
-    def record(x):
-        out = controller.step_fn(x)
-        return out, (clf.fn(x), cbf.fn(x))
+    def record(x, t, params):
+        p = params_at(t, params)
+        out = controller.step_fn(x) if p is None else controller.step_fn(x, p)
+        return out, (clf.fn_of(x, p), cbf.fn_of(x, p))
 
-    def body(x, k):
-        t = k * dt
-        out, vals = record(x)
-        x_next = rk4_step(lambda s, y: rhs(s, y, out.u), t, x, dt)
-        hist = (x, out.u, vals, out.region, out.compatible, out.cbf_satisfied, out.status)
-        return x_next, hist
+    def run(x0, params):
+        def body(x, k):
+            t = k * dt
+            out, vals = record(x, t, params)
+            x_next = rk4_step(lambda s, y: rhs(s, y, out.u, params), t, x, dt)
+            hist = (x, out.u, vals, out.region, out.compatible, out.cbf_satisfied, out.status)
+            return x_next, hist
 
-    def run(x0):
         x_final, hist = jax.lax.scan(body, x0, jnp.arange(n_steps))
-        out, vals = record(x_final)
+        out, vals = record(x_final, n_steps * dt, params)
         xs, us, (Vs, hs), regions, comps, sats, stats = hist
 
         def cat(a, b):
@@ -156,6 +171,35 @@ def _closed_loop(controller, plant, exogenous, n_steps, dt):
     return run
 
 
+def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]:
+    """Check ``params`` (a pytree or a function of time) and return it with ``params_at``.
+
+    ``params_at(t, params)`` is the pytree at time ``t`` (``None`` without parameters).
+    """
+    owner = "the closed loop (controller and plant)"
+    if not callable(params):
+        p = resolve(spec, params, owner)
+        return p, lambda t, params: params
+    if spec is None:
+        resolve(spec, params, owner)  # raises: given where none is declared
+    assert spec is not None
+    try:
+        out = jax.eval_shape(params, jax.ShapeDtypeStruct((), jnp.float64))
+    except TypeError as err:
+        raise InputTypeError(
+            f"params must be a pytree or a function params(t) of the time; calling it failed: "
+            f"{err}"
+        ) from None
+    # check the structure and leaf shapes of params(t) against the example, symbolically
+    spec.check(jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out), "params(t)")
+    fn = params
+
+    def params_at(t: Any, _: Any) -> Any:
+        return jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), fn(t))
+
+    return None, params_at
+
+
 def simulate(
     controller: UniversalController,
     x0: Any,
@@ -165,6 +209,7 @@ def simulate(
     plant: ControlAffineSystem | None = None,
     exogenous: Exogenous | None = None,
     strict: bool = False,
+    params: Any = None,
 ) -> Trajectory:
     """Simulate ``controller`` in closed loop from ``x0`` (one state or a batch).
 
@@ -189,6 +234,13 @@ def simulate(
         Raise if some step was not finite (:class:`~safestab.errors.NonFiniteError`, naming
         the status and the time it first occurred), infeasible or lost the CBF condition
         (:class:`~safestab.errors.InfeasibleError`), instead of only recording it.
+    params : pytree or callable, optional
+        The run-time parameters, required when the controller (its system, certificates or
+        itself) or the plant declared ``params=example``: a constant pytree, or a function
+        ``params(t)`` of the time (a scalar, s) returning one (a moving obstacle). The
+        controller sees ``params(t_k)`` at each sampling instant (held with the input); the
+        plant sees ``params(t)`` at every RK4 stage; ``V`` and ``h`` are recorded with
+        ``params(t_k)``. The same ``p`` for every trajectory of a batch.
 
     Returns
     -------
@@ -198,7 +250,9 @@ def simulate(
     ------
     ParameterError
         If ``t_final`` or ``dt`` is not positive, ``t_final < dt``, or the step count or the
-        history's size is absurd.
+        history's size is absurd; if ``params`` (or what ``params(t)`` returns) is missing
+        where declared, given where not, or has another structure than the declared example
+        (a wrong leaf shape is a ``DimensionError``).
     DimensionError, NonFiniteError
         If ``x0`` has the wrong shape or is not finite, or ``exogenous`` does not return
         shape (n,).
@@ -255,9 +309,11 @@ def simulate(
             f"the history would take {history / 2**30:.1f} GiB (> {MAX_HISTORY_BYTES / 2**30:.0f}"
             f" GiB): {n_steps} steps x {batch} trajectories; use fewer steps or a smaller batch"
         )
-    run = _closed_loop(controller, plant, exogenous, n_steps, float(dt))
-    fn = jax.jit(jax.vmap(run) if x0.ndim == 2 else run)
-    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0)
+    spec = merge_specs([getattr(controller, "params_spec", None), plant.params_spec])
+    params, params_at = _params_of_time(spec, params)
+    run = _closed_loop(controller, plant, exogenous, n_steps, float(dt), params_at)
+    fn = jax.jit(jax.vmap(run, in_axes=(0, None)) if x0.ndim == 2 else run)
+    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0, params)
     traj = Trajectory(
         t=jnp.arange(n_steps + 1) * dt,
         x=xs,

@@ -357,8 +357,14 @@ def export_c(
         If the system, certificates or uncertainty model use a primitive without a C
         translation; the message names it and the ``file:line`` it came from.
     ParameterError
-        If ``name`` or ``precision`` is invalid.
+        If ``name`` or ``precision`` is invalid, or the controller takes run-time
+        parameters (not exported yet).
     """
+    if getattr(controller, "params_spec", None) is not None:
+        raise ParameterError(
+            "export_c does not support controllers with run-time parameters (params=...); "
+            "build the controller with the values fixed in its functions to export it"
+        )
     text = _describe_controller(controller)
     if description:
         text += "\n" + description

@@ -281,9 +281,10 @@ def main():
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument(
-        "--only", choices=("all", "gp", "export"), default="all",
+        "--only", choices=("all", "gp", "export", "multi"), default="all",
         help="'gp': rerun only the GP fit-scaling and fast-cache sections; 'export': only the "
-        "native controller rows; each merged into the existing performance.json",
+        "native controller rows; each merged into the existing performance.json; 'multi': only "
+        "the several-CBF rows (benchmarks/multi.py, saved to performance_multi.json)",
     )  # fmt: skip
     parser.add_argument("--gp-scaling-worker", type=int, help=argparse.SUPPRESS)
     # Monte Carlo rows (issue 13): benchmarks/mc_rows.py, also runnable on their own
@@ -301,6 +302,11 @@ def main():
         return
     if args.only == "gp":
         main_gp_only(args)
+        return
+    if args.only == "multi":
+        import multi
+
+        multi.main(args.out)
         return
     rng = np.random.default_rng(0)
     results: dict = {"machine": machine()}
@@ -461,6 +467,9 @@ def main():
     import mc_rows  # the Monte Carlo block of the last --only-mc run, kept in the page
 
     mc_rows.update_markdown(args.out / "performance.md", args.out / "performance_mc.json")
+    import multi  # the several-CBF rows (issue 10): cheap, so rerun with every full run
+
+    multi.main(args.out)
     print(f"wrote {args.out / 'performance.json'} and performance.md")
 
 

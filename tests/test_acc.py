@@ -73,6 +73,7 @@ def test_user_toml_runs(tmp_path):
     assert sc.name == "mine" and sc.v_d == 20.0
 
 
+@pytest.mark.slow  # half a minute: the whole study at reduced size, like the main job
 def test_cli_smoke(tmp_path):
     from typer.testing import CliRunner
 

@@ -74,7 +74,7 @@ def test_cache_band_contains_exact_band_everywhere(acc_gp, kind):
     # ten times the data's box around its centre, and the data's own distribution
     far = (lo + hi) / 2 + 10 * (hi - lo) / 2 * rng.uniform(-1, 1, size=(500, 3))
     near = test.x[:200]
-    for m in (4, 8, 16, 32, 64):
+    for m in (4, 16, 64):  # the range 4 to 64; the default 32 is tested below
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", InducingPointsWarning)  # small M is flagged
             fast = FastGP(gp, n_inducing=m)

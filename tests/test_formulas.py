@@ -59,7 +59,7 @@ def _close(u, v):
     return np.linalg.norm(u - v) <= SOLVER_RTOL * max(1.0, np.linalg.norm(v))
 
 
-@settings(max_examples=2000)
+@settings(max_examples=1000)
 @given(lie_cases())
 def test_clf_cbf_matches_solver_and_kkt(case):
     a, b, c, d, params = case
@@ -89,7 +89,7 @@ def test_clf_cbf_matches_solver_and_kkt(case):
             )
 
 
-@settings(max_examples=1500)
+@settings(max_examples=750)
 @given(lie_cases(), st.sampled_from([1e-3, 0.1, 10.0, 100.0, 1e4]))
 def test_relaxed_matches_solver_and_kkt(case, slack_weight):
     a, b, c, d, params = case

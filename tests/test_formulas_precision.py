@@ -141,7 +141,7 @@ def _check_cbf_honest(a, b, c, d, params, u, must_hold):
         assert res < 0
 
 
-@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(wide_cases())
 def test_clf_cbf_matches_high_precision_reference(case):
     a, b, c, d, params = case
@@ -152,7 +152,7 @@ def test_clf_cbf_matches_high_precision_reference(case):
     _check_cbf_honest(a, b, c, d, params, np.asarray(res.u), int(res.region) != Region.INCOMPATIBLE)
 
 
-@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(wide_cases(), st.floats(-2, 6))
 def test_relaxed_matches_high_precision_reference(case, log_weight):
     a, b, c, d, params = case
@@ -164,7 +164,7 @@ def test_relaxed_matches_high_precision_reference(case, log_weight):
     _check_cbf_honest(a, b, c, d, params, np.asarray(res.u), not d_zero_infeasible)
 
 
-@settings(max_examples=1000, deadline=None)
+@settings(max_examples=500, deadline=None)
 @given(wide_cases(), st.floats(-14, -6), st.integers(0, 2**31 - 1))
 def test_flags_never_lie_for_perturbed_inputs(case, log_step, seed):
     """For inputs near the boundary of each condition, a True flag means the condition holds."""
@@ -181,7 +181,7 @@ def test_flags_never_lie_for_perturbed_inputs(case, log_step, seed):
         assert res <= (SATISFIED_RTOL + EVAL_EPS) * scale
 
 
-@settings(max_examples=1500, deadline=None)
+@settings(max_examples=800, deadline=None)
 @given(wide_cases())
 def test_compatibility_agrees_with_clf_cbf_everywhere(case):
     a, b, c, d, params = case

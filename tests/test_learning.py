@@ -1,5 +1,6 @@
 """GP posterior against dense NumPy, recovery of known omega, data collection, errors."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -117,7 +118,7 @@ def test_recover_nonlinear_function_of_two_states():
         n_samples=600, rate=10, horizon=5, noise_std=1e-2, seed=2,
     )  # fmt: skip
     train, test = data.split(0.33, seed=0)
-    w = np.asarray(jnp.stack([om(x) for x in jnp.asarray(test.x)]))
+    w = np.asarray(jax.vmap(om)(jnp.asarray(test.x)))
     for kind in ("se", "matern52"):
         cal = calibration(GaussianProcessModel(kernel=kind).fit(train.x, train.y), test.x, w, 2.0)
         assert np.all(cal.rmse < 0.01)  # stated accuracy: 1e-2 on a function of size ~0.3
@@ -408,6 +409,7 @@ def _check_against_sklearn(q):
     assert gp.log_marginal_likelihood_[0] >= ref - 1e-6 * abs(ref)
 
 
+@pytest.mark.slow  # about a minute: scikit-learn's four fits at Q = 500
 def test_fit_matches_sklearn_best_of_4_starts_q500():
     _check_against_sklearn(500)
 

@@ -290,25 +290,30 @@ def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
 
     def chunk(cache, betas, x0, params):
         model = BatchedUncertainty(cache)
-        ctrls, checks = [], []
+        ctrls, checks, builders = [], [], []
         for name in spec.controllers:
             if name == "true model":
                 ctrls.append(UniversalController(true_sys, clf, cbf, **common))
                 checks.append(None)
+                builders.append(None)
             elif name == "mismatched model":
                 ctrls.append(UniversalController(nominal, clf, cbf, **common))
                 checks.append(None)
+                builders.append(None)
             else:
                 beta = betas[name]
-                ctrls.append(
-                    UniversalController(
-                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common
+
+                def build(unc, beta=beta):
+                    return UniversalController(
+                        nominal, clf, cbf, uncertainty=unc, gp_beta=beta, **common
                     )
-                )
+
+                ctrls.append(build(model))
                 checks.append((model, beta))
+                builders.append(build)
         run = trial_function(
             ctrls, plant=true_sys, n_steps=n_steps, dt=scenario.dt,
-            exogenous=lead_acceleration, omega=omega, lemma2=checks,
+            exogenous=lead_acceleration, omega=omega, lemma2=checks, rebuild=builders,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 

@@ -30,6 +30,7 @@ from .gpbatch import (
     Hyperparameters,
     condition,
     inducing_cache,
+    one_blas_thread,
 )
 from .loop import trial_function
 
@@ -211,6 +212,11 @@ def fit_dataset(
     ``max(50, Q // 4)`` held-out rows (``held_out_coverage``); the conformal beta, when asked
     for, is calibrated on a third, independent draw (:func:`calibration_draw`).
     """
+    with one_blas_thread():  # faster on a busy machine, and the same bits in any worker
+        return _fit_dataset(scenario, spec, seed, index, hyper)
+
+
+def _fit_dataset(scenario, spec, seed, index, hyper):
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
     q = scenario.n_samples
     n_test = max(50, q // 4)

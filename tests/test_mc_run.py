@@ -207,6 +207,8 @@ def test_cli_mc_writes_all_outputs(tmp_path):
     from importlib import resources
 
     base = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
+    # outputs are named after the scenario's name, not the file's
+    base = base.replace('name = "stress"', 'name = "tiny"')
     base = base.replace("n_samples = 2000", "n_samples = 60").replace(
         "hyper_subset = 500", "hyper_subset = 30").replace("t_final = 60.0", "t_final = 0.3")
     base = base.replace('controllers = ["true model", "mismatched model", "GP mean", '

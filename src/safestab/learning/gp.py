@@ -142,16 +142,26 @@ _predict_batch = jax.jit(
 
 
 @functools.partial(jax.jit, static_argnames=("kind",))
-def _factor(amp, ls, nz, xs, y, mu, *, kind):
-    """Cholesky factor of ``K + nz^2 I`` and ``alpha``, compiled once per ``Q``.
-
-    One compiled call instead of four dispatched operations: at Q = 2000 forming
-    ``K + nz^2 I`` eagerly cost as much as the factorisation.
-    """
+def _noisy_kernel(amp, ls, nz, xs, *, kind):
+    """``K + nz^2 I``, compiled once per ``Q`` (eagerly, the sum cost as much as the factor)."""
     k = kernel_matrix(amp, ls, xs, xs, kind=kind)
-    k = k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
+    return k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
+
+
+@jax.jit
+def _chol_alpha(k, y, mu):
+    """Cholesky factor of ``k`` and ``alpha = k^-1 (y - mu)``.
+
+    Compiled apart from :func:`_noisy_kernel`: fused with the kernel, the factor differed from
+    the eager one in the last bits; apart, both are bit for bit the eager operations'.
+    """
     chol = jnp.linalg.cholesky(k)
     return chol, cho_solve((chol, True), y - mu)
+
+
+def _factor(amp, ls, nz, xs, y, mu, *, kind):
+    """Cholesky factor of ``K + nz^2 I`` and ``alpha``: two compiled calls per ``Q``."""
+    return _chol_alpha(_noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
 
 
 def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:

@@ -8,9 +8,13 @@ import pytest
 
 import safestab as ss
 from safestab.errors import ParameterError
+from safestab.learning import conformal_beta
 from safestab.montecarlo import (
     RECORD_FIELDS,
+    BatchedUncertainty,
+    calibration_draw,
     draw_trials,
+    fit_dataset,
     lead_acceleration,
     metrics_document,
     run_chunk,
@@ -107,6 +111,30 @@ def test_fixed_trial_reproduces_the_simulator():
         assert float(rec["final_V"][0, c]) == pytest.approx(float(traj.V[-1]), rel=1e-9)
 
 
+def test_conformal_beta_is_calibrated_on_a_separate_draw(local_run):
+    """Split conformal: the calibration states come from their own draw, seeded from (seed,
+    data set) and disjoint from the fitting and held-out rows; the beta equals conformal_beta
+    on that draw (an independent call) and the draw is reproducible."""
+    sc = SC  # the data sets' collection is compiled already (local_run)
+    spec = SPEC.replace(controllers=("GP-robust", "GP-robust conformal"), delta=0.05)
+    hyper = local_run.datasets[0].hyper  # conditioning only, no fit
+    model = fit_dataset(sc, spec, 3, 1, hyper)
+    cal = calibration_draw(sc, spec, 3, 1)
+    assert len(np.unique(cal.trajectory)) == 100  # max(100, ceil(1 / 0.05))
+    assert not np.array_equal(calibration_draw(sc, spec, 3, 0).x, cal.x)
+    # no calibration state is a row of the data set (fitting or held out)
+    from safestab.montecarlo.acc_trials import _collect
+
+    q = sc.n_samples
+    data = _collect(sc, spec, q + max(50, q // 4), int(np.random.SeedSequence([3, 1])
+                                                       .generate_state(1)[0]))  # fmt: skip
+    rows = {tuple(r) for r in np.round(data.x, 12)}
+    assert not any(tuple(r) in rows for r in np.round(cal.x, 12))
+    ref = conformal_beta(BatchedUncertainty(model.cache), cal.x, np.asarray(sc.omega(cal.x)),
+                         0.05, groups=cal.trajectory)  # fmt: skip
+    np.testing.assert_array_equal(model.betas["GP-robust conformal"], ref.beta)
+
+
 def test_summary_and_strict_json(local_run):
     s = summarize(local_run)
     for entry in s["controllers"].values():
@@ -179,6 +207,8 @@ def test_cli_mc_writes_all_outputs(tmp_path):
     from importlib import resources
 
     base = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
+    # outputs are named after the scenario's name, not the file's
+    base = base.replace('name = "stress"', 'name = "tiny"')
     base = base.replace("n_samples = 2000", "n_samples = 60").replace(
         "hyper_subset = 500", "hyper_subset = 30").replace("t_final = 60.0", "t_final = 0.3")
     base = base.replace('controllers = ["true model", "mismatched model", "GP mean", '

@@ -306,6 +306,20 @@ class FastGP:
     def _parts_batch(self, x: np.ndarray):
         return _parts_batch(self._params, jnp.asarray(x), self.model.kernel)
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Copies of the cache's arrays, for evaluating the same band elsewhere (batched).
+
+        Keys: ``offset``, ``scale`` (n,): inputs are standardised as ``(x - offset) / scale``;
+        per learned component (``k`` rows, padded to a common ``M``): ``amp`` (k,), ``ls``
+        (k, n) lengthscales of the standardised inputs, ``z`` (k, M, n) inducing inputs,
+        ``maps`` (k, 3M, M) ``[Lj^-1; G Lj^-1; C Lj^-1]``, ``wk`` (k, M) mean weights,
+        ``mask`` (k, M), ``err`` (k,) ``E``, ``rho`` (k,), ``round`` (k,) the rounding
+        allowance of ``r^2``. With ``[a; G a; C a] = maps k_Z(x)``, ``r^2 = amp^2 - |a|^2 +
+        round``, the cache's mean is ``k . wk + mean_`` and its std ``sqrt(r^2 + |G a|^2 +
+        2 |C a| rho r) + err r / min_beta`` (module docstring; ``montecarlo.gpbatch``).
+        """
+        return {key: np.array(value) for key, value in self._params.items()}
+
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and guaranteed std at one state of shape (n,); jittable, O(M^2).
 

@@ -141,6 +141,29 @@ _predict_batch = jax.jit(
 )
 
 
+@functools.partial(jax.jit, static_argnames=("kind",))
+def _noisy_kernel(amp, ls, nz, xs, *, kind):
+    """``K + nz^2 I``, compiled once per ``Q`` (eagerly, the sum cost as much as the factor)."""
+    k = kernel_matrix(amp, ls, xs, xs, kind=kind)
+    return k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
+
+
+@jax.jit
+def _chol_alpha(k, y, mu):
+    """Cholesky factor of ``k`` and ``alpha = k^-1 (y - mu)``.
+
+    Compiled apart from :func:`_noisy_kernel`: fused with the kernel, the factor differed from
+    the eager one in the last bits; apart, both are bit for bit the eager operations'.
+    """
+    chol = jnp.linalg.cholesky(k)
+    return chol, cho_solve((chol, True), y - mu)
+
+
+def _factor(amp, ls, nz, xs, y, mu, *, kind):
+    """Cholesky factor of ``K + nz^2 I`` and ``alpha``: two compiled calls per ``Q``."""
+    return _chol_alpha(_noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
+
+
 def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:
     """Whether the projected gradient is below ``rtol (1 + |value|)``.
 
@@ -398,6 +421,127 @@ class GaussianProcessModel:
                 )
         return self
 
+    @classmethod
+    def from_hyperparameters(
+        cls,
+        x: Any,
+        y: Any,
+        *,
+        amplitude: Any,
+        noise: Any,
+        lengthscale: Any,
+        mean: Any = None,
+        kernel: Literal["se", "matern52"] = "se",
+        components: Any = None,
+        jitter: float = DEFAULT_JITTER,
+        seed: int = 0,
+    ) -> GaussianProcessModel:
+        """A model with given hyperparameters conditioned on ``(x, y)``; no optimisation.
+
+        For a new data set with the hyperparameters of an earlier fit (a Monte Carlo study's
+        ``hyperparameters = "reuse"``): one Cholesky factorisation per component.
+
+        Parameters
+        ----------
+        x, y : arrays of shape (Q, n)
+            States and targets (only the learned columns of ``y`` are read).
+        amplitude, noise : arrays of shape (k,)
+            Signal std and *effective* noise std (as ``amplitude_`` and ``noise_`` of a
+            fitted model: the jitter is not added again).
+        lengthscale : array of shape (k, n)
+            In the units of ``x`` (as ``lengthscale_``).
+        mean : array of shape (k,), optional
+            Constant prior mean (default 0; nonzero values make ``mean="constant"``).
+        kernel : {"se", "matern52"}
+        components : sequence of int, optional
+            The ``k`` learned components (default: all ``n``).
+        jitter : float
+            Recorded as the model's ``jitter`` (already part of ``noise``).
+        seed : int
+            Seeds the rows of the leave-one-out check.
+
+        Returns
+        -------
+        GaussianProcessModel
+            ``log_marginal_likelihood_`` is on ``(x, y)``; nothing was optimised:
+            ``n_starts_ = 0``, ``n_iter_ = 0``, ``converged_ = True`` and
+            ``optimizer_status_`` says so.
+
+        Raises
+        ------
+        DimensionError
+            If ``x``, ``y``, the components or a hyperparameter have the wrong shape.
+        NonFiniteError
+            If ``x`` or a learned column of ``y`` contains NaN or inf.
+        ParameterError
+            If ``amplitude``, ``noise`` or ``lengthscale`` is not positive and finite, or
+            ``kernel`` is unknown.
+        NumericalError
+            If the Cholesky factorisation fails.
+        """
+        seed = check_seed("seed", seed)
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        if x.ndim != 2 or y.shape != x.shape:
+            raise DimensionError(
+                f"x and y must be (Q, n) arrays of equal shape, got {x.shape} and {y.shape}"
+            )
+        q, n = x.shape
+        comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
+        if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
+            raise DimensionError(
+                f"components must be distinct indices in [0, {n}), got {components!r}"
+            )
+        k = len(comps)
+        mean = np.zeros(k) if mean is None else mean
+        hyper = {}
+        for name, value, shape in (
+            ("amplitude", amplitude, (k,)),
+            ("noise", noise, (k,)),
+            ("lengthscale", lengthscale, (k, n)),
+            ("mean", mean, (k,)),
+        ):
+            arr = np.asarray(value, dtype=float)
+            if arr.shape != shape:
+                raise DimensionError(f"{name} must have shape {shape}, got {arr.shape}")
+            if name == "mean":
+                check_finite(name, arr)
+            else:
+                check_scalar_range(name, arr, lower=0.0, strict_lower=True)
+            hyper[name] = arr
+        check_finite("x", x)
+        check_finite("y", y[:, list(comps)])
+        model = cls(kernel=kernel, mean="constant" if np.any(hyper["mean"] != 0) else "zero",
+                    jitter=jitter)  # fmt: skip
+        offset = x.mean(0)
+        scale = x.std(0)
+        scale = np.where(scale > 0, scale, 1.0)
+        model.n_states_ = n
+        model.components_ = comps
+        model.x_train_ = x
+        model.y_train_ = y[:, list(comps)]
+        model.x_offset_ = offset
+        model.x_scale_ = scale
+        model.amplitude_ = hyper["amplitude"]
+        model.noise_ = hyper["noise"]
+        model.mean_ = hyper["mean"]
+        model._lengthscale_std = hyper["lengthscale"] / scale
+        model.lengthscale_ = hyper["lengthscale"]
+        model._condition()
+        # log p(y) = -1/2 (y - mu)^T alpha - sum log diag L - Q/2 log(2 pi)
+        resid = model.y_train_ - model.mean_
+        logdet = np.sum(np.log(np.diagonal(model.chol_, axis1=-2, axis2=-1)), -1)
+        model.log_marginal_likelihood_ = (
+            -0.5 * np.sum(resid.T * model.alpha_, -1) - logdet - 0.5 * q * np.log(2 * np.pi)
+        )
+        model.n_starts_ = 0
+        model.start_log_marginal_likelihoods_ = np.zeros((k, 0))
+        model.n_iter_ = np.zeros(k, dtype=int)
+        model.converged_ = np.ones(k, dtype=bool)
+        model.optimizer_status_ = ("hyperparameters given; no optimisation",) * k
+        model.loo_coverage_ = model._loo_coverage(np.random.default_rng(seed))
+        return model
+
     def _warn_about_data(self, x: np.ndarray, y: np.ndarray, comps: tuple[int, ...]) -> None:
         rows = np.unique(np.concatenate([x, y], 1), axis=0).shape[0]
         if rows < x.shape[0]:
@@ -556,20 +700,20 @@ class GaussianProcessModel:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
         chols, alphas = [], []
         for j in range(len(self.components_)):
-            amp, nz = self.amplitude_[j], self.noise_[j]
-            k = kernel_matrix(amp, jnp.asarray(self._lengthscale_std[j]), xs, xs, kind=self.kernel)
-            k = k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
-            chol = jnp.linalg.cholesky(k)
+            chol, alpha = _factor(
+                self.amplitude_[j], jnp.asarray(self._lengthscale_std[j]), self.noise_[j], xs,
+                jnp.asarray(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
+            )  # fmt: skip
             if not bool(jnp.all(jnp.isfinite(chol))):
                 raise NumericalError(
                     f"Cholesky factorisation failed for component {self.components_[j]}: the "
                     "kernel matrix is not positive definite; try increasing the noise (noise=) "
                     "or jitter="
                 )
-            alphas.append(cho_solve((chol, True), jnp.asarray(self.y_train_[:, j]) - self.mean_[j]))
+            alphas.append(alpha)
             chols.append(chol)
         chol_all = jnp.stack(chols)
-        del chols, k, chol  # one (k, Q, Q) factor in memory, not two (6 GB at Q = 10,000)
+        del chols, chol  # one (k, Q, Q) factor in memory, not two (6 GB at Q = 10,000)
         alpha_all = jnp.stack(alphas)
         self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
         self.alpha_ = np.asarray(alpha_all)

@@ -7,7 +7,15 @@ docs/montecarlo.md.
 """
 
 from ..scenarios import MonteCarloSpec
-from .acc_trials import DataSetModel, draw_trials, fit_dataset, lead_acceleration, run_chunk
+from .acc_trials import (
+    CONFORMAL_MIN_TRAJECTORIES,
+    DataSetModel,
+    calibration_draw,
+    draw_trials,
+    fit_dataset,
+    lead_acceleration,
+    run_chunk,
+)
 from .gpbatch import (
     BatchedUncertainty,
     ExactPosterior,
@@ -23,6 +31,7 @@ from .stats import clopper_pearson, safe_mask, summarize
 
 __all__ = [
     "BACKENDS",
+    "CONFORMAL_MIN_TRAJECTORIES",
     "RECORD_FIELDS",
     "BatchedUncertainty",
     "DataSetModel",
@@ -31,6 +40,7 @@ __all__ = [
     "InducingCache",
     "MonteCarloRun",
     "MonteCarloSpec",
+    "calibration_draw",
     "clopper_pearson",
     "condition",
     "draw_trials",

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Any
 
 import jax
@@ -20,14 +21,23 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..controllers import UniversalController
-from ..errors import ParameterError
-from ..learning import GaussianProcessModel, beta_lemma2, collect_data
+from ..errors import InducingPointsWarning, ParameterError
+from ..learning import GaussianProcessModel, beta_lemma2, collect_data, information_gain
 from ..scenarios import ACCScenario, MonteCarloSpec
-from .gpbatch import BatchedUncertainty, Hyperparameters, condition, inducing_cache
+from .gpbatch import (
+    BatchedUncertainty,
+    ExactPosterior,
+    Hyperparameters,
+    condition,
+    inducing_cache,
+    one_blas_thread,
+)
 from .loop import trial_function
 
 __all__ = [
+    "CONFORMAL_MIN_TRAJECTORIES",
     "DataSetModel",
+    "calibration_draw",
     "conformal_beta_function",
     "draw_trials",
     "fit_dataset",
@@ -35,16 +45,20 @@ __all__ = [
     "run_chunk",
 ]
 
+#: Fewest calibration trajectories of the conformal beta (more when ``1 / delta`` is larger).
+CONFORMAL_MIN_TRAJECTORIES = 100
+
 _GP_CONTROLLERS = ("GP mean", "GP-robust", "GP-robust Lemma 2", "GP-robust conformal")
 
 
 def conformal_beta_function() -> Any:
-    """HOOK (issue 14): ``safestab.learning.conformal_beta`` if the GP-trust work provides it.
+    """``safestab.learning.conformal_beta`` (issue 14), or ``None`` where it is missing.
 
     The ``"GP-robust conformal"`` controller is enabled exactly when this returns a function;
-    it is called as ``conformal_beta(model, x_cal, omega_cal, delta)`` with a model offering
-    ``mean_std`` (one state), held-out states (N, n) and their true ``omega`` (N, n), and must
-    return ``beta`` of shape (n,). Until issue 14 lands this returns ``None``.
+    it is called as ``conformal_beta(model, x_cal, omega_cal, delta, groups=trajectory)`` with
+    the data set's cache (``mean_std``, one state), the states of :func:`calibration_draw`
+    (N, n), their true ``omega`` (N, n) and their trajectory labels, and returns a report
+    whose ``beta`` has shape (n,).
     """
     import safestab.learning as learning
 
@@ -131,6 +145,9 @@ class DataSetModel:
     information_gain : array of shape (C,)
     held_out_coverage : dict of str to float
         Per GP controller, fraction of held-out states inside every band (true omega).
+    cache_warnings : tuple of str
+        FastGP's :class:`~safestab.errors.InducingPointsWarning` messages for this data set
+        (the band is valid but needlessly wide); :func:`run_montecarlo` repeats them.
     """
 
     index: int
@@ -139,6 +156,45 @@ class DataSetModel:
     betas: dict[str, np.ndarray]
     information_gain: np.ndarray
     held_out_coverage: dict[str, float]
+    cache_warnings: tuple[str, ...] = ()
+
+
+def _collect(scenario: ACCScenario, spec: MonteCarloSpec, n_samples: int, seed: int) -> Any:
+    """``collect_data`` with the scenario's true and nominal ACC and excitation settings."""
+    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
+    noise = scenario.noise_std if spec.noise_std is None else spec.noise_std
+    return collect_data(
+        scenario.system("true"), scenario.system("nominal"),
+        x0=(scenario.x0_low, scenario.x0_high), u_low=-span, u_high=span,
+        n_samples=n_samples, rate=scenario.sample_rate, horizon=scenario.sample_horizon,
+        noise_std=noise, seed=seed,
+    )  # fmt: skip
+
+
+def calibration_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, index: int) -> Any:
+    """The conformal calibration states of data set ``index``: fresh trajectories.
+
+    Drawn with the seed ``SeedSequence([seed, index, 1])``, a stream independent of the data
+    set's own (``SeedSequence([seed, index])``: fitting rows and held-out rows), so the
+    calibration units are used neither to fit the GP nor to evaluate it (split conformal).
+    ``max(CONFORMAL_MIN_TRAJECTORIES, ceil(1 / delta))`` trajectories of the data set's
+    horizon, thinned to one state per second; each trajectory is one calibration unit.
+
+    Returns
+    -------
+    Dataset
+        With ``trajectory`` labels.
+    """
+    per_traj = max(1, int(round(scenario.sample_horizon * scenario.sample_rate)))
+    n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / spec.delta)))
+    cal_seed = int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
+    cal = _collect(scenario, spec, n_traj * per_traj, cal_seed)
+    stride = max(1, int(round(scenario.sample_rate)))
+    keep = np.arange(0, len(cal), stride)
+    return dataclasses.replace(
+        cal, x=cal.x[keep], u=cal.u[keep], xdot=cal.xdot[keep], y=cal.y[keep], t=cal.t[keep],
+        trajectory=None if cal.trajectory is None else cal.trajectory[keep],
+    )  # fmt: skip
 
 
 def fit_dataset(
@@ -151,29 +207,28 @@ def fit_dataset(
     """Collect data set ``index``, fit (or condition) its GP and build the controllers' betas.
 
     With ``hyper`` given (``hyperparameters = "reuse"``), the GP is conditioned on the new
-    data with these hyperparameters; otherwise they are fitted (``hyper_subset`` rows).
+    data with these hyperparameters; otherwise they are fitted (``hyper_subset`` rows). The
+    data set's draw (seed ``SeedSequence([seed, index])``) gives ``Q`` fitting rows and
+    ``max(50, Q // 4)`` held-out rows (``held_out_coverage``); the conformal beta, when asked
+    for, is calibrated on a third, independent draw (:func:`calibration_draw`).
     """
+    with one_blas_thread():  # faster on a busy machine, and the same bits in any worker
+        return _fit_dataset(scenario, spec, seed, index, hyper)
+
+
+def _fit_dataset(scenario, spec, seed, index, hyper):
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
     q = scenario.n_samples
     n_test = max(50, q // 4)
-    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
-    noise = scenario.noise_std if spec.noise_std is None else spec.noise_std
-    data = collect_data(
-        scenario.system("true"), scenario.system("nominal"),
-        x0=(scenario.x0_low, scenario.x0_high), u_low=-span, u_high=span,
-        n_samples=q + n_test, rate=scenario.sample_rate, horizon=scenario.sample_horizon,
-        noise_std=noise, seed=data_seed,
-    )  # fmt: skip
+    data = _collect(scenario, spec, q + n_test, data_seed)
     x, y, x_test = data.x[:q], data.y[:q], data.x[q:]
     if hyper is None:
         gp = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
         gp.fit(x, y, hyper_subset=min(scenario.hyper_subset, q), seed=data_seed)
         hyper = Hyperparameters.from_model(gp)
-    post = condition(hyper, x, y)
-    # information gain 1/2 log det(I + sigma^-2 K) from the factor (as learning.information_gain)
-    sig2 = hyper.noise**2 + hyper.jitter * hyper.amplitude**2
-    logdiag = np.sum(np.log(np.diagonal(np.asarray(post.chol), axis1=-2, axis2=-1)), -1)
-    gain = logdiag - 0.5 * q * np.log(sig2)
+    else:
+        gp = condition(hyper, x, y, seed=data_seed)
+    gain = information_gain(gp)
     n, comps = hyper.n_states, list(hyper.components)
 
     def per_state(b):
@@ -186,12 +241,21 @@ def fit_dataset(
         "GP-robust": per_state(scenario.gp_beta),
         "GP-robust Lemma 2": per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
     }
-    if spec.gp == "fast":
-        cache: Any = inducing_cache(post, spec.n_inducing, x_check=x_test, beta=scenario.gp_beta)
-    else:
-        cache = post
-    omega_test = np.asarray(scenario.omega(x_test))
-    mean, std = (np.asarray(a) for a in jax.jit(cache.mean_std_batch)(jnp.asarray(x_test)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InducingPointsWarning)
+        cache: Any = (
+            inducing_cache(gp, spec.n_inducing)
+            if spec.gp == "fast"
+            else ExactPosterior.from_model(gp)
+        )
+    notes = []
+    for w in caught:  # a needlessly wide band is recorded with the data set (and reported)
+        if issubclass(w.category, InducingPointsWarning):
+            notes.append(str(w.message))
+        else:
+            warnings.warn(w.message, w.category, stacklevel=2)
+    del gp  # the (k, Q, Q) factor is not shipped with the data set
+    batch = jax.jit(cache.mean_std_batch)
     if "GP-robust conformal" in spec.controllers:
         conformal = conformal_beta_function()
         if conformal is None:
@@ -199,15 +263,20 @@ def fit_dataset(
                 "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
                 "(issue 14), which this installation does not provide"
             )
-        report = conformal(BatchedUncertainty(cache), x_test, omega_test, spec.delta)
-        # issue 14's conformal_beta returns a report whose beta has shape (n,)
+        cal = calibration_draw(scenario, spec, seed, index)
+        omega_cal = np.asarray(scenario.omega(cal.x))
+        report = conformal(
+            BatchedUncertainty(cache), cal.x, omega_cal, spec.delta, groups=cal.trajectory
+        )
         betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
+    omega_test = np.asarray(scenario.omega(x_test))
+    mean, std = (np.asarray(v) for v in batch(jnp.asarray(x_test)))
     coverage = {
         name: float(np.mean(np.all(np.abs(omega_test - mean) <= b * std, axis=1)))
         for name, b in betas.items()
     }
     cache = jax.tree_util.tree_map(np.asarray, cache)
-    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage)
+    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, tuple(notes))
 
 
 @functools.lru_cache(maxsize=8)
@@ -227,25 +296,30 @@ def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
 
     def chunk(cache, betas, x0, params):
         model = BatchedUncertainty(cache)
-        ctrls, checks = [], []
+        ctrls, checks, builders = [], [], []
         for name in spec.controllers:
             if name == "true model":
                 ctrls.append(UniversalController(true_sys, clf, cbf, **common))
                 checks.append(None)
+                builders.append(None)
             elif name == "mismatched model":
                 ctrls.append(UniversalController(nominal, clf, cbf, **common))
                 checks.append(None)
+                builders.append(None)
             else:
                 beta = betas[name]
-                ctrls.append(
-                    UniversalController(
-                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common
+
+                def build(unc, beta=beta):
+                    return UniversalController(
+                        nominal, clf, cbf, uncertainty=unc, gp_beta=beta, **common
                     )
-                )
+
+                ctrls.append(build(model))
                 checks.append((model, beta))
+                builders.append(build)
         run = trial_function(
             ctrls, plant=true_sys, n_steps=n_steps, dt=scenario.dt,
-            exogenous=lead_acceleration, omega=omega, lemma2=checks,
+            exogenous=lead_acceleration, omega=omega, lemma2=checks, rebuild=builders,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 

@@ -1,31 +1,33 @@
 """The GP of the Monte Carlo loop, evaluated for a batch of states as matrix products.
 
-From a fitted model's hyperparameters (public attributes of
-:class:`~safestab.learning.GaussianProcessModel`) and a data set, :func:`condition` computes
-the exact posterior (a Cholesky factor per learned component, the same conditioning as the
-model's own) and :func:`inducing_cache` the inducing-point cache of
-:class:`~safestab.learning.FastGP`, rebuilt here so that a batch of ``B`` states costs
+:func:`condition` conditions a GP with given hyperparameters on a data set (no optimisation;
+:meth:`GaussianProcessModel.from_hyperparameters`), :class:`ExactPosterior` batches its exact
+posterior and :func:`inducing_cache` its :class:`~safestab.learning.FastGP` cache, so that a
+batch of ``B`` states costs, per learned component,
 
-* one ``(B, n) x (n, M)`` product for the squared distances to the inducing inputs ``Z``,
-* one ``(B, M) x (M, 2M)`` product for ``a = Lz^-1 k`` and ``G a`` (mean and variance),
+* ``B x M`` kernel values (squared distances by exact differences, as FastGP's kernel),
+* one ``(B, M) x (M, 3M)`` product for ``[a; G a; C a]`` (the whole band),
 
-per component: GEMM-shaped work instead of ``B`` small matrix-vector products. The exact
-posterior is batched the same way (a ``(B, Q)`` cross-kernel matrix, one product with
-``alpha`` and one triangular solve with ``B`` right-hand sides).
+GEMM-shaped work instead of ``B`` small matrix-vector products. The exact posterior is
+batched the same way (a ``(B, Q)`` cross-kernel matrix, one product with ``alpha`` and one
+triangular solve with ``B`` right-hand sides).
 
 Both caches are JAX pytrees of arrays, so a compiled closed loop takes them as arguments (one
 compilation for every data set) and Ray ships them as plain arrays.
 
 Notes
 -----
-:func:`inducing_cache` mirrors ``FastGP`` (learning/fast.py: greedy pivoted-Cholesky inducing
-inputs, exact posterior at ``Z``, the two-term projected variance, and the measured widening of
-:meth:`FastGP.calibrate`). tests/test_mc_gp.py checks it against ``FastGP``; when the GP-trust
-work (issue 14) replaces FastGP's variance with a provably conservative bound, rewire
-:func:`inducing_cache` to it (the loop only needs :meth:`InducingCache.mean_std_batch`).
-Squared distances are expanded as ``|x|^2 + |z|^2 - 2 x.z`` (a matrix product); the rounding
-this adds, about ``1e-16 (|x|^2 + |z|^2)`` in units of the lengthscale, is far below the
-cancellation the projected variance already carries (documented in fast.py).
+:class:`InducingCache` holds FastGP's own arrays (:meth:`FastGP.arrays`: the construction is
+FastGP's, not a copy of it) and evaluates FastGP's formula, ``m~ = mu + k . w`` and
+``sigma~ = sqrt(r^2 + |G a|^2 + 2 |C a| rho r) + E r / min_beta``, batched. FastGP proves
+(docs/learning.md) that ``m~ +- beta sigma~`` contains the exact band ``m +- beta sigma`` at
+*every* state for every ``beta >= min_beta``, with a rounding allowance on ``r^2`` that covers
+any summation order of the dot products; the batched form only changes that order, so the
+guarantee carries over (tests/test_mc_gp.py checks containment far outside the data and the
+equality with FastGP to rounding). There is no measured widening any more: the widening of
+the earlier cache, calibrated on held-out states, could understate the exact std elsewhere.
+The exact posterior's squared distances are expanded as ``|x|^2 + |z|^2 - 2 x.z`` (a matrix
+product, adding rounding of about ``1e-16 (|x|^2 + |z|^2)`` in units of the lengthscale).
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
+
+from ..learning import FastGP, GaussianProcessModel
 
 __all__ = [
     "Hyperparameters",
@@ -45,21 +48,17 @@ __all__ = [
     "BatchedUncertainty",
     "condition",
     "inducing_cache",
+    "one_blas_thread",
 ]
 
 
 def _kernel_from_r2(kind: str, amp: Any, r2: Any) -> Any:
+    """``amp^2 base(r)`` from squared scaled distances, as tinygp's SE and (L2) Matern 5/2."""
     if kind == "se":
         return amp**2 * jnp.exp(-0.5 * r2)
     r = jnp.sqrt(r2)
     s5 = np.sqrt(5.0)
     return amp**2 * (1.0 + s5 * r + 5.0 / 3.0 * r2) * jnp.exp(-s5 * r)
-
-
-def _kernel_np(kind: str, amp: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Kernel matrix of lengthscale-scaled inputs a (A, n), b (B, n) by exact differences."""
-    r2 = np.sum((a[:, None, :] - b[None, :, :]) ** 2, -1)
-    return np.array(_kernel_from_r2(kind, amp, jnp.asarray(r2)))  # a writable copy
 
 
 def _sq_dist(xl: Any, zl: Any, z2: Any) -> Any:
@@ -81,10 +80,11 @@ class Hyperparameters:
     Attributes
     ----------
     amplitude, noise, mean : arrays of shape (C,)
+        ``noise`` is the effective noise std (jitter included), as ``noise_``.
     lengthscale : array of shape (C, n)
     kernel : {"se", "matern52"}
     jitter : float
-        Relative diagonal jitter (times ``amplitude^2``).
+        Relative diagonal jitter (already part of ``noise``; recorded).
     components : tuple of int
     n_states : int
     """
@@ -119,17 +119,22 @@ class ExactPosterior:
 
     Attributes
     ----------
+    offset, scale : arrays of shape (n,)
+        The model's input standardisation.
     xl : array of shape (C, Q, n)
-        Training inputs divided by each component's lengthscale.
+        Standardised training inputs divided by each component's lengthscale.
     x2 : array of shape (C, Q)
         Their squared norms.
     inv_ls : array of shape (C, n)
+        Inverse lengthscales of the standardised inputs.
     chol : array of shape (C, Q, Q)
-        Cholesky factor of ``K + (noise^2 + jitter amplitude^2) I``.
+        Cholesky factor of ``K + noise^2 I``.
     alpha : array of shape (C, Q)
     amplitude, mean : arrays of shape (C,)
     """
 
+    offset: Any
+    scale: Any
     xl: Any
     x2: Any
     inv_ls: Any
@@ -141,9 +146,24 @@ class ExactPosterior:
     components: tuple[int, ...]
     n_states: int
 
+    @classmethod
+    def from_model(cls, model: GaussianProcessModel) -> ExactPosterior:
+        """The posterior of a fitted :class:`~safestab.learning.GaussianProcessModel`."""
+        inv_ls = 1.0 / np.asarray(model.lengthscale_ / model.x_scale_, float)
+        xs = (model.x_train_ - model.x_offset_) / model.x_scale_
+        xl = xs[None, :, :] * inv_ls[:, None, :]
+        return cls(
+            offset=np.asarray(model.x_offset_, float), scale=np.asarray(model.x_scale_, float),
+            xl=xl, x2=np.sum(xl**2, -1), inv_ls=inv_ls, chol=np.asarray(model.chol_),
+            alpha=np.asarray(model.alpha_), amplitude=np.asarray(model.amplitude_, float),
+            mean=np.asarray(model.mean_, float), kernel=str(model.kernel),
+            components=tuple(int(c) for c in model.components_), n_states=int(model.n_states_),
+        )  # fmt: skip
+
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
         """Posterior mean and standard deviation at states ``x`` of shape (B, n), each (B, n)."""
-        xl = x[None, :, :] * self.inv_ls[:, None, :]
+        xs = (x - self.offset) / self.scale
+        xl = xs[None, :, :] * self.inv_ls[:, None, :]
         k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None],
                             _sq_dist(xl, self.xl, self.x2))  # fmt: skip
         mean = jnp.einsum("cbq,cq->cb", k, self.alpha) + self.mean[:, None]
@@ -155,47 +175,81 @@ class ExactPosterior:
 
 @dataclasses.dataclass(frozen=True)
 class InducingCache:
-    """FastGP's inducing-point cache, batched (arrays per learned component ``C``).
+    """:class:`~safestab.learning.FastGP`'s cache, batched (arrays per learned component ``C``).
 
     Attributes
     ----------
+    offset, scale : arrays of shape (n,)
+        Input standardisation.
     zl : array of shape (C, M, n)
-        Inducing inputs divided by the lengthscale (padded rows masked out).
-    z2 : array of shape (C, M)
+        Standardised inducing inputs times ``inv_ls`` (padded rows masked out).
     inv_ls : array of shape (C, n)
-    maps_t : array of shape (C, M, 2M)
-        ``[Lz^-1; G Lz^-1]^T``: a query's kernel row times it gives ``a`` and ``G a``.
+        Inverse lengthscales of the standardised inputs.
+    maps_t : array of shape (C, M, 3M)
+        ``[Lj^-1; G Lj^-1; C Lj^-1]^T``: a kernel row times it gives ``[a, G a, C a]``.
     weights : array of shape (C, M)
-        ``Lz^-T Lz^-1 mu_Z``: the mean is ``k . weights``.
+        The mean is ``k . weights + mean``.
     mask : array of shape (C, M)
-    amplitude, mean, widening : arrays of shape (C,)
+    amplitude, mean, err, rho, rnd : arrays of shape (C,)
+        FastGP's ``amp``, prior mean, ``E``, ``rho`` and rounding allowance of ``r^2``.
+    min_beta : array of shape ()
+        The band contains the exact band for every ``beta >= min_beta``.
     """
 
+    offset: Any
+    scale: Any
     zl: Any
-    z2: Any
     inv_ls: Any
     maps_t: Any
     weights: Any
     mask: Any
     amplitude: Any
     mean: Any
-    widening: Any
+    err: Any
+    rho: Any
+    rnd: Any
+    min_beta: Any
     kernel: str
     components: tuple[int, ...]
     n_states: int
 
-    def mean_std_batch(self, x: Any, *, widened: bool = True) -> tuple[Any, Any]:
-        """Mean and (widened) standard deviation at states ``x`` (B, n), each (B, n)."""
-        xl = x[None, :, :] * self.inv_ls[:, None, :]
-        r2 = _sq_dist(xl, self.zl, self.z2)
-        k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None], r2) * self.mask[:, None]
-        both = jnp.einsum("cbm,cmk->cbk", k, self.maps_t)
+    @classmethod
+    def from_fastgp(cls, fast: FastGP) -> InducingCache:
+        """The arrays of a :class:`~safestab.learning.FastGP` (its proven band), batched."""
+        a = fast.arrays()
+        inv_ls = 1.0 / a["ls"]
+        return cls(
+            offset=a["offset"], scale=a["scale"], zl=a["z"] * inv_ls[:, None, :],
+            inv_ls=inv_ls, maps_t=np.swapaxes(a["maps"], 1, 2), weights=a["wk"],
+            mask=a["mask"].astype(float), amplitude=a["amp"],
+            mean=np.asarray(fast.model.mean_, float), err=a["err"], rho=a["rho"],
+            rnd=a["round"], min_beta=np.asarray(fast.min_beta, float), kernel=fast.model.kernel,
+            components=tuple(int(c) for c in fast.components_), n_states=int(fast.n_states),
+        )  # fmt: skip
+
+    def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
+        """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n)."""
+        xs = (x - self.offset) / self.scale
+        xl = xs.T[:, None, :] * self.inv_ls.T[:, :, None]  # (n, C, B)
+        zt = jnp.moveaxis(self.zl, -1, 0)  # (n, C, M)
+        # exact differences summed over the n coordinates in order, as FastGP's (tinygp's)
+        # kernel; one (C, B, M) array per coordinate: with the coordinate as the minor axis
+        # the kernel took 3 times longer than with it outermost (measured, B = 1000)
+        r2 = jnp.square(xl[0][:, :, None] - zt[0][:, None, :])
+        for d in range(1, xl.shape[0]):
+            r2 = r2 + jnp.square(xl[d][:, :, None] - zt[d][:, None, :])
+        k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None], r2)
+        k = jnp.where(self.mask[:, None, :] > 0, k, 0.0)
+        all3 = jnp.einsum("cbm,cmk->cbk", k, self.maps_t)
         m = self.maps_t.shape[1]
-        v, gv = both[..., :m], both[..., m:]
-        # prior residual given f_Z (>= 0) plus the projected posterior covariance at Z
-        var = jnp.maximum(self.amplitude[:, None] ** 2 - jnp.sum(v * v, -1), 0.0)
-        var = var + jnp.sum(gv * gv, -1)
-        std = jnp.sqrt(var) * (self.widening[:, None] if widened else 1.0)
+        # |a|^2, |G a|^2, |C a|^2 at once: (C, B, 3, M) summed over M
+        sq = jnp.sum(jnp.square(all3).reshape(all3.shape[:2] + (3, m)), -1)
+        amp2 = (self.amplitude**2)[:, None]
+        r2_res = jnp.maximum(amp2 - sq[..., 0], 0.0) + self.rnd[:, None]
+        r = jnp.sqrt(r2_res)
+        cross = 2.0 * jnp.sqrt(sq[..., 2]) * self.rho[:, None] * r
+        var = r2_res + sq[..., 1] + cross  # >= the exact variance (FastGP)
+        std = jnp.sqrt(var) + self.err[:, None] * r / self.min_beta
         mean = jnp.einsum("cbm,cm->cb", k, self.weights) + self.mean[:, None]
         n, comps = self.n_states, self.components
         return _scatter(mean, comps, n), _scatter(std, comps, n)
@@ -209,7 +263,23 @@ for _cls in (ExactPosterior, InducingCache):
     )
 
 
-def condition(hyper: Hyperparameters, x: Any, y: Any) -> ExactPosterior:
+def one_blas_thread() -> Any:
+    """A context in which BLAS and LAPACK (NumPy's, SciPy's and JAX's CPU LAPACK) use one thread.
+
+    Measured on this 2-core machine with other jobs running (load average 2.9): a 2000 x 2000
+    Cholesky factorisation took 1.14 s with OpenBLAS's two threads and 0.14 s with one (its
+    threads wait on each other while the cores are busy elsewhere). One thread also fixes the
+    summation order, so a data set's GP is the same bits in this process and in a Ray worker
+    whatever their thread settings. Several data sets run in parallel as separate tasks.
+    """
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1)
+
+
+def condition(
+    hyper: Hyperparameters, x: Any, y: Any, *, seed: int = 0
+) -> GaussianProcessModel:
     """Condition a GP with given hyperparameters on data ``(x, y)``; no optimisation.
 
     Parameters
@@ -217,149 +287,55 @@ def condition(hyper: Hyperparameters, x: Any, y: Any) -> ExactPosterior:
     hyper : Hyperparameters
     x, y : arrays of shape (Q, n)
         States and targets (``y``'s learned columns are used).
+    seed : int
+        Seeds the model's leave-one-out check.
 
     Returns
     -------
-    ExactPosterior
-
-    Notes
-    -----
-    The same matrix as :class:`~safestab.learning.GaussianProcessModel` factorises,
-    ``K + (noise^2 + jitter amplitude^2) I``, for ``refit = "reuse"`` in a Monte Carlo study:
-    one Cholesky factorisation per component instead of a marginal-likelihood optimisation.
+    GaussianProcessModel
+        From :meth:`GaussianProcessModel.from_hyperparameters`: the matrix
+        ``K + noise^2 I`` a fit with these hyperparameters factorises, one Cholesky
+        factorisation per component instead of a marginal-likelihood optimisation
+        (``hyperparameters = "reuse"`` in a Monte Carlo study).
     """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    xls, chols, alphas = [], [], []
-    for j, comp in enumerate(hyper.components):
-        amp = float(hyper.amplitude[j])
-        xl = x / hyper.lengthscale[j]
-        k = _kernel_np(hyper.kernel, amp, xl, xl)
-        k[np.diag_indices_from(k)] += hyper.noise[j] ** 2 + hyper.jitter * amp * amp
-        chol = scipy.linalg.cholesky(k, lower=True, check_finite=False)
-        alphas.append(scipy.linalg.cho_solve((chol, True), y[:, comp] - hyper.mean[j]))
-        chols.append(chol)
-        xls.append(xl)
-    xl_all = np.stack(xls)
-    return ExactPosterior(
-        xl=jnp.asarray(xl_all),
-        x2=jnp.asarray(np.sum(xl_all**2, -1)),
-        inv_ls=jnp.asarray(1.0 / hyper.lengthscale),
-        chol=jnp.asarray(np.stack(chols)),
-        alpha=jnp.asarray(np.stack(alphas)),
-        amplitude=jnp.asarray(hyper.amplitude),
-        mean=jnp.asarray(hyper.mean),
-        kernel=hyper.kernel,
-        components=hyper.components,
-        n_states=hyper.n_states,
-    )
-
-
-def _pivots(kind: str, amp: float, xl: np.ndarray, m: int, tol: float) -> np.ndarray:
-    """Greedy pivoted Cholesky: ``m`` rows maximising the residual prior variance."""
-    q = xl.shape[0]
-    m = min(m, q)
-    diag = np.full(q, amp * amp)
-    rows = np.zeros((m, q))
-    chosen: list[int] = []
-    for i in range(m):
-        j = int(np.argmax(diag))
-        if diag[j] <= tol * amp * amp:
-            break
-        chosen.append(j)
-        col = _kernel_np(kind, amp, xl, xl[j : j + 1])[:, 0] - rows[:i].T @ rows[:i, j]
-        rows[i] = col / np.sqrt(diag[j])
-        diag = np.maximum(diag - rows[i] ** 2, 0.0)
-    return np.array(chosen)
+    with one_blas_thread():
+        return GaussianProcessModel.from_hyperparameters(
+            x, y, amplitude=hyper.amplitude, noise=hyper.noise, lengthscale=hyper.lengthscale,
+            mean=hyper.mean, kernel=hyper.kernel,  # type: ignore[arg-type]
+            components=hyper.components, jitter=hyper.jitter, seed=seed,
+        )  # fmt: skip
 
 
 def inducing_cache(
-    post: ExactPosterior,
+    model: GaussianProcessModel,
     n_inducing: int = 32,
     *,
-    x_check: Any = None,
-    beta: float = 2.0,
-    margin: float = 1.05,
-    pivot_tol: float = 1e-12,
+    min_beta: float = 1.0,
+    pivot_tol: float = 1e-10,
 ) -> InducingCache:
-    """FastGP's inducing-point cache of an exact posterior, with its measured widening.
+    """FastGP's cache of a fitted model, batched: its band contains the exact band everywhere.
 
     Parameters
     ----------
-    post : ExactPosterior
+    model : GaussianProcessModel
     n_inducing : int
         ``M`` per component.
-    x_check : array of shape (N, n), optional
-        Held-out states: the widening ``c_i = margin max (|m~_i - m_i| + beta sigma_i) /
-        (beta sigma~_i)`` (at least 1) makes the cache's band contain the exact band there, as
-        :meth:`FastGP.calibrate`. Without it the widening is 1.
-    beta, margin : float
-        As for :meth:`FastGP.calibrate`.
-    pivot_tol : float
-        Stop adding inducing inputs once the residual prior variance is below
-        ``pivot_tol amplitude^2``.
+    min_beta, pivot_tol : float
+        As for :class:`~safestab.learning.FastGP` (the band contains the exact band for every
+        ``beta >= min_beta``).
 
     Returns
     -------
     InducingCache
+
+    Warns
+    -----
+    InducingPointsWarning
+        As :class:`~safestab.learning.FastGP`, when the band is needlessly wide.
     """
-    xl_all, chol_all = np.asarray(post.xl), np.asarray(post.chol)
-    alpha_all, amp_all = np.asarray(post.alpha), np.asarray(post.amplitude)
-    jitter_rel = 1e-10  # FastGP's Kzz jitter (the model's default jitter)
-    zs, maps, weights = [], [], []
-    for j in range(len(post.components)):
-        amp, xl = float(amp_all[j]), xl_all[j]
-        z = xl[_pivots(post.kernel, amp, xl, int(n_inducing), pivot_tol)]
-        kzz = _kernel_np(post.kernel, amp, z, z) + jitter_rel * amp * amp * np.eye(len(z))
-        lz = np.linalg.cholesky(kzz)
-        a_train = np.linalg.solve(lz, _kernel_np(post.kernel, amp, z, xl))  # (M, Q)
-        w = a_train @ alpha_all[j]
-        wmat = scipy.linalg.solve_triangular(chol_all[j], a_train.T, lower=True)  # (Q, M)
-        t = np.eye(len(z)) - wmat.T @ wmat
-        evals, evecs = np.linalg.eigh(0.5 * (t + t.T))
-        g = (evecs * np.sqrt(np.maximum(evals, 0.0))).T  # G^T G = T
-        lz_inv = np.linalg.solve(lz, np.eye(len(z)))
-        zs.append(z)
-        maps.append(np.concatenate([lz_inv, g @ lz_inv], 0))
-        weights.append(lz_inv.T @ w)  # m~ = k . Lz^-T Lz^-1 mu_Z
-    m_max = max(len(z) for z in zs)
-
-    def pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
-        return np.pad(a, [(0, rows - a.shape[0])] + [(0, 0)] * (a.ndim - 1))
-
-    zl = np.stack([pad_rows(z, m_max) for z in zs])
-    maps_t = []
-    for mp, z in zip(maps, zs, strict=True):
-        k = len(z)
-        full = np.zeros((2 * m_max, m_max))
-        full[:k, :k] = mp[:k]
-        full[m_max : m_max + k, :k] = mp[k:]
-        maps_t.append(full.T)
-    cache = InducingCache(
-        zl=jnp.asarray(zl),
-        z2=jnp.asarray(np.sum(zl**2, -1)),
-        inv_ls=post.inv_ls,
-        maps_t=jnp.asarray(np.stack(maps_t)),
-        weights=jnp.asarray(np.stack([pad_rows(w, m_max) for w in weights])),
-        mask=jnp.asarray(np.stack([np.arange(m_max) < len(z) for z in zs]), float),
-        amplitude=post.amplitude,
-        mean=post.mean,
-        widening=jnp.ones(len(zs)),
-        kernel=post.kernel,
-        components=post.components,
-        n_states=post.n_states,
-    )
-    if x_check is None:
-        return cache
-    xc = jnp.asarray(np.asarray(x_check, float))
-    comps = list(post.components)
-    m_ex, s_ex = (np.asarray(a)[:, comps] for a in jax.jit(post.mean_std_batch)(xc))
-    m_fa, s_fa = (np.asarray(a)[:, comps] for a in jax.jit(
-        lambda x: cache.mean_std_batch(x, widened=False))(xc))  # fmt: skip
-    need = np.abs(m_fa - m_ex) + beta * s_ex
-    have = beta * np.maximum(s_fa, 1e-300)
-    widening = np.maximum(margin * np.max(need / have, axis=0), 1.0)
-    return dataclasses.replace(cache, widening=jnp.asarray(widening))
+    with one_blas_thread():
+        fast = FastGP(model, n_inducing, min_beta=min_beta, pivot_tol=pivot_tol)
+    return InducingCache.from_fastgp(fast)
 
 
 @jax.custom_batching.custom_vmap

@@ -51,6 +51,16 @@ def _violated(value: jax.Array, scale: jax.Array, sign: float) -> jax.Array:
     return sign * value < -SATISFIED_RTOL * scale
 
 
+class _Given:
+    """An uncertainty model returning a mean and std computed already (for one state)."""
+
+    def __init__(self, mean: jax.Array, std: jax.Array, n_states: int) -> None:
+        self._mean, self._std, self.n_states = mean, std, n_states
+
+    def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return self._mean, self._std
+
+
 def trial_function(
     controllers: Sequence[UniversalController],
     *,
@@ -60,6 +70,7 @@ def trial_function(
     exogenous: Exogenous | None = None,
     omega: Omega | None = None,
     lemma2: Sequence[tuple[Any, jax.Array] | None] | None = None,
+    rebuild: Sequence[Callable[[Any], UniversalController] | None] | None = None,
 ) -> Callable[[jax.Array, Any], dict[str, jax.Array]]:
     """Build ``run(x0, params) -> records`` for one trial and every controller.
 
@@ -81,6 +92,12 @@ def trial_function(
         Per controller, the uncertainty model and ``beta`` (n,) whose band
         ``|omega_i - m_i| <= beta_i sigma_i`` is checked at every visited state (with the true
         ``omega``), or ``None`` (no GP; recorded as -1).
+    rebuild : sequence of callable or None, optional
+        Per controller with a ``lemma2`` check, ``rebuild(uncertainty)`` returns the same
+        controller with another uncertainty model. The GP is then evaluated once per step:
+        its mean and std at the state feed both the controller (through a model returning
+        them) and the check, instead of once in each (XLA did not merge the two evaluations:
+        measured, the check doubled the cost of a GP-robust step).
 
     Returns
     -------
@@ -91,8 +108,9 @@ def trial_function(
     """
     ctrls = tuple(controllers)
     checks = tuple(lemma2) if lemma2 is not None else (None,) * len(ctrls)
-    if len(checks) != len(ctrls):
-        raise ValueError("lemma2 must have one entry per controller")
+    builders = tuple(rebuild) if rebuild is not None else (None,) * len(ctrls)
+    if len(checks) != len(ctrls) or len(builders) != len(ctrls):
+        raise ValueError("lemma2 and rebuild must have one entry per controller")
     if omega is None and any(c is not None for c in checks):
         raise ValueError("lemma2 checks need omega")
     clf, cbf = ctrls[0].clf, ctrls[0].cbf
@@ -102,7 +120,11 @@ def trial_function(
         return jnp.zeros(n) if exogenous is None else exogenous(t, x, p)
 
     def step_one(i, x, t, p):
-        ctrl = ctrls[i]
+        ctrl, check, build = ctrls[i], checks[i], builders[i]
+        shared = None
+        if check is not None and build is not None:
+            shared = check[0].mean_std(x)  # once: for the controller and the check
+            ctrl = build(_Given(*shared, n))
         out = ctrl.step_fn(x)
         u = out.u
         a, b, c, d = lie_terms_point(plant, clf, cbf, x)
@@ -112,12 +134,11 @@ def trial_function(
         a_true = a + gv @ e + b @ u
         cbf_bad = _violated(c_true, jnp.abs(c) + jnp.abs(gh @ e) + jnp.abs(d) @ jnp.abs(u), 1.0)
         clf_ok = ~_violated(a_true, jnp.abs(a) + jnp.abs(gv @ e) + jnp.abs(b) @ jnp.abs(u), -1.0)
-        check = checks[i]
         if check is None or omega is None:
             l2_bad = jnp.asarray(False)
         else:
             model, beta = check
-            mean, std = model.mean_std(x)
+            mean, std = model.mean_std(x) if shared is None else shared
             l2_bad = jnp.any(jnp.abs(omega(x, p) - mean) > beta * std)
         x_next = rk4_step(lambda s, y: plant.f(y) + plant.g(y) @ u + exo(s, y, p), t, x, dt)
         incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)

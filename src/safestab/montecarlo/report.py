@@ -49,7 +49,7 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
                 "information_gain": m.information_gain.tolist(),
                 "betas": {k: np.asarray(v).tolist() for k, v in m.betas.items()},
                 "held_out_coverage": m.held_out_coverage,
-                "widening": np.asarray(getattr(m.cache, "widening", np.ones(1))).tolist(),
+                "cache_warnings": list(m.cache_warnings),
             }
             for m in run.datasets
         ],

@@ -12,12 +12,13 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import InducingPointsWarning, ParameterError
 from ..scenarios import ACCScenario, MonteCarloSpec
 from .acc_trials import DataSetModel, conformal_beta_function, fit_dataset, run_chunk
 from .loop import RECORD_FIELDS
@@ -153,6 +154,15 @@ def run_montecarlo(
     else:
         models, results, t_data = _ray(scenario, spec, seed, datasets, chunks, pad, report, address)
     t_total = time.perf_counter() - t0
+    wide = [m.index for m in models if m.cache_warnings]
+    if wide:
+        warnings.warn(
+            f"data sets {wide}: {next(m for m in models if m.cache_warnings).cache_warnings[0]} "
+            "(the band still contains "
+            "the exact band; messages per data set in the metrics JSON, cache_warnings)",
+            InducingPointsWarning,
+            stacklevel=2,
+        )
     records = {k: np.empty((trials, len(spec.controllers)), dtype=results[0][k].dtype)
                for k in RECORD_FIELDS}  # fmt: skip
     for (_, idx), res in zip(chunks, results, strict=True):

@@ -86,12 +86,13 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
 
     # magnitudes of the summands of a and c
     sys_, clf, cbf = controller.system, controller.clf, controller.cbf
-    grad_v = np.abs(np.asarray(jax.vmap(clf.grad)(xj)))
-    grad_h = np.abs(np.asarray(jax.vmap(cbf.grad)(xj)))
+    dv = np.asarray(jax.vmap(clf.grad)(xj))
+    dh = np.asarray(jax.vmap(cbf.grad)(xj))
+    grad_v, grad_h = np.abs(dv), np.abs(dh)
     f = np.asarray(jax.vmap(sys_.f)(xj))
     nominal = jax.vmap(lambda s: lie_terms_point(sys_, clf, cbf, s))(xj)
-    a_class_k = np.abs(np.asarray(nominal.a) - np.sum(np.asarray(jax.vmap(clf.grad)(xj)) * f, -1))
-    c_class_k = np.abs(np.asarray(nominal.c) - np.sum(np.asarray(jax.vmap(cbf.grad)(xj)) * f, -1))
+    a_class_k = np.abs(np.asarray(nominal.a) - np.sum(dv * f, -1))
+    c_class_k = np.abs(np.asarray(nominal.c) - np.sum(dh * f, -1))
     a_sum = np.sum(grad_v * np.abs(f), -1) + a_class_k
     c_sum = np.sum(grad_h * np.abs(f), -1) + c_class_k
     if controller.uncertainty is not None:

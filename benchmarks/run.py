@@ -116,14 +116,15 @@ def c_loop_ns(ctrl, states, native_flags, steps=200_000):
     """CPU ns per step of <name>_step called in a C loop over recorded states (7 repetitions).
 
     Process CPU time, not wall time: on a shared machine the wall clock also counts the time
-    other processes hold the CPU. ``native_flags``: the flags NativeController uses (-O3
-    -march=native), else the portable -O2 of the harness.
+    other processes hold the CPU. ``native_flags``: the flags NativeController uses
+    (``safestab.export.native.native_flags``), else the portable -O2 of the harness.
     """
     import subprocess
     import tempfile
 
     from safestab.export import export_c
     from safestab.export.native import find_compiler
+    from safestab.export.native import native_flags as native_flags_of
 
     with tempfile.TemporaryDirectory() as tmp:
         ex = export_c(ctrl, "bench", tmp)
@@ -133,10 +134,10 @@ def c_loop_ns(ctrl, states, native_flags, steps=200_000):
         )
         src = C_TIMER.replace("NAME_UPPER", "BENCH").replace("NAME", "bench")
         Path(tmp, "timer.c").write_text(src.replace("STEPS", str(steps)))
-        flags = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-math-errno"]
-        flags += ["-O3", "-march=native"] if native_flags else []
+        cc = find_compiler()
+        flags = list(native_flags_of(cc)) if native_flags else ["-std=c99", "-O2", "-ffp-contract=off"]
         exe = str(Path(tmp, "timer"))
-        subprocess.run([find_compiler(), *flags, "bench.c", "timer.c", "-lm", "-o", exe], cwd=tmp, check=True)
+        subprocess.run([cc, *flags, "bench.c", "timer.c", "-lm", "-o", exe], cwd=tmp, check=True)
         out = subprocess.run([exe], capture_output=True, text=True, check=False).stdout.split()
     reps = [float(v) for v in out]
     return {"median_ns": float(np.median(reps)), "min_ns": float(np.min(reps)), "steps": steps,

@@ -287,6 +287,55 @@ def test_nan_and_signed_zero_semantics_match_xla():
         assert same.all(), (leaf.path, xs[~same], g[~same], w[~same])
 
 
+def _correctly_rounded_exp(a: np.ndarray, dtype: type) -> np.ndarray:
+    """exp rounded to ``dtype`` from a 60-digit mpmath value (the reference)."""
+    import mpmath
+
+    with mpmath.workdps(60):
+        out = []
+        for v in a.astype(float):
+            if np.isnan(v):
+                out.append(np.nan)
+            elif np.isinf(v):
+                out.append(np.inf if v > 0 else 0.0)
+            else:
+                e = mpmath.exp(mpmath.mpf(float(v)))
+                big = mpmath.mpf(np.finfo(float).max) * (1 + mpmath.mpf(2) ** -54)
+                out.append(float(e) if e < big else np.inf)  # rounds to +inf from there
+        with np.errstate(over="ignore"):
+            return np.asarray(out).astype(dtype)
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_exp_helper_within_one_ulp_of_correct_rounding(precision):
+    # the generated exp (a polynomial, so that loops over it vectorise) against mpmath, over
+    # the whole range: normal, subnormal and overflowing results, and the special values
+    dt = np.float64 if precision == "double" else np.float32
+    hi, lo = (712.0, -750.0) if precision == "double" else (90.0, -106.0)
+    rng = np.random.default_rng(11)
+    a = np.concatenate([
+        rng.uniform(lo, hi, 3000), rng.uniform(-1.0, 1.0, 1000), np.linspace(lo, hi, 1001),
+        [0.0, -0.0, np.inf, -np.inf, np.nan, 1e-300, -1e-300, np.log(np.finfo(dt).max)],
+    ]).astype(dt)  # fmt: skip
+    ex = export_function(lambda x: jnp.exp(x), 1, f"exp_{precision}", precision=precision)
+    native = compile_native(ex)
+    (got,), _ = native.columns(np.ascontiguousarray(a[:, None]))
+    got = got.reshape(-1)
+    want = _correctly_rounded_exp(a, dt)
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    fin = np.isfinite(want) & ~np.isnan(got)
+    assert np.array_equal(got[~fin & ~np.isnan(want)], want[~fin & ~np.isnan(want)])  # +inf
+    tiny = np.finfo(dt).tiny
+    normal = fin & (want >= tiny)
+    ulps = np.abs(got[normal].astype(float) - want[normal]) / np.spacing(want[normal]).astype(float)
+    assert ulps.max() <= 1.0, a[normal][np.argmax(ulps)]
+    # subnormal results: within one unit of the smallest subnormal
+    sub = fin & (want < tiny)
+    smallest = np.finfo(dt).smallest_subnormal
+    assert np.all(np.abs(got[sub].astype(float) - want[sub]) <= smallest)
+    assert np.signbit(got).sum() == 0  # never -0
+
+
 @jax.custom_jvp
 def _softclip(x):
     return jnp.tanh(x) * 2.0

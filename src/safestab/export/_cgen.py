@@ -9,6 +9,7 @@ so the file declares nothing unused (the code compiles with ``-Wall -Wextra -Wer
 from __future__ import annotations
 
 import keyword
+import math
 import re
 from typing import Any
 
@@ -52,6 +53,8 @@ class Emitter:
         self._tables: dict[int, tuple[str, Val]] = {}
         self._splats: dict[int, Any] = {}
         self.helpers: dict[str, str] = {}
+        #: headers the helpers need besides <math.h> (freestanding headers only)
+        self.includes: set[str] = set()
         self._count = 0
 
     # -- types and literals ----------------------------------------------------------
@@ -266,10 +269,58 @@ def _ipow(name: str, ct: str, flt: bool, e: Emitter) -> str:
 
 
 def _exp(name: str, ct: str, flt: bool, e: Emitter) -> str:
-    fn, lim = ("expf", "-104.0f") if ct == "float" else ("exp", "-746.0")
-    # the same value as exp: below the limit exp rounds to +0, but glibc reaches that result
-    # through a slow path (the GP kernels of the ACC cache hit it at most points)
-    return f"static {ct} {name}({ct} a) {{ return a < {lim} ? 0 : {fn}(a); }}"
+    # exp without a library call, so that loops over arrays (the GP cache's kernel values)
+    # vectorise: a = k ln2 + r with |r| <= ln2 / 2 (k rounded to nearest by adding 1.5 * 2^52,
+    # or 2^23 for float), exp(r) by its Taylor polynomial (degree 13 for double, 7 for float:
+    # truncation below a quarter of an ulp), 2^k as two powers of two built from their bits
+    # (k split in halves so that each is a normal number; the products then round like one,
+    # down to subnormal results and up to +inf). Within 1 ulp of a correctly rounded exp
+    # (tests/test_export.py measures it against mpmath); NaN in, NaN out; exp(-inf) = +0.
+    e.includes.add("<stdint.h>")
+    if ct == "float":
+        coeffs = [1.0 / math.factorial(i) for i in range(7, -1, -1)]
+        lit = [_float_lit(c) for c in coeffs]
+        poly = "\n".join(f"    p = p * r + {c};" for c in lit[1:])
+        return (
+            f"static float {name}(float a)\n{{\n"
+            "    const float shift = 12582912.0f; /* 1.5 * 2^23 */\n"
+            "    float x = a > 89.0f ? 89.0f : a;\n"
+            "    x = x < -104.0f ? -104.0f : x; /* exp(a) rounds to +0 below -104 */\n"
+            "    const float kd = (x * 1.44269502f + shift) - shift;\n"
+            "    const float r = (x - kd * 0.693145752f) - kd * 1.42860677e-06f;\n"
+            f"    float p = {lit[0]};\n{poly}\n"
+            "    const float k1 = (kd * 0.5f + shift) - shift, k2 = kd - k1;\n"
+            "    union { float f; uint32_t u; } s1, s2;\n"
+            "    s1.f = k1 + (shift + 127.0f);\n"
+            "    s2.f = k2 + (shift + 127.0f);\n"
+            "    s1.u = (s1.u & 0xffu) << 23;\n"
+            "    s2.u = (s2.u & 0xffu) << 23;\n"
+            "    return a < -104.0f ? 0.0f : p * s1.f * s2.f;\n}"
+        )
+    coeffs = [1.0 / math.factorial(i) for i in range(13, -1, -1)]
+    poly = "\n".join(f"    p = p * r + {c!r};" for c in coeffs[1:])
+    return (
+        f"static double {name}(double a)\n{{\n"
+        "    const double shift = 6755399441055744.0; /* 1.5 * 2^52 */\n"
+        "    double x = a > 710.0 ? 710.0 : a;\n"
+        "    x = x < -746.0 ? -746.0 : x; /* exp(a) rounds to +0 below -746 */\n"
+        "    const double kd = (x * 1.4426950408889634 + shift) - shift;\n"
+        "    /* ln 2 in two parts: kd * 0.6931471803691238 is exact for |kd| < 2^21 */\n"
+        "    const double r = (x - kd * 0.6931471803691238) - kd * 1.9082149292705877e-10;\n"
+        f"    double p = {coeffs[0]!r};\n{poly}\n"
+        "    const double k1 = (kd * 0.5 + shift) - shift, k2 = kd - k1;\n"
+        "    union { double d; uint64_t u; } s1, s2;\n"
+        "    s1.d = k1 + (shift + 1023.0);\n"
+        "    s2.d = k2 + (shift + 1023.0);\n"
+        "    s1.u = (s1.u & 0x7ffu) << 52;\n"
+        "    s2.u = (s2.u & 0x7ffu) << 52;\n"
+        "    return a < -746.0 ? 0.0 : p * s1.d * s2.d;\n}"
+    )
+
+
+def _float_lit(c: float) -> str:
+    s = repr(float(np.float32(c)))
+    return (s if any(ch in s for ch in ".e") else s + ".0") + "f"
 
 
 _HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp}

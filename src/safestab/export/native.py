@@ -22,7 +22,7 @@ from .._validation import check_finite
 from ..errors import CompilationError, DimensionError, InfeasibleError
 from .exporter import C_FLAGS, ExportedC, export_c
 
-__all__ = ["NativeController", "NativeFunction", "compile_native", "find_compiler"]
+__all__ = ["NativeController", "NativeFunction", "compile_native", "find_compiler", "native_flags"]
 
 _NP_DTYPES = {"double": np.float64, "float": np.float32}
 
@@ -43,6 +43,43 @@ def find_compiler(compiler: str | None = None) -> str:
         f"no C compiler found (tried {[c for c in candidates if c]}); install one (on Debian "
         "or Ubuntu: apt-get install gcc; scripts/_venv.sh does this) or set CC"
     )
+
+
+#: Speed flags tried on top of ``C_FLAGS``; none changes a result (no fast-math, no
+#: contraction). -O3 vectorises the GP cache's matrix-vector products; -fno-math-errno and
+#: -fno-trapping-math let the compiler vectorise the loops over ``ss_exp`` and ``sqrt``;
+#: -fno-tree-loop-distribute-patterns keeps GCC from turning the many short copy and zeroing
+#: loops into library calls (a third of the GP-robust ACC step with GCC 12); -funroll-loops.
+_SPEED_FLAGS = (
+    "-O3",
+    "-fno-math-errno",
+    "-fno-trapping-math",
+    "-fno-tree-loop-distribute-patterns",
+    "-funroll-loops",
+)
+_FLAG_CACHE: dict[tuple[str, bool], tuple[str, ...]] = {}
+
+
+def native_flags(cc: str, *, march_native: bool = True) -> tuple[str, ...]:
+    """The flags :class:`NativeFunction` compiles with.
+
+    ``C_FLAGS`` and the speed flags (and ``-march=native`` if asked) that ``cc`` accepts,
+    probed once per compiler.
+    """
+    key = (cc, march_native)
+    if key not in _FLAG_CACHE:
+        wanted = [*_SPEED_FLAGS] + (["-march=native"] if march_native else [])
+        ok: list[str] = []
+        with tempfile.TemporaryDirectory(prefix="safestab-flags-") as tmp:
+            src = Path(tmp, "probe.c")
+            src.write_text("int probe(int a) { return a + 1; }\n")
+            for flag in wanted:
+                cmd = [cc, *C_FLAGS, flag, "-Werror", "-c", str(src), "-o", str(Path(tmp, "p.o"))]
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if proc.returncode == 0:
+                    ok.append(flag)
+        _FLAG_CACHE[key] = (*C_FLAGS, *ok)
+    return _FLAG_CACHE[key]
 
 
 def _run(cmd: list[str], cwd: Path) -> None:
@@ -135,11 +172,7 @@ class NativeFunction:
             build = Path(tmp)
             exported.write(build)
             obj = build / f"{exported.name}.o"
-            # -O3 (same numbers as -O2: no fast-math, no contraction) vectorises the GP
-            # cache's matrix-vector products about twice as well as -O2 with GCC 12
-            flags = [*C_FLAGS, "-O3", "-fno-math-errno", "-fPIC"] + (
-                ["-march=native"] if march_native else []
-            )
+            flags = [*native_flags(cc, march_native=march_native), "-fPIC"]
             _run([cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)], build)
             module = f"_safestab_native_{exported.name}_{digest}"
             try:
@@ -336,6 +369,17 @@ class NativeController:
 
     def __call__(self, x: Any) -> np.ndarray:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
+        # the per-step path from Python, kept short: one state as a float ndarray
+        if x.__class__ is np.ndarray and x.shape == self._one_state:
+            fn = self.function
+            try:
+                xb, xp, ub, up = fn._local.bufs
+            except AttributeError:
+                xb, xp, ub, up = fn._buffers()
+            xb[...] = x
+            if fn._step(xp, up, fn._null) & 1:
+                check_finite("x", x)
+            return ub.copy()
         if np.shape(x) == self._one_state:
             u, status = self.function.primary(x)
             if status & 1:

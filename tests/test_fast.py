@@ -112,7 +112,7 @@ def test_fast_cache_exact_at_small_q():
     y = np.stack([np.sin(6 * x[:, 0]) * np.cos(5 * x[:, 1]), np.cos(7 * x[:, 1])], 1)
     y = y + 0.01 * rng.normal(size=(30, 2))
     gp = GaussianProcessModel(kernel="matern52").fit(x, y)
-    fast = FastGP(gp, n_inducing=30, pivot_tol=0.0)
+    fast = FastGP(gp, n_inducing=30, pivot_tol=0.0, noise_tol=0.0)
     assert fast.n_inducing_.tolist() == [30, 30]
     xq = rng.uniform(-1, 1, size=(20, 2))
     m_ex, v_ex = gp.predict(xq)
@@ -125,6 +125,45 @@ def test_fast_cache_exact_at_small_q():
     s_ex = np.sqrt(np.asarray(v_ex))
     assert np.all(np.asarray(s_fa) >= s_ex - 1e-12)
     assert np.all(np.asarray(s_fa) <= 1.01 * s_ex + 1e-6)
+
+
+def test_noise_tol_stops_below_the_noise_and_keeps_the_band():
+    # component 0 carries a signal far above the noise, component 1 pure noise: the GP gives
+    # the latter an amplitude near the noise, whose residual the data cannot resolve
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1, 1, size=(300, 2))
+    y = np.stack([np.sin(3 * x[:, 0]) + x[:, 1] ** 2, np.zeros(300)], 1)
+    y = y + 0.01 * rng.normal(size=(300, 2))
+    gp = GaussianProcessModel(kernel="se").fit(x, y)
+    full = FastGP(gp, n_inducing=24, noise_tol=0.0)
+    fast = FastGP(gp, n_inducing=24, noise_tol=0.1)
+    assert fast.n_inducing_[1] < full.n_inducing_[1]
+    xs = (gp.x_train_ - gp.x_offset_) / gp.x_scale_
+    for j, amp in enumerate(gp.amplitude_):
+        m = int(fast.n_inducing_[j])
+        z = (fast.inducing_[j, :m] - gp.x_offset_) / gp.x_scale_
+        ls = np.asarray(gp._lengthscale_std[j])
+
+        def k(a, b, amp=amp, ls=ls):  # the SE kernel in standardised units (independent)
+            d = ((a[:, None, :] - b[None, :, :]) / ls) ** 2
+            return amp**2 * np.exp(-0.5 * d.sum(-1))
+
+        # residual prior variance at the training inputs, by a dense computation
+        kxz = k(xs, z)
+        resid = amp**2 - np.sum(kxz * np.linalg.solve(k(z, z), kxz.T).T, 1)
+        stopped_early = m < min(24, len(xs)) and resid.max() > 1e-10 * amp**2
+        if stopped_early:  # stopped by the noise: the residual is below (0.1 noise)^2 ...
+            assert resid.max() <= (0.1 * gp.noise_[j]) ** 2 * (1 + 1e-6)
+            # ... and one inducing input fewer would not have been (greedy choice)
+            kxz1 = kxz[:, : m - 1]
+            r1 = amp**2 - np.sum(kxz1 * np.linalg.solve(k(z[: m - 1], z[: m - 1]), kxz1.T).T, 1)
+            assert m == 1 or r1.max() > (0.1 * gp.noise_[j]) ** 2
+    assert fast.n_inducing_[1] < 24
+    # the band still contains the exact band, near the data and far from it
+    xq = rng.uniform(-2, 2, size=(400, 2))
+    assert np.all(fast.coverage_of_exact_band(xq, 1.0) == 1.0)
+    with pytest.raises(ParameterError, match="noise_tol"):
+        FastGP(gp, noise_tol=-1.0)
 
 
 def test_fused_step_equals_unfused(acc_gp):

@@ -46,7 +46,7 @@ INFLATION_WARN = 3.0
 _U = np.finfo(float).eps / 2  # unit roundoff of float64
 
 
-def _pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float):
+def _pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor: float = 0.0):
     """Greedy choice of ``m`` rows maximising the residual prior variance (pivoted Cholesky).
 
     Returns the chosen indices and the residual prior variance left at every row.
@@ -58,7 +58,7 @@ def _pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float):
     chosen: list[int] = []
     for i in range(m):
         j = int(np.argmax(diag))
-        if diag[j] <= tol * amp2:
+        if diag[j] <= tol * amp2 or (chosen and diag[j] <= floor):
             break
         chosen.append(j)
         col = np.asarray(kfn(xs, xs[j : j + 1]))[:, 0] - rows[:i].T @ rows[:i, j]
@@ -150,6 +150,16 @@ class FastGP:
         ``pivot_tol * amplitude^2`` (default 1e-10). Smaller values resolve more but make
         ``K_ZZ`` worse conditioned, and the rounding allowance grows with ``cond(Lj)``; on the
         ACC data 1e-10 gave the narrowest band of 1e-8, 1e-10 and 1e-12.
+    noise_tol : float
+        Also stop (after the first inducing input) once the largest residual prior variance
+        at the training inputs is below ``(noise_tol * noise_)^2`` (default 0.1; 0 turns
+        this off): a residual prior std below a tenth of the measurement noise is not
+        resolved by the data. This keeps components whose GP learned next to nothing
+        (amplitude near or below the noise, such as the exact kinematics of the ACC, where
+        it cut M from 32 to 1 and 11 and the cached step's cost about eightfold) from
+        costing ``n_inducing`` points each; components with a signal far above the noise are
+        governed by ``pivot_tol`` as before. The band stays a proven superset of the exact
+        band for any choice of inducing inputs.
 
     Attributes
     ----------
@@ -181,6 +191,7 @@ class FastGP:
         *,
         min_beta: float = 1.0,
         pivot_tol: float = 1e-10,
+        noise_tol: float = 0.1,
     ) -> None:
         model._check_fitted()
         if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
@@ -189,6 +200,7 @@ class FastGP:
             raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
         check_scalar_range("min_beta", min_beta, lower=0.0, strict_lower=True)
         check_scalar_range("pivot_tol", pivot_tol, lower=0.0)
+        check_scalar_range("noise_tol", noise_tol, lower=0.0)
         self.model = model
         self.min_beta = float(min_beta)
         self.n_states = model.n_states_
@@ -202,7 +214,8 @@ class FastGP:
 
             def kfn(x1, x2, amp=amp, ls_j=ls_j):
                 return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
-            idx, _ = _pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol)
+            floor = (noise_tol * float(model.noise_[j])) ** 2
+            idx, _ = _pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol, floor)
             z = xs[idx]
             m = len(idx)
             kzz = np.asarray(kfn(z, z))

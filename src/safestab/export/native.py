@@ -309,6 +309,9 @@ class NativeController:
         self._dtype = self.function.dtype
         self._names = [leaf.path for leaf in self.exported.leaves]
         self._one_state = (self.n_states,)
+        # the C step and the per-thread buffers, bound here for the one-state path
+        self._c_step, self._null = self.function._step, self.function._null
+        self._local = self.function._local
 
     def __repr__(self) -> str:
         return f"NativeController({self.controller!r}, precision={self.exported.precision!r})"
@@ -371,13 +374,12 @@ class NativeController:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
         # the per-step path from Python, kept short: one state as a float ndarray
         if x.__class__ is np.ndarray and x.shape == self._one_state:
-            fn = self.function
             try:
-                xb, xp, ub, up = fn._local.bufs
+                xb, xp, ub, up = self._local.bufs
             except AttributeError:
-                xb, xp, ub, up = fn._buffers()
+                xb, xp, ub, up = self.function._buffers()
             xb[...] = x
-            if fn._step(xp, up, fn._null) & 1:
+            if self._c_step(xp, up, self._null) & 1:
                 check_finite("x", x)
             return ub.copy()
         if np.shape(x) == self._one_state:

@@ -132,7 +132,7 @@ def markdown(r: dict) -> str:
         f"{r['vmapped_fastgp_states_per_second']:.3g} states/s |",
         f"| refit by conditioning, reused hyperparameters (Q = 2000, n = 3) | "
         f"{r['refit_by_conditioning_seconds']:.2f} s |",
-        f"| FastGP cache of that model (proven band, M = 32, n = 3) | "
+        f"| FastGP cache of that model (proven band, n_inducing = 32, n = 3) | "
         f"{r.get('fastgp_cache_seconds', float('nan')):.2f} s |",
         f"| refit with a hyperparameter fit (subset 500), baseline | "
         f"{r['refit_with_hyperparameter_fit_seconds']:.1f} s |",

@@ -75,6 +75,18 @@ def test_identical_for_any_chunk_size(local_run):
         assert np.array_equal(got, local_run.records[key][idx], equal_nan=True), key
 
 
+def test_identical_for_any_number_of_workers(local_run):
+    # four chunks of 5 (the compiled shape of local_run): three run two at a time in threads
+    # after the first, or in turn; the same bits either way
+    runs = [run_montecarlo(SC, spec=SPEC, trials=2 * N, datasets=K, seed=3, workers=w)
+            for w in (2, 1)]  # fmt: skip
+    _same(*runs)
+    # and the first N trials' records equal local_run's where the chunks coincide (data set
+    # j's trials are j, j + K, ...; with 2N trials its first chunk holds the same 5 trials)
+    for key in RECORD_FIELDS:
+        assert np.array_equal(runs[0].records[key][:N], local_run.records[key], equal_nan=True)
+
+
 def test_trial_draws_depend_on_seed_and_index_only():
     x_all, p_all = draw_trials(SC, SPEC, 7, np.arange(20))
     x_some, p_some = draw_trials(SC, SPEC, 7, np.array([13, 2]))
@@ -153,6 +165,7 @@ def test_summary_and_strict_json(local_run):
         (dict(trials=2, datasets=3), r"datasets must be <= trials"),
         (dict(seed=-1), r"seed must be an integer >= 0"),
         (dict(backend="dask"), r"backend must be one of \('local', 'ray'\), got 'dask'"),
+        (dict(workers=0), r"workers must be an integer >= 1 or None, got 0"),
     ],
 )  # fmt: skip
 def test_bad_arguments_raise_before_work(kwargs, match):
@@ -183,6 +196,7 @@ def test_cli_mc_checks_inputs_before_work(tmp_path):
         (["--scenario", "nope"], "is neither a preset"),
         (["--backend", "dask"], "--backend must be one of"),
         (["--trials", "0"], "--trials must be >= 1, got 0"),
+        (["--workers", "0"], "--workers must be >= 1, got 0"),
         (["--chunk-size", "0"], "montecarlo.chunk_size must be an integer"),
         (["--seed", "-1"], r"--seed must be in \[0, 2\*\*32 - 1\]"),
     ]

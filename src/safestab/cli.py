@@ -334,6 +334,9 @@ def mc(
     backend: str = typer.Option("local", help="'local' or 'ray'."),
     address: str | None = typer.Option(None, help="Ray cluster address (else RAY_ADDRESS)."),
     chunk_size: int | None = typer.Option(None, help="Trials per compiled batch."),
+    workers: int | None = typer.Option(
+        None, help="Local backend: chunks run at once in threads (default 2 on 2+ CPUs)."
+    ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
     seed: int = typer.Option(0, help="Seed: trial i depends on (seed, i) only."),
     debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
@@ -369,7 +372,7 @@ def mc(
             spec = spec.replace(chunk_size=chunk_size)  # checked like the file
         if backend not in montecarlo.BACKENDS:
             raise ParameterError(f"--backend must be one of {montecarlo.BACKENDS}, got {backend!r}")
-        for name, value in (("--trials", trials), ("--datasets", datasets)):
+        for name, value in (("--trials", trials), ("--datasets", datasets), ("--workers", workers)):
             if value is not None and value < 1:
                 raise ParameterError(f"{name} must be >= 1, got {value}")
         if not 0 <= seed <= 2**32 - 1:
@@ -391,7 +394,7 @@ def mc(
 
             return montecarlo.run_montecarlo(
                 sc, spec=spec, trials=trials, datasets=datasets, seed=seed, backend=backend,
-                address=address, progress=report,
+                address=address, progress=report, workers=workers,
             )  # fmt: skip
 
     result = _guard(run, debug=debug, code=EXIT_RUN_FAILED)

@@ -293,7 +293,7 @@ def main_gp_only(args):
     results["fast_cache"] = bench_fast_cache(sc, gp, FastGP(gp, n_inducing=32), test)
     args.out.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(results, indent=2, default=float))
-    write_markdown(results, args.out / "performance.md")
+    write_page(results, args.out)
     print(f"wrote {path} and performance.md")
 
 
@@ -486,10 +486,7 @@ def main():
 
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "performance.json").write_text(json.dumps(results, indent=2, default=float))
-    write_markdown(results, args.out / "performance.md")
-    import mc_rows  # the Monte Carlo block of the last --only-mc run, kept in the page
-
-    mc_rows.update_markdown(args.out / "performance.md", args.out / "performance_mc.json")
+    write_page(results, args.out)
     import multi  # the several-CBF rows (issue 10): cheap, so rerun with every full run
 
     multi.main(args.out)
@@ -517,7 +514,7 @@ def run_export_only(args, sc, train, test, rng, machine):
     tmp.write_text(json.dumps(results, indent=2, default=float))
     tmp.replace(path)
     if "latency" in results:
-        write_markdown(results, args.out / "performance.md")
+        write_page(results, args.out)
     print(json.dumps(results["export"], indent=2, default=float))
 
 
@@ -564,6 +561,20 @@ def export_markdown(e):
     lines += ["", "| target (issue 9) | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
     return lines + [""]
+
+
+def write_page(results, out):
+    """Rewrite performance.md from ``results``, keeping the blocks that other runs measured.
+
+    The Monte Carlo and several-CBF blocks come from their own runs (performance_mc.json,
+    performance_multi.json) and are put back, so a partial rerun loses neither.
+    """
+    import mc_rows
+    import multi
+
+    write_markdown(results, out / "performance.md")
+    mc_rows.update_markdown(out / "performance.md", out / "performance_mc.json")
+    multi.update_markdown(out / "performance.md", out / "performance_multi.json")
 
 
 def write_markdown(r, path):

@@ -15,6 +15,7 @@ import pytest
 
 import safestab as ss
 from safestab import ScenarioError
+from safestab.errors import InducingPointsWarning
 from safestab.scenarios import ObstacleScenario, load, load_obstacle_scenario, scenario_kind
 from safestab.scenarios.obstacle_study import (
     CONTROLLERS,
@@ -318,7 +319,10 @@ def test_overrides_are_checked_like_the_file(sc):
 @pytest.fixture(scope="module")
 def study(sc):
     """The preset study (a coarser map grid): about 1.5 to 5 minutes on 2 shared cores."""
-    return run_obstacle_study(sc.replace(map_n_x1=61, map_n_x2=41))
+    # the preset's 32-point cache is needlessly wide for the position GP (its band is valid;
+    # FastGP says so): expected here, and the test fails if the warning changes or goes away
+    with pytest.warns(InducingPointsWarning, match="needlessly wide"):
+        return run_obstacle_study(sc.replace(map_n_x1=61, map_n_x2=41))
 
 
 @pytest.mark.slow
@@ -397,6 +401,8 @@ def _run(*args):
 
 
 @pytest.mark.slow
+# at Q = 30 with 8 inducing points the cache rightly warns that its band is needlessly wide
+@pytest.mark.filterwarnings("default::safestab.errors.InducingPointsWarning")
 def test_cli_run_obstacle_smoke(tmp_path):
     res = _run("--scenario", "obstacle", "--out", tmp_path, *SMALL)
     assert res.exit_code == 0, res.output

@@ -277,50 +277,40 @@ def _exp(name: str, ct: str, flt: bool, e: Emitter) -> str:
     # down to subnormal results and up to +inf). Within 1 ulp of a correctly rounded exp
     # (tests/test_export.py measures it against mpmath); NaN in, NaN out; exp(-inf) = +0.
     e.includes.add("<stdint.h>")
-    if ct == "float":
-        coeffs = [1.0 / math.factorial(i) for i in range(7, -1, -1)]
-        lit = [_float_lit(c) for c in coeffs]
-        poly = "\n".join(f"    p = p * r + {c};" for c in lit[1:])
-        return (
-            f"static float {name}(float a)\n{{\n"
-            "    const float shift = 12582912.0f; /* 1.5 * 2^23 */\n"
-            "    float x = a > 89.0f ? 89.0f : a;\n"
-            "    x = x < -104.0f ? -104.0f : x; /* exp(a) rounds to +0 below -104 */\n"
-            "    const float kd = (x * 1.44269502f + shift) - shift;\n"
-            "    const float r = (x - kd * 0.693145752f) - kd * 1.42860677e-06f;\n"
-            f"    float p = {lit[0]};\n{poly}\n"
-            "    const float k1 = (kd * 0.5f + shift) - shift, k2 = kd - k1;\n"
-            "    union { float f; uint32_t u; } s1, s2;\n"
-            "    s1.f = k1 + (shift + 127.0f);\n"
-            "    s2.f = k2 + (shift + 127.0f);\n"
-            "    s1.u = (s1.u & 0xffu) << 23;\n"
-            "    s2.u = (s2.u & 0xffu) << 23;\n"
-            "    return a < -104.0f ? 0.0f : p * s1.f * s2.f;\n}"
-        )
-    coeffs = [1.0 / math.factorial(i) for i in range(13, -1, -1)]
-    poly = "\n".join(f"    p = p * r + {c!r};" for c in coeffs[1:])
+    single = ct == "float"
+    dt = np.float32 if single else np.float64
+    # mantissa bits, exponent bias and mask, unsigned type of the same width, the clamps
+    # (above: the result overflows; below: it rounds to +0), the polynomial's degree and
+    # ln 2 in two parts whose high part has few enough bits that kd * it is exact here
+    mant, bias, mask, uint, hi, lo, deg, ln2_hi, ln2_lo = (
+        (23, 127, "0xffu", "uint32_t", 89.0, -104.0, 7, 0.693145752, 1.42860677e-06)
+        if single
+        else (52, 1023, "0x7ffu", "uint64_t", 710.0, -746.0, 13, 0.6931471803691238,
+              1.9082149292705877e-10)
+    )  # fmt: skip
+
+    def lit(v: float) -> str:
+        return e.lit(v, dt)
+
+    coeffs = [1.0 / math.factorial(i) for i in range(deg, -1, -1)]
+    poly = "\n".join(f"    p = p * r + {lit(c)};" for c in coeffs[1:])
     return (
-        f"static double {name}(double a)\n{{\n"
-        "    const double shift = 6755399441055744.0; /* 1.5 * 2^52 */\n"
-        "    double x = a > 710.0 ? 710.0 : a;\n"
-        "    x = x < -746.0 ? -746.0 : x; /* exp(a) rounds to +0 below -746 */\n"
-        "    const double kd = (x * 1.4426950408889634 + shift) - shift;\n"
-        "    /* ln 2 in two parts: kd * 0.6931471803691238 is exact for |kd| < 2^21 */\n"
-        "    const double r = (x - kd * 0.6931471803691238) - kd * 1.9082149292705877e-10;\n"
-        f"    double p = {coeffs[0]!r};\n{poly}\n"
-        "    const double k1 = (kd * 0.5 + shift) - shift, k2 = kd - k1;\n"
-        "    union { double d; uint64_t u; } s1, s2;\n"
-        "    s1.d = k1 + (shift + 1023.0);\n"
-        "    s2.d = k2 + (shift + 1023.0);\n"
-        "    s1.u = (s1.u & 0x7ffu) << 52;\n"
-        "    s2.u = (s2.u & 0x7ffu) << 52;\n"
-        "    return a < -746.0 ? 0.0 : p * s1.d * s2.d;\n}"
+        f"static {ct} {name}({ct} a)\n{{\n"
+        f"    const {ct} shift = {lit(1.5 * 2.0**mant)}; /* 1.5 * 2^{mant} */\n"
+        f"    {ct} x = a > {lit(hi)} ? {lit(hi)} : a;\n"
+        f"    x = x < {lit(lo)} ? {lit(lo)} : x; /* exp(a) rounds to +0 below {lo:g} */\n"
+        f"    const {ct} kd = (x * {lit(1.0 / math.log(2.0))} + shift) - shift;\n"
+        f"    /* ln 2 in two parts: kd * {lit(ln2_hi)} is exact for every kd here */\n"
+        f"    const {ct} r = (x - kd * {lit(ln2_hi)}) - kd * {lit(ln2_lo)};\n"
+        f"    {ct} p = {lit(coeffs[0])};\n{poly}\n"
+        f"    const {ct} k1 = (kd * {lit(0.5)} + shift) - shift, k2 = kd - k1;\n"
+        f"    union {{ {ct} v; {uint} u; }} s1, s2;\n"
+        f"    s1.v = k1 + (shift + {lit(bias)});\n"
+        f"    s2.v = k2 + (shift + {lit(bias)});\n"
+        f"    s1.u = (s1.u & {mask}) << {mant};\n"
+        f"    s2.u = (s2.u & {mask}) << {mant};\n"
+        f"    return a < {lit(lo)} ? {lit(0.0)} : p * s1.v * s2.v;\n}}"
     )
-
-
-def _float_lit(c: float) -> str:
-    s = repr(float(np.float32(c)))
-    return (s if any(ch in s for ch in ".e") else s + ".0") + "f"
 
 
 _HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp}

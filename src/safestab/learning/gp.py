@@ -65,6 +65,14 @@ _FORMAT = "safestab-gp-v2"  # v2: ``noise`` is the effective noise (jitter inclu
 _FORMAT_V1 = "safestab-gp-v1"
 
 
+def _components(components: Any, n: int) -> tuple[int, ...]:
+    """The learned components: all ``n`` by default, else distinct indices in ``[0, n)``."""
+    comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
+    if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
+        raise DimensionError(f"components must be distinct indices in [0, {n}), got {components!r}")
+    return comps
+
+
 def _unpack(theta, n_features):
     log_amp, log_noise, mean = theta[0], theta[1], theta[2]
     log_ls = theta[3 : 3 + n_features]
@@ -343,11 +351,7 @@ class GaussianProcessModel:
                 f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}"
             )
         q, n = x.shape
-        comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
-        if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
-            raise DimensionError(
-                f"components must be distinct indices in [0, {n}), got {components!r}"
-            )
+        comps = _components(components, n)
         check_finite("x", x)
         check_finite("y", y[:, list(comps)])  # skipped columns are never read
         if hyper_subset is not None and (
@@ -487,11 +491,7 @@ class GaussianProcessModel:
                 f"x and y must be (Q, n) arrays of equal shape, got {x.shape} and {y.shape}"
             )
         q, n = x.shape
-        comps = tuple(range(n)) if components is None else tuple(int(c) for c in components)
-        if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
-            raise DimensionError(
-                f"components must be distinct indices in [0, {n}), got {components!r}"
-            )
+        comps = _components(components, n)
         k = len(comps)
         mean = np.zeros(k) if mean is None else mean
         hyper = {}

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from _page import put_block
 from safestab.learning import FastGP, GaussianProcessModel
 from safestab.montecarlo import (
     condition,
@@ -175,18 +176,8 @@ def markdown(r: dict) -> str:
 
 def update_markdown(md_path: Path, json_path: Path) -> None:
     """Put the block for the saved results into performance.md (replacing an old one)."""
-    if not json_path.exists():
-        return
-    block = markdown(json.loads(json_path.read_text()))
-    text = md_path.read_text() if md_path.exists() else ""
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        text = head + block + rest.split(END, 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    tmp = md_path.with_name(md_path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(md_path)
+    if json_path.exists():
+        put_block(md_path, markdown(json.loads(json_path.read_text())), BEGIN, END)
 
 
 def main(out_dir: Path, trials: int, ray_trials: int) -> None:

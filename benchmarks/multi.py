@@ -26,6 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from _page import put_block
 from safestab.formulas import MultiStatus
 from safestab.formulas.multi import multi_kernel
 
@@ -219,18 +220,8 @@ def markdown(results: dict) -> str:
 
 def update_markdown(md_path: Path, json_path: Path) -> None:
     """Put the block for the saved results into performance.md (replacing an old one)."""
-    if not json_path.exists():
-        return
-    block = markdown(json.loads(json_path.read_text()))
-    text = md_path.read_text() if md_path.exists() else ""
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        text = head + block + rest.split(END, 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    tmp = md_path.with_name(md_path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(md_path)
+    if json_path.exists():
+        put_block(md_path, markdown(json.loads(json_path.read_text())), BEGIN, END)
 
 
 def main(out_dir: Path, repeat: int = 300, batch: int = 10_000) -> None:

@@ -372,8 +372,10 @@ class NativeController:
 
     def __call__(self, x: Any) -> np.ndarray:
         """The input at states ``x`` of shape (..., n); shape (..., m)."""
-        # the per-step path from Python, kept short: one state as a float ndarray
-        if x.__class__ is np.ndarray and x.shape == self._one_state:
+        # one state: the per-step path from Python, kept short (an ndarray is checked without
+        # np.shape, which costs as much as the rest of the call)
+        one = self._one_state
+        if (x.__class__ is np.ndarray and x.shape == one) or np.shape(x) == one:
             try:
                 xb, xp, ub, up = self._local.bufs
             except AttributeError:
@@ -382,9 +384,4 @@ class NativeController:
             if self._c_step(xp, up, self._null) & 1:
                 check_finite("x", x)
             return ub.copy()
-        if np.shape(x) == self._one_state:
-            u, status = self.function.primary(x)
-            if status & 1:
-                check_finite("x", x)
-            return u
         return self.step(x).u

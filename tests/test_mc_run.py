@@ -102,6 +102,27 @@ def test_trial_draws_depend_on_seed_and_index_only():
 
 
 @pytest.mark.slow  # compiles a 2-controller loop and two simulations
+def test_lead_acceleration_follows_the_segment_convention():
+    """Segments ``t <= ends[0]``, then ``(ends[j-1], ends[j]]``, 0 after the last, against a
+    direct loop over the segments, at the boundaries and between them; a stopped lead does not
+    brake further."""
+    ends = np.array([2.0, 3.5, 7.0])
+    acc = np.array([-1.5, 0.75, 2.0])
+    params = {"ends": jax.numpy.asarray(ends), "acc": jax.numpy.asarray(acc)}
+    moving = np.array([10.0, 5.0, 30.0])
+    times = [0.0, 1.0, 2.0, np.nextafter(2.0, 3.0), 3.5, 5.0, 7.0, np.nextafter(7.0, 8.0), 9.0]
+    for t in times:
+        expected = 0.0
+        for j in range(len(ends) - 1, -1, -1):
+            if t <= ends[j] and (j == 0 or t > ends[j - 1]):
+                expected = acc[j]
+        got = np.asarray(lead_acceleration(t, moving, params))
+        np.testing.assert_array_equal(got, [0.0, expected, 0.0], err_msg=f"t = {t}")
+    stopped = np.array([10.0, 0.0, 30.0])
+    assert float(lead_acceleration(0.5, stopped, params)[1]) == 0.0  # would brake: held at 0
+    assert float(lead_acceleration(3.0, stopped, params)[1]) == 0.75  # may accelerate
+
+
 def test_fixed_trial_reproduces_the_simulator():
     # fixed initial state and lead profile: the batched loop's min h for the mismatched
     # controller equals ss.simulate's (an independent code path) on the same closed loop

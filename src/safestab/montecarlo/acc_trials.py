@@ -125,7 +125,10 @@ def lead_acceleration(t: jax.Array, x: jax.Array, params: dict[str, jax.Array]) 
     rather than reverses (a choice; docs/montecarlo.md).
     """
     ends, acc = params["ends"], params["acc"]
-    j = jnp.searchsorted(ends, t, side="left")
+    # the segment index is the number of ends before t (ends increase: the scenario file's
+    # profile is validated so, random ones are sums of positive durations); a count fuses
+    # with the rest, where searchsorted was a while loop per RK4 stage
+    j = jnp.sum(ends < t)
     a = jnp.where(j < ends.shape[0], acc[jnp.minimum(j, ends.shape[0] - 1)], 0.0)
     a = jnp.where((x[1] <= 0.0) & (a < 0.0), 0.0, a)
     return jnp.array([0.0, 1.0, 0.0]) * a
@@ -348,11 +351,35 @@ def run_chunk(
     dict of str to array of shape (B, C)
         The records of :data:`~safestab.montecarlo.loop.RECORD_FIELDS`.
     """
+    b = np.size(indices)
+    args = _chunk_args(scenario, spec, model, seed, indices, pad_to)
+    out = _compiled_chunk(scenario, spec)(*args)
+    return {k: np.asarray(v)[:b] for k, v in out.items()}
+
+
+def compile_chunk(
+    scenario: ACCScenario,
+    spec: MonteCarloSpec,
+    model: DataSetModel,
+    seed: int,
+    indices: Any,
+    pad_to: int | None = None,
+) -> None:
+    """Compile the loop :func:`run_chunk` runs for these arguments, without running it.
+
+    Later chunks of the same shapes reuse the compiled loop, so they can all start at once
+    (the local backend's threads) instead of waiting for a first chunk that compiles.
+    """
+    _compiled_chunk(scenario, spec).lower(
+        *_chunk_args(scenario, spec, model, seed, indices, pad_to)
+    ).compile()
+
+
+def _chunk_args(scenario, spec, model, seed, indices, pad_to):
     idx = np.asarray(indices, dtype=np.int64)
     b = idx.size
     if pad_to is not None and pad_to > b:
         idx = np.concatenate([idx, np.full(pad_to - b, idx[0])])
     x0, params = draw_trials(scenario, spec, seed, idx)
     betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in spec.controllers}
-    out = _compiled_chunk(scenario, spec)(model.cache, betas, x0, params)
-    return {k: np.asarray(v)[:b] for k, v in out.items()}
+    return model.cache, betas, x0, params

@@ -228,29 +228,36 @@ class InducingCache:
         )  # fmt: skip
 
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
-        """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n)."""
+        """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n).
+
+        The batch is the minor (contiguous) axis of every intermediate, ``(C, M, B)``: the
+        sums over the ``M`` inducing inputs are then additions of whole rows, fused with the
+        elementwise work, instead of short reductions along the minor axis (measured: 190 ns
+        -> 130 ns per state on one core at ``M = 8``, ``B = 1000``; the reductions over a
+        minor axis of 8 were a tenth of the Monte Carlo loop's time).
+        """
         xs = (x - self.offset) / self.scale
         xl = xs.T[:, None, :] * self.inv_ls.T[:, :, None]  # (n, C, B)
         zt = jnp.moveaxis(self.zl, -1, 0)  # (n, C, M)
         # exact differences summed over the n coordinates in order, as FastGP's (tinygp's)
-        # kernel; one (C, B, M) array per coordinate: with the coordinate as the minor axis
-        # the kernel took 3 times longer than with it outermost (measured, B = 1000)
-        r2 = jnp.square(xl[0][:, :, None] - zt[0][:, None, :])
+        # kernel; one (C, M, B) array per coordinate
+        r2 = jnp.square(xl[0][:, None, :] - zt[0][:, :, None])
         for d in range(1, xl.shape[0]):
-            r2 = r2 + jnp.square(xl[d][:, :, None] - zt[d][:, None, :])
+            r2 = r2 + jnp.square(xl[d][:, None, :] - zt[d][:, :, None])
         k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None], r2)
-        k = jnp.where(self.mask[:, None, :] > 0, k, 0.0)
-        all3 = jnp.einsum("cbm,cmk->cbk", k, self.maps_t)
+        k = jnp.where(self.mask[:, :, None] > 0, k, 0.0)  # (C, M, B)
         m = self.maps_t.shape[1]
-        # |a|^2, |G a|^2, |C a|^2 at once: (C, B, 3, M) summed over M
-        sq = jnp.sum(jnp.square(all3).reshape(all3.shape[:2] + (3, m)), -1)
+        maps = jnp.swapaxes(self.maps_t, 1, 2)  # (C, 3M, M)
+        all3 = jnp.einsum("ckm,cmb->ckb", maps, k)  # (C, 3M, B)
+        # |a|^2, |G a|^2, |C a|^2 at once: (C, 3, M, B) summed over M
+        sq = jnp.sum(jnp.square(all3).reshape((all3.shape[0], 3, m, all3.shape[-1])), 2)
         amp2 = (self.amplitude**2)[:, None]
-        r2_res = jnp.maximum(amp2 - sq[..., 0], 0.0) + self.rnd[:, None]
+        r2_res = jnp.maximum(amp2 - sq[:, 0], 0.0) + self.rnd[:, None]
         r = jnp.sqrt(r2_res)
-        cross = 2.0 * jnp.sqrt(sq[..., 2]) * self.rho[:, None] * r
-        var = r2_res + sq[..., 1] + cross  # >= the exact variance (FastGP)
+        cross = 2.0 * jnp.sqrt(sq[:, 2]) * self.rho[:, None] * r
+        var = r2_res + sq[:, 1] + cross  # >= the exact variance (FastGP)
         std = jnp.sqrt(var) + self.err[:, None] * r / self.min_beta
-        mean = jnp.einsum("cbm,cm->cb", k, self.weights) + self.mean[:, None]
+        mean = jnp.einsum("cmb,cm->cb", k, self.weights) + self.mean[:, None]
         n, comps = self.n_states, self.components
         return _scatter(mean, comps, n), _scatter(std, comps, n)
 

@@ -101,7 +101,6 @@ def test_trial_draws_depend_on_seed_and_index_only():
     assert np.all((acc >= -SPEC.lead_decel_max * g) & (acc <= SPEC.lead_accel_max * g))
 
 
-@pytest.mark.slow  # compiles a 2-controller loop and two simulations
 def test_lead_acceleration_follows_the_segment_convention():
     """Segments ``t <= ends[0]``, then ``(ends[j-1], ends[j]]``, 0 after the last, against a
     direct loop over the segments, at the boundaries and between them; a stopped lead does not
@@ -123,6 +122,7 @@ def test_lead_acceleration_follows_the_segment_convention():
     assert float(lead_acceleration(3.0, stopped, params)[1]) == 0.75  # may accelerate
 
 
+@pytest.mark.slow  # compiles a 2-controller loop and two simulations
 def test_fixed_trial_reproduces_the_simulator():
     # fixed initial state and lead profile: the batched loop's min h for the mismatched
     # controller equals ss.simulate's (an independent code path) on the same closed loop

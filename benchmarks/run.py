@@ -179,10 +179,11 @@ def bench_export(c_fast, c_nom, states_1, xb, repeat):
     states_np = [np.asarray(x) for x in states_1]
     lat = {}
     lat["JAX fused step (controller.input_fn), GP-robust"] = latency_blocks(block(c_fast.input_fn), states_1, repeat)
+    lat["native GP-robust step from Python (NativeController.input_fn)"] = latency_blocks(n_fast.input_fn, states_np, repeat)
     lat["native GP-robust step from Python (NativeController(x))"] = latency_blocks(n_fast, states_np, repeat)
     lat["native GP-robust step() with all diagnostics"] = latency_blocks(n_fast.step, states_np, repeat)
     lat["JAX fused step (controller.input_fn), nominal"] = latency_blocks(block(c_nom.input_fn), states_1, repeat)
-    lat["native nominal step from Python (NativeController(x))"] = latency_blocks(n_nom, states_np, repeat)
+    lat["native nominal step from Python (NativeController.input_fn)"] = latency_blocks(n_nom.input_fn, states_np, repeat)
     out["latency"] = lat
     out["c_loop"] = {
         "GP-robust, flags of NativeController": c_loop_ns(c_fast, states_np[:200], True),
@@ -522,7 +523,10 @@ def export_markdown(e):
     """The rows of the native (exported C) controller."""
     lat, loop, thr = e["latency"], e["c_loop"], e["throughput"]
     jax_gp = lat["JAX fused step (controller.input_fn), GP-robust"]["median_us"]
-    nat_gp = lat["native GP-robust step from Python (NativeController(x))"]["median_us"]
+    # the target's row: input_fn, the plain function, as the JAX baseline's controller.input_fn
+    nat_row = next(k for k in ("native GP-robust step from Python (NativeController.input_fn)",
+                               "native GP-robust step from Python (NativeController(x))") if k in lat)
+    nat_gp = lat[nat_row]["median_us"]
     lines = [
         "## Native controller (exported C, `safestab.export`)",
         "",
@@ -553,13 +557,20 @@ def export_markdown(e):
     thr_nat = thr["native batched GP-robust step (NativeController(x), C loop)"]["states_per_second"]
     thr_jax = thr["JAX batched GP-robust step (input_fn)"]["states_per_second"]
     targets = [
-        ("native GP-robust step from Python, median <= 2 us", nat_gp <= 2.0, f"{nat_gp:.2f} us"),
+        (f"native GP-robust step from Python, median <= 2 us (`{nat_row.split('(')[-1][:-1]}`)", nat_gp <= 2.0, f"{nat_gp:.2f} us"),
         ("native >= 10x faster than the JAX fused step", jax_gp / nat_gp >= 10, f"{jax_gp / nat_gp:.1f}x"),
         ("C loop <= 1 us per GP-robust step", loop_gp <= 1000, f"{loop_gp:.0f} ns"),
         ("native batched throughput >= JAX batched", thr_nat >= thr_jax, f"{thr_nat / thr_jax:.2f}x"),
     ]
     lines += ["", "| target (issue 9) | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
+    nom_nat = thr["native batched nominal step"]["states_per_second"]
+    nom_jax = thr["JAX batched nominal step (input_fn)"]["states_per_second"]
+    lines += ["", "The batched-throughput target is read for the GP-robust step, the product's "
+              "controller. For the nominal step the C loop reaches "
+              f"{nom_nat / nom_jax:.2f}x JAX's batched throughput: XLA evaluates that short "
+              "formula for several states at once (SIMD across the batch), while the C loop "
+              "goes state after state (SIMD only within a state's GP kernel rows)."]
     return lines + [""]
 
 

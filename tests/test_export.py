@@ -188,6 +188,27 @@ def test_call_and_single_state(acc, built):
     np.testing.assert_array_equal(native(jnp.asarray(acc["states"][0])), native(acc["states"][0]))
 
 
+def test_one_state_paths_give_the_batch_bits(acc, built):
+    """input_fn's paths for one state (the state as C arguments for a float64 array, the
+    bound buffer for anything else) give the bits of the batch loop, in double and float;
+    each call returns a fresh array."""
+    ctrl, native = built("acc GP-robust, relaxed, safety-first")
+    assert native.function._step_args is not None  # the api-mode build has the glue
+    x = acc["states"][:200]
+    batch = native.step(x).u
+    f32 = NativeController(ctrl, name="f32one", precision="float")
+    batch32 = f32.step(x.astype(np.float32)).u
+    first = native.input_fn(x[0])
+    for i, xi in enumerate(x):
+        for got in (native.input_fn(xi), native(xi), native(list(xi)), native(xi.astype(">f8"))):
+            np.testing.assert_array_equal(got, batch[i])
+        np.testing.assert_array_equal(f32.input_fn(xi), batch32[i])  # rounded in C
+        np.testing.assert_array_equal(f32(xi.astype(np.float32)), batch32[i])
+    np.testing.assert_array_equal(first, batch[0])  # not overwritten by the later calls
+    with pytest.raises(NonFiniteError, match="x must be finite"):
+        native.input_fn(np.array([1.0, np.nan, 3.0]))
+
+
 def test_batch_shapes(acc, built):
     ctrl, native = built("acc nominal, relaxed, projection")
     x = acc["states"][:30].reshape(2, 5, 3, 3)

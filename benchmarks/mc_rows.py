@@ -39,6 +39,30 @@ def _rate(fn, x, repeat=5):
     return repeat * x.shape[0] / (time.perf_counter() - t0)
 
 
+_FRESH = """
+import json, sys
+from safestab.montecarlo import run_montecarlo
+from safestab.scenarios import load_scenario
+r = run_montecarlo(load_scenario("stress"), trials=int(sys.argv[1]), datasets=1, seed=0,
+                   backend="local")
+print(json.dumps(r.timings))
+"""
+
+
+def _fresh_local(trials: int) -> dict:
+    """The local run in a new interpreter: imports and every compilation included, as a user's
+    first ``safestab mc`` (the in-process run below reuses the GP fit's compiled functions)."""
+    import subprocess
+    import sys
+
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", _FRESH, str(trials)], capture_output=True,
+                          text=True, check=True)  # fmt: skip
+    wall = time.perf_counter() - t0
+    return {"trials": trials, "wall_seconds": wall,
+            "timings": json.loads(proc.stdout.strip().splitlines()[-1])}  # fmt: skip
+
+
 def bench_montecarlo(trials: int, ray_trials: int, batch: int = 4096) -> dict:
     """Measure the four targets; returns a JSON-ready dict."""
     sc = load_scenario("stress")
@@ -85,6 +109,8 @@ def bench_montecarlo(trials: int, ray_trials: int, batch: int = 4096) -> dict:
     out["vmapped_fastgp_states_per_second"] = _rate(per_state, x)
     out["batch"] = batch
 
+    print(f"Monte Carlo: {trials} stress trials, local, in a fresh process ...", flush=True)
+    out["local_fresh_process"] = _fresh_local(trials)
     print(f"Monte Carlo: {trials} stress trials, local ...", flush=True)
     t0 = time.perf_counter()
     local = run_montecarlo(sc, trials=trials, datasets=1, seed=0, backend="local")
@@ -141,6 +167,11 @@ def markdown(r: dict) -> str:
         f"{loc['n_steps']} steps, local (incl. data set and compilation) | "
         f"{loc['wall_seconds']:.1f} s |",
         f"| of which data set (collect + fit) | {loc['timings']['datasets']:.1f} s |",
+        *([f"| same, in a fresh process (interpreter start, imports, every compilation) | "
+           f"{r['local_fresh_process']['wall_seconds']:.1f} s |",
+           f"| of which data set (collect + fit, the fit's functions compiled) | "
+           f"{r['local_fresh_process']['timings']['datasets']:.1f} s |"]
+          if "local_fresh_process" in r else []),
         f"| per trial (all controllers) | {per_trial * 1e3:.2f} ms |",
         f"| per trial, trials only (wall minus data set) | "
         f"{(loc['wall_seconds'] - loc['timings']['datasets']) / loc['trials'] * 1e3:.2f} ms |",
@@ -150,10 +181,14 @@ def markdown(r: dict) -> str:
          f"{r['batched_fast_gp_states_per_second']:.3g} /s"),
         ("refit by conditioning (Q = 2000, n = 3) <= 1 s", r["refit_by_conditioning_seconds"] <= 1,
          f"{r['refit_by_conditioning_seconds']:.2f} s"),
-        ("10,000 stress trials <= 60 s (local)",
+        ("10,000 stress trials <= 60 s (local, in-process run)",
          loc["trials"] >= 10_000 and loc["wall_seconds"] <= 60,
          f"{loc['wall_seconds']:.0f} s for {loc['trials']} trials"),
     ]  # fmt: skip
+    fresh = r.get("local_fresh_process")
+    if fresh:
+        targets.append(("the same in a fresh process <= 60 s", fresh["wall_seconds"] <= 60,
+                        f"{fresh['wall_seconds']:.0f} s"))  # fmt: skip
     if "ray" in r:
         ray = r["ray"]
         ratio = ray["wall_seconds"] / loc["wall_seconds"]
@@ -165,12 +200,19 @@ def markdown(r: dict) -> str:
         ]
         if "identical_to_local" in ray:
             lines.append(f"| Ray records identical to local | {ray['identical_to_local']} |")
-        targets.append(("Ray <= 1.3x local", ray["trials"] == loc["trials"] and ratio <= 1.3,
-                        f"{ratio:.2f}x"))  # fmt: skip
+        targets.append(("Ray <= 1.3x local (in-process run)",
+                        ray["trials"] == loc["trials"] and ratio <= 1.3, f"{ratio:.2f}x"))
+        if fresh and ray["trials"] == fresh["trials"]:
+            # both cold: the Ray workers are fresh processes too (they compile the GP fit's
+            # functions and the loop), which the in-process local run does not pay in full
+            cold = ray["wall_seconds"] / fresh["wall_seconds"]
+            targets.append(("Ray <= 1.3x local (fresh process, both cold)", cold <= 1.3,
+                            f"{cold:.2f}x"))  # fmt: skip
     lines += ["", "| target | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
-    lines += ["", "What was measured and changed to get here, and why the remaining target is "
-              "missed: docs/montecarlo.md (\"Speed\").", "", END]
+    missed = "" if all(ok for _, ok, _ in targets) else ", and why the missed targets are missed"
+    lines += ["", f"What was measured and changed to get here{missed}: docs/montecarlo.md "
+              "(\"Speed\").", "", END]
     return "\n".join(lines)
 
 

@@ -127,9 +127,10 @@ def _load_api_module(exported: ExportedC, cc: str, obj: Path, build: Path, modul
     """
     import cffi
 
+    glue_cdef, glue_source = _args_glue(exported)
     ffi = cffi.FFI()
-    ffi.cdef(exported.cdef + _args_glue(exported)[0])
-    ffi.set_source(module, f'#include "{exported.name}.h"\n' + _args_glue(exported)[1])
+    ffi.cdef(exported.cdef + glue_cdef)
+    ffi.set_source(module, f'#include "{exported.name}.h"\n' + glue_source)
     wrapper = build / f"{module}.c"
     with contextlib.redirect_stdout(io.StringIO()):
         ffi.emit_c_code(str(wrapper))
@@ -415,13 +416,13 @@ class NativeController:
         A plain function (no method lookup), like the JAX controller's ``input_fn``. One
         float64 state of shape (n,), the per-step call from Python, goes through
         ``ss_step_args`` (the state as C arguments) into a per-thread output buffer, copied
-        out; anything else (other dtypes, lists, batches) through the general path. Both
-        give the same bits.
+        out; another one state (lists, other dtypes) through :meth:`NativeFunction.primary`,
+        batches through :meth:`step`. All give the same bits.
         """
         fn = self.function
         one, local = self._one_state, fn._local
         step_args: Any = fn._step_args
-        c_step, null, general = fn._step, fn._null, self._general
+        general = self._general
         ndarray, f64, has_args = np.ndarray, np.dtype(np.float64), step_args is not None
 
         def input_fn(x: Any) -> np.ndarray:
@@ -434,14 +435,10 @@ class NativeController:
                     check_finite("x", x)
                 return ub.copy()
             if np.shape(x) == one:
-                try:
-                    xb, xp, ub, up = local.bufs
-                except AttributeError:
-                    xb, xp, ub, up = fn._buffers()
-                xb[...] = x
-                if c_step(xp, up, null) & 1:
+                u, status = fn.primary(x)
+                if status & 1:
                     check_finite("x", x)
-                return ub.copy()
+                return u
             return general(x)
 
         return input_fn

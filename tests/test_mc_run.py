@@ -204,7 +204,18 @@ def ray_session(jax_cache):
 
 
 def test_ray_backend_is_identical_to_local(local_run, ray_session):
-    _same(local_run, run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray"))
+    # default workers (2, the local cluster's CPUs): one task runs both chunks, of two data
+    # sets, in threads; workers=1: a task per chunk, each in its own worker process
+    for workers in (None, 1):
+        run = run_montecarlo(
+            SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray", workers=workers
+        )
+        _same(local_run, run)
+
+
+def test_ray_workers_beyond_a_node_raise(ray_session):
+    with pytest.raises(ParameterError, match=r"largest node \(2\), got 3"):
+        run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray", workers=3)
 
 
 def test_cli_mc_checks_inputs_before_work(tmp_path):

@@ -335,7 +335,9 @@ def mc(
     address: str | None = typer.Option(None, help="Ray cluster address (else RAY_ADDRESS)."),
     chunk_size: int | None = typer.Option(None, help="Trials per compiled batch."),
     workers: int | None = typer.Option(
-        None, help="Local backend: chunks run at once in threads (default 2 on 2+ CPUs)."
+        None,
+        help="Chunks run at once in threads of a process: local (default 2 on 2+ CPUs), or "
+        "of each Ray task, which asks for as many CPUs (default: the smallest node's CPUs).",
     ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
     seed: int = typer.Option(0, help="Seed: trial i depends on (seed, i) only."),

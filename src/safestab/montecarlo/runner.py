@@ -141,10 +141,13 @@ def run_montecarlo(
     progress : callable, optional
         ``progress(chunks_done, chunks_total)``.
     workers : int, optional
-        Local backend: chunks run at once, in threads of this process (XLA releases the
-        GIL). Default: 2 where the machine has 2 or more CPUs, else 1. The loop is compiled
-        first, then every chunk runs in the threads. On the 2-core development machine two
-        chunks at once took 0.73 of the time of two in turn. Results do not depend on it.
+        Chunks run at once in threads of one process (XLA releases the GIL); the loop is
+        compiled first, then every chunk runs in the threads. Local backend: threads of this
+        process; default 2 where the machine has 2 or more CPUs, else 1 (on the 2-core
+        development machine two chunks at once took 0.73 of the time of two in turn). Ray
+        backend: each task runs ``workers`` chunks in threads of its worker process and asks
+        for ``workers`` CPUs, so a machine compiles the loop once, not once per CPU; default
+        the CPUs of the cluster's smallest node. Results do not depend on it.
 
     Returns
     -------
@@ -153,8 +156,9 @@ def run_montecarlo(
     Raises
     ------
     ParameterError
-        For a bad count, seed or backend, ``datasets > trials``, or a controller whose beta
-        cannot be computed here; raised before any work.
+        For a bad count, seed or backend, ``datasets > trials``, a controller whose beta
+        cannot be computed here, or (Ray) more ``workers`` than the largest node has CPUs;
+        raised before any work.
     ImportError
         For ``backend="ray"`` without Ray installed (``pip install "safestab[ray]"``).
     """
@@ -164,18 +168,21 @@ def run_montecarlo(
     if chunk_size is not None:
         spec = spec.replace(chunk_size=chunk_size)
     _check(scenario, spec, trials, datasets, seed, backend, workers)
-    if workers is None:
-        workers = 2 if (os.cpu_count() or 1) >= 2 else 1
     chunks = plan_chunks(trials, datasets, spec.chunk_size)
     pad = min(spec.chunk_size, -(-trials // datasets))
     report = progress or (lambda done, total: None)
     t0 = time.perf_counter()
     if backend == "local":
+        if workers is None:
+            workers = 2 if (os.cpu_count() or 1) >= 2 else 1
         models, results, t_data = _local(
             scenario, spec, seed, datasets, chunks, pad, report, int(workers)
         )
     else:
-        models, results, t_data = _ray(scenario, spec, seed, datasets, chunks, pad, report, address)
+        models, results, t_data = _ray(
+            scenario, spec, seed, datasets, chunks, pad, report, address,
+            None if workers is None else int(workers),
+        )  # fmt: skip
     t_total = time.perf_counter() - t0
     wide = [m.index for m in models if m.cache_warnings]
     if wide:
@@ -205,6 +212,15 @@ def _local(scenario, spec, seed, datasets, chunks, pad, report, workers):
     hyper = first.hyper if spec.hyperparameters == "reuse" else None
     models = [first] + [fit_dataset(scenario, spec, seed, j, hyper) for j in range(1, datasets)]
     t_data = time.perf_counter() - t0
+    results = _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report)
+    return models, results, t_data
+
+
+def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
+    """The records of each of ``chunks``, in order, ``workers`` chunks at once in threads.
+
+    ``chunks`` holds ``(data set, indices)`` pairs; ``models[j]`` is data set ``j``'s model.
+    """
 
     def run(k: int) -> dict[str, np.ndarray]:
         j, idx = chunks[k]
@@ -215,7 +231,7 @@ def _local(scenario, spec, seed, datasets, chunks, pad, report, workers):
         for k in range(len(chunks)):
             results.append(run(k))
             report(k + 1, len(chunks))
-        return models, results, t_data
+        return results
     # compile the loop first (in this thread), so every chunk, the first included, can run
     # in the threads; a data set whose cache has other shapes compiles on its first chunk
     j0, idx0 = chunks[0]
@@ -226,7 +242,17 @@ def _local(scenario, spec, seed, datasets, chunks, pad, report, workers):
         for done, fut in enumerate(as_completed(futures), 1):
             results[futures[fut]] = fut.result()
             report(done, len(chunks))
-    return models, results, t_data
+    return results
+
+
+def _chunk_group(scenario, spec, seed, pad, workers, group, *models):
+    """One Ray task: the chunks ``group`` in ``workers`` threads of the worker process.
+
+    ``models`` are the models of the distinct data sets of ``group``, in increasing order (Ray
+    resolves object references passed as arguments, not inside a list).
+    """
+    by_set = dict(zip(sorted({j for j, _ in group}), models, strict=True))
+    return _run_chunks(scenario, spec, seed, group, by_set, pad, workers, lambda d, t: None)
 
 
 def start_ray(
@@ -272,10 +298,26 @@ def start_ray(
     return ray
 
 
-def _ray(scenario, spec, seed, datasets, chunks, pad, report, address):
+def _node_cpus(ray: Any) -> list[int]:
+    """CPUs of each alive node of the cluster (nodes without CPUs left out)."""
+    nodes = [node for node in ray.nodes() if node.get("Alive")]
+    cpus = [int(node.get("Resources", {}).get("CPU", 0)) for node in nodes]
+    return [c for c in cpus if c > 0]
+
+
+def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
     ray = start_ray(address)
+    cpus = _node_cpus(ray)
+    if workers is None:
+        workers = min(cpus) if cpus else 1
+    elif not cpus or workers > max(cpus):
+        largest = max(cpus, default=0)
+        raise ParameterError(
+            f"workers must be at most the CPUs of the cluster's largest node ({largest}), got "
+            f"{workers}: a Ray task runs `workers` chunks at once and asks for that many CPUs"
+        )
     fit_task = ray.remote(fit_dataset)
-    chunk_task = ray.remote(run_chunk)
+    group_task = ray.remote(_chunk_group).options(num_cpus=workers)
     t0 = time.perf_counter()
     first = fit_task.remote(scenario, spec, seed, 0)
     if spec.hyperparameters == "reuse":
@@ -284,10 +326,15 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address):
     else:
         rest = [fit_task.remote(scenario, spec, seed, j) for j in range(1, datasets)]
     model_refs = [first] + rest
-    pending = {
-        chunk_task.remote(scenario, spec, model_refs[j], seed, idx, pad): k
-        for k, (j, idx) in enumerate(chunks)
-    }
+    # a task runs `workers` chunks at once in threads: the loop is compiled once per task's
+    # process (a worker reused for later tasks keeps it), where one task per chunk compiled it
+    # in every worker process of a machine (measured: 1.4x the local backend's wall time)
+    groups = [list(range(k, min(k + workers, len(chunks)))) for k in range(0, len(chunks), workers)]
+    pending = {}
+    for ks in groups:
+        group = [chunks[k] for k in ks]
+        refs = [model_refs[j] for j in sorted({j for j, _ in group})]
+        pending[group_task.remote(scenario, spec, seed, pad, workers, group, *refs)] = ks
     models = ray.get(model_refs)  # the chunks already submitted run as their data sets finish
     t_data = time.perf_counter() - t0
     results: list[Any] = [None] * len(chunks)
@@ -295,7 +342,9 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address):
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)
         for ref in ready:
-            results[pending.pop(ref)] = ray.get(ref)
-            done += 1
+            ks = pending.pop(ref)
+            for k, res in zip(ks, ray.get(ref), strict=True):
+                results[k] = res
+            done += len(ks)
             report(done, len(chunks))
     return models, results, t_data

@@ -95,6 +95,14 @@ def test_batched_cache_is_fastgp_and_contains_the_exact_band_far_from_the_data(f
         assert np.all(m_c[:, comps] - beta * s_c[:, comps] <= mean_ex - beta * s_ex)
         assert np.all(m_c[:, comps] + beta * s_c[:, comps] >= mean_ex + beta * s_ex)
     assert float(cache.min_beta) == 1.0
+    # each component keeps FastGP's inducing inputs (not its padding to the largest count),
+    # rounded up to 1, 2, 4 or a multiple of 4 with masked rows
+    counts = np.asarray(fast.arrays()["mask"]).sum(1)
+    for c, used in enumerate(counts):
+        assert cache.mask[c].sum() == used
+        expected = max(used, 1) if used <= 2 else -(-used // 4) * 4
+        assert cache.zl[c].shape[0] == cache.maps_t[c].shape[0] == expected
+        assert cache.maps_t[c].shape[1] == 3 * expected
 
 
 def test_batched_uncertainty_rule_equals_the_batch(fitted):

@@ -67,6 +67,22 @@ def _sq_dist(xl: Any, zl: Any, z2: Any) -> Any:
     return jnp.maximum(jnp.sum(xl * xl, -1)[..., None] + z2[:, None, :] - 2.0 * cross, 0.0)
 
 
+def _bucket(used: int) -> int:
+    """Inducing inputs kept for a component that uses ``used``: 1, 2, 4, then multiples of 4.
+
+    Data sets whose counts fall in one bucket share the compiled loop (a compilation costs
+    about 10 s); the padding costs at most a third more work for that component.
+    """
+    return max(used, 1) if used <= 2 else -(-used // 4) * 4
+
+
+def _padded(v: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``v`` in the leading corner of zeros of ``shape``."""
+    out = np.zeros(shape)
+    out[tuple(slice(0, d) for d in v.shape)] = v
+    return out
+
+
 def _scatter(values: Any, comps: tuple[int, ...], n: int) -> Any:
     """(C, B) per learned component -> (B, n) with zeros elsewhere."""
     out = jnp.zeros((values.shape[1], n), values.dtype)
@@ -177,19 +193,27 @@ class ExactPosterior:
 class InducingCache:
     """:class:`~safestab.learning.FastGP`'s cache, batched (arrays per learned component ``C``).
 
+    Each component keeps its own number of inducing inputs ``M_c`` (the number FastGP chose,
+    rounded up to 1, 2, 4 or a multiple of 4 so that data sets share compiled shapes; padded
+    rows are masked out), instead of FastGP's padding of every component to the largest: the stress
+    GP's kinematic components need one inducing input each and its drag component eight, and
+    the padding to eight made two thirds of the kernel values and products zeros (measured:
+    the GP was three quarters of the Monte Carlo loop's time). The rows dropped are padding
+    (zero kernel values, zero weights, zero maps), so the band is FastGP's.
+
     Attributes
     ----------
     offset, scale : arrays of shape (n,)
         Input standardisation.
-    zl : array of shape (C, M, n)
+    zl : tuple of C arrays of shape (M_c, n)
         Standardised inducing inputs times ``inv_ls`` (padded rows masked out).
     inv_ls : array of shape (C, n)
         Inverse lengthscales of the standardised inputs.
-    maps_t : array of shape (C, M, 3M)
+    maps_t : tuple of C arrays of shape (M_c, 3 M_c)
         ``[Lj^-1; G Lj^-1; C Lj^-1]^T``: a kernel row times it gives ``[a, G a, C a]``.
-    weights : array of shape (C, M)
+    weights : tuple of C arrays of shape (M_c,)
         The mean is ``k . weights + mean``.
-    mask : array of shape (C, M)
+    mask : tuple of C arrays of shape (M_c,)
     amplitude, mean, err, rho, rnd : arrays of shape (C,)
         FastGP's ``amp``, prior mean, ``E``, ``rho`` and rounding allowance of ``r^2``.
     min_beta : array of shape ()
@@ -218,10 +242,19 @@ class InducingCache:
         """The arrays of a :class:`~safestab.learning.FastGP` (its proven band), batched."""
         a = fast.arrays()
         inv_ls = 1.0 / a["ls"]
+        m_all = a["mask"].shape[1]
+        zl, maps_t, weights, mask = [], [], [], []
+        for c in range(a["mask"].shape[0]):
+            used = int(a["mask"][c].sum())  # FastGP pads at the end
+            m = _bucket(used)
+            blocks = [a["maps"][c][g * m_all : g * m_all + used, :used] for g in range(3)]
+            zl.append(_padded(a["z"][c, :used] * inv_ls[c], (m, a["z"].shape[2])))
+            maps_t.append(np.concatenate([_padded(b, (m, m)) for b in blocks], 0).T)
+            weights.append(_padded(a["wk"][c, :used], (m,)))
+            mask.append(_padded(a["mask"][c, :used].astype(float), (m,)))
         return cls(
-            offset=a["offset"], scale=a["scale"], zl=a["z"] * inv_ls[:, None, :],
-            inv_ls=inv_ls, maps_t=np.swapaxes(a["maps"], 1, 2), weights=a["wk"],
-            mask=a["mask"].astype(float), amplitude=a["amp"],
+            offset=a["offset"], scale=a["scale"], zl=tuple(zl), inv_ls=inv_ls,
+            maps_t=tuple(maps_t), weights=tuple(weights), mask=tuple(mask), amplitude=a["amp"],
             mean=np.asarray(fast.model.mean_, float), err=a["err"], rho=a["rho"],
             rnd=a["round"], min_beta=np.asarray(fast.min_beta, float), kernel=fast.model.kernel,
             components=tuple(int(c) for c in fast.components_), n_states=int(fast.n_states),
@@ -230,36 +263,36 @@ class InducingCache:
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
         """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n).
 
-        The batch is the minor (contiguous) axis of every intermediate, ``(C, M, B)``: the
-        sums over the ``M`` inducing inputs are then additions of whole rows, fused with the
+        The batch is the minor (contiguous) axis of every intermediate, ``(M_c, B)``: the
+        sums over the inducing inputs are then additions of whole rows, fused with the
         elementwise work, instead of short reductions along the minor axis (measured: 190 ns
         -> 130 ns per state on one core at ``M = 8``, ``B = 1000``; the reductions over a
         minor axis of 8 were a tenth of the Monte Carlo loop's time).
         """
-        xs = (x - self.offset) / self.scale
-        xl = xs.T[:, None, :] * self.inv_ls.T[:, :, None]  # (n, C, B)
-        zt = jnp.moveaxis(self.zl, -1, 0)  # (n, C, M)
-        # exact differences summed over the n coordinates in order, as FastGP's (tinygp's)
-        # kernel; one (C, M, B) array per coordinate
-        r2 = jnp.square(xl[0][:, None, :] - zt[0][:, :, None])
-        for d in range(1, xl.shape[0]):
-            r2 = r2 + jnp.square(xl[d][:, None, :] - zt[d][:, :, None])
-        k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None], r2)
-        k = jnp.where(self.mask[:, :, None] > 0, k, 0.0)  # (C, M, B)
-        m = self.maps_t.shape[1]
-        maps = jnp.swapaxes(self.maps_t, 1, 2)  # (C, 3M, M)
-        all3 = jnp.einsum("ckm,cmb->ckb", maps, k)  # (C, 3M, B)
-        # |a|^2, |G a|^2, |C a|^2 at once: (C, 3, M, B) summed over M
-        sq = jnp.sum(jnp.square(all3).reshape((all3.shape[0], 3, m, all3.shape[-1])), 2)
-        amp2 = (self.amplitude**2)[:, None]
-        r2_res = jnp.maximum(amp2 - sq[:, 0], 0.0) + self.rnd[:, None]
-        r = jnp.sqrt(r2_res)
-        cross = 2.0 * jnp.sqrt(sq[:, 2]) * self.rho[:, None] * r
-        var = r2_res + sq[:, 1] + cross  # >= the exact variance (FastGP)
-        std = jnp.sqrt(var) + self.err[:, None] * r / self.min_beta
-        mean = jnp.einsum("cmb,cm->cb", k, self.weights) + self.mean[:, None]
+        xs_t = ((x - self.offset) / self.scale).T  # (n, B)
+        means, stds = [], []
+        for c in range(len(self.zl)):
+            xl = xs_t * self.inv_ls[c][:, None]  # (n, B)
+            zl = self.zl[c]  # (M_c, n)
+            m = zl.shape[0]
+            # exact differences summed over the n coordinates in order, as FastGP's (tinygp's)
+            # kernel
+            r2 = jnp.square(xl[0][None, :] - zl[:, 0][:, None])
+            for d in range(1, xl.shape[0]):
+                r2 = r2 + jnp.square(xl[d][None, :] - zl[:, d][:, None])
+            k = _kernel_from_r2(self.kernel, self.amplitude[c], r2)
+            k = jnp.where(self.mask[c][:, None] > 0, k, 0.0)  # (M_c, B)
+            all3 = self.maps_t[c].T @ k  # (3 M_c, B): [a; G a; C a]
+            # |a|^2, |G a|^2, |C a|^2 at once: (3, M_c, B) summed over M_c
+            sq = jnp.sum(jnp.square(all3).reshape((3, m, all3.shape[-1])), 1)
+            r2_res = jnp.maximum(self.amplitude[c] ** 2 - sq[0], 0.0) + self.rnd[c]
+            r = jnp.sqrt(r2_res)
+            cross = 2.0 * jnp.sqrt(sq[2]) * self.rho[c] * r
+            var = r2_res + sq[1] + cross  # >= the exact variance (FastGP)
+            stds.append(jnp.sqrt(var) + self.err[c] * r / self.min_beta)
+            means.append(self.weights[c] @ k + self.mean[c])
         n, comps = self.n_states, self.components
-        return _scatter(mean, comps, n), _scatter(std, comps, n)
+        return _scatter(jnp.stack(means), comps, n), _scatter(jnp.stack(stds), comps, n)
 
 
 for _cls in (ExactPosterior, InducingCache):

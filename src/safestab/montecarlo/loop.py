@@ -51,6 +51,20 @@ def _violated(value: jax.Array, scale: jax.Array, sign: float) -> jax.Array:
     return sign * value < -SATISFIED_RTOL * scale
 
 
+def _materialized(value: jax.Array, k: jax.Array) -> jax.Array:
+    """``value``, computed once into a buffer: its consumers read it instead of recomputing it.
+
+    XLA's CPU fusion copies cheap producers (the RK4 combination of the step's next state)
+    into every consumer, per element of the consumer's output: the GP's kernel values at the
+    next state, ``(M_c, B)`` per component, and every small fusion of the controller recomputed
+    the whole RK4 update (measured: a third of the loop's time after the GP's padding was
+    dropped). ``optimization_barrier`` is removed by XLA's CPU pipeline before fusion; a
+    conditional is not, and nothing fuses across it. ``k`` (the step, never negative, not known
+    to XLA) picks the identity branch; the other is never taken.
+    """
+    return jax.lax.cond(k >= 0, lambda v: v, lambda v: -v, value)
+
+
 class _Given:
     """An uncertainty model returning a mean and std computed already (for one state)."""
 
@@ -169,6 +183,7 @@ def trial_function(
             u = ev["u"]
             x_next = rk4_step(lambda s, y, u=u: plant.f(y) + plant.g(y) @ u + exo(s, y, p),
                               t, x, dt)  # fmt: skip
+            x_next = _materialized(x_next, k)
             s = stats["per"][i]
             bad = status != StepStatus.OK
             first = (s["first_bad_status"] == 0) & bad

@@ -5,8 +5,8 @@
 posterior and :func:`inducing_cache` its :class:`~safestab.learning.FastGP` cache, so that a
 batch of ``B`` states costs, per learned component,
 
-* ``B x M`` kernel values (squared distances by exact differences, as FastGP's kernel),
-* one ``(B, M) x (M, 3M)`` product for ``[a; G a; C a]`` (the whole band),
+* ``M_c x B`` kernel values (squared distances by exact differences, as FastGP's kernel),
+* one ``(3 M_c, M_c) x (M_c, B)`` product for ``[a; G a; C a]`` (the whole band),
 
 GEMM-shaped work instead of ``B`` small matrix-vector products. The exact posterior is
 batched the same way (a ``(B, Q)`` cross-kernel matrix, one product with ``alpha`` and one

@@ -96,13 +96,18 @@ def test_batched_cache_is_fastgp_and_contains_the_exact_band_far_from_the_data(f
         assert np.all(m_c[:, comps] + beta * s_c[:, comps] >= mean_ex + beta * s_ex)
     assert float(cache.min_beta) == 1.0
     # each component keeps FastGP's inducing inputs (not its padding to the largest count),
-    # rounded up to 1, 2, 4 or a multiple of 4 with masked rows
-    counts = np.asarray(fast.arrays()["mask"]).sum(1)
-    for c, used in enumerate(counts):
-        assert cache.mask[c].sum() == used
-        expected = max(used, 1) if used <= 2 else -(-used // 4) * 4
-        assert cache.zl[c].shape[0] == cache.maps_t[c].shape[0] == expected
-        assert cache.maps_t[c].shape[1] == 3 * expected
+    # rounded up to 1, 2, 4 or a multiple of 4 with masked rows: FastGP uses 32, 19 and 19
+    assert list(np.asarray(fast.arrays()["mask"]).sum(1)) == [32, 19, 19]
+    assert [int(m.sum()) for m in cache.mask] == [32, 19, 19]
+    assert [z.shape[0] for z in cache.zl] == [32, 20, 20]
+    assert [mt.shape for mt in cache.maps_t] == [(32, 96), (20, 60), (20, 60)]
+
+
+def test_inducing_buckets():
+    from safestab.montecarlo.gpbatch import _bucket
+
+    table = {0: 1, 1: 1, 2: 2, 3: 4, 4: 4, 5: 8, 8: 8, 9: 12, 12: 12, 13: 16, 32: 32}
+    assert {used: _bucket(used) for used in table} == table
 
 
 def test_batched_uncertainty_rule_equals_the_batch(fitted):

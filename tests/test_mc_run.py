@@ -75,16 +75,22 @@ def test_identical_for_any_chunk_size(local_run):
         assert np.array_equal(got, local_run.records[key][idx], equal_nan=True), key
 
 
-def test_identical_for_any_number_of_workers(local_run):
-    # four chunks of 5 (the compiled shape of local_run): three run two at a time in threads
-    # after the first, or in turn; the same bits either way
-    runs = [run_montecarlo(SC, spec=SPEC, trials=2 * N, datasets=K, seed=3, workers=w)
-            for w in (2, 1)]  # fmt: skip
-    _same(*runs)
+@pytest.fixture(scope="module")
+def local_run_3n(jax_cache):
+    """3N trials: six chunks of 5 (the compiled shape of local_run), three per data set."""
+    return run_montecarlo(SC, spec=SPEC, trials=3 * N, datasets=K, seed=3, workers=2)
+
+
+def test_identical_for_any_number_of_workers(local_run, local_run_3n):
+    # six chunks: run two at a time in threads after the compilation, or in turn; the same
+    # bits either way
+    _same(local_run_3n, run_montecarlo(SC, spec=SPEC, trials=3 * N, datasets=K, seed=3,
+                                       workers=1))  # fmt: skip
     # and the first N trials' records equal local_run's where the chunks coincide (data set
-    # j's trials are j, j + K, ...; with 2N trials its first chunk holds the same 5 trials)
+    # j's trials are j, j + K, ...; with 3N trials its first chunk holds the same 5 trials)
     for key in RECORD_FIELDS:
-        assert np.array_equal(runs[0].records[key][:N], local_run.records[key], equal_nan=True)
+        assert np.array_equal(local_run_3n.records[key][:N], local_run.records[key],
+                              equal_nan=True)  # fmt: skip
 
 
 def test_trial_draws_depend_on_seed_and_index_only():
@@ -203,19 +209,33 @@ def ray_session(jax_cache):
     ray.shutdown()
 
 
-def test_ray_backend_is_identical_to_local(local_run, ray_session):
-    # default workers (2, the local cluster's CPUs): one task runs both chunks, of two data
-    # sets, in threads; workers=1: a task per chunk, each in its own worker process
-    for workers in (None, 1):
+def test_ray_backend_is_identical_to_local(local_run_3n, ray_session):
+    # six chunks (data set 0's three, then data set 1's). Default workers (2, the local
+    # cluster's CPUs): three tasks of two chunks in threads, the middle one holding chunks of
+    # both data sets; workers=1: a task per chunk. Progress is reported per task.
+    for workers, step in ((None, 2), (1, 1)):
+        calls: list[tuple[int, int]] = []
         run = run_montecarlo(
-            SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray", workers=workers
-        )
-        _same(local_run, run)
+            SC, spec=SPEC, trials=3 * N, datasets=K, seed=3, backend="ray", workers=workers,
+            progress=lambda done, total, calls=calls: calls.append((done, total)),
+        )  # fmt: skip
+        _same(local_run_3n, run)
+        assert calls == [(done, 6) for done in range(step, 7, step)]
 
 
-def test_ray_workers_beyond_a_node_raise(ray_session):
+def test_ray_workers_beyond_a_node_raise(ray_session, tmp_path):
     with pytest.raises(ParameterError, match=r"largest node \(2\), got 3"):
         run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3, backend="ray", workers=3)
+    # the command line: a bad input (exit 2), found once Ray is connected, before any work
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    args = ["mc", "--backend", "ray", "--workers", "3", "--trials", "4", "--datasets", "1"]
+    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert "workers (--workers) must be at most" in res.output
+    assert not (tmp_path / "o" / "mc_stress_metrics.json").exists()
 
 
 def test_cli_mc_checks_inputs_before_work(tmp_path):

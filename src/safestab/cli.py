@@ -43,15 +43,22 @@ def _one_line(exc: BaseException) -> str:
     return f"error: {type(exc).__name__}: {message}" if message else f"error: {type(exc).__name__}"
 
 
-def _guard(step: Callable[[], T], *, debug: bool, code: int) -> T:
-    """Run one step of a command; on an exception print one line (or the traceback) and exit."""
+def _guard(
+    step: Callable[[], T], *, debug: bool, code: int, input_errors: tuple[type, ...] = ()
+) -> T:
+    """Run one step of a command; on an exception print one line (or the traceback) and exit.
+
+    Exceptions of the types ``input_errors`` exit with :data:`EXIT_BAD_INPUT` instead of
+    ``code`` (an argument found bad only once the step has started, say against a cluster).
+    """
     try:
         return step()
     except Exception as exc:
         if debug:
             typer.echo(traceback.format_exc().rstrip(), err=True)
         typer.echo(_one_line(exc), err=True)
-        raise typer.Exit(code=code) from None
+        bad_input = isinstance(exc, input_errors)
+        raise typer.Exit(code=EXIT_BAD_INPUT if bad_input else code) from None
 
 
 def _console(width: int = 100):
@@ -399,7 +406,8 @@ def mc(
                 address=address, progress=report, workers=workers,
             )  # fmt: skip
 
-    result = _guard(run, debug=debug, code=EXIT_RUN_FAILED)
+    # a --workers beyond the Ray cluster's largest node is found once Ray is connected
+    result = _guard(run, debug=debug, code=EXIT_RUN_FAILED, input_errors=(ParameterError,))
     stem = f"mc_{sc.name}"
     png, metrics, npz = (out_dir / f"{stem}{s}" for s in (".png", "_metrics.json", "_trials.npz"))
 

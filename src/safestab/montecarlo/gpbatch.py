@@ -13,7 +13,8 @@ batched the same way (a ``(B, Q)`` cross-kernel matrix, one product with ``alpha
 triangular solve with ``B`` right-hand sides).
 
 Both caches are JAX pytrees of arrays, so a compiled closed loop takes them as arguments (one
-compilation for every data set) and Ray ships them as plain arrays.
+compilation for every data set of the same shapes: the inducing-input counts' buckets) and Ray
+ships them as plain arrays.
 
 Notes
 -----
@@ -71,7 +72,8 @@ def _bucket(used: int) -> int:
     """Inducing inputs kept for a component that uses ``used``: 1, 2, 4, then multiples of 4.
 
     Data sets whose counts fall in one bucket share the compiled loop (a compilation costs
-    about 10 s); the padding costs at most a third more work for that component.
+    about 10 s); the padding adds at most 60 % to that component's work (5 -> 8), at most a
+    third from 9 inducing inputs up.
     """
     return max(used, 1) if used <= 2 else -(-used // 4) * 4
 

@@ -247,13 +247,13 @@ def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
     return results
 
 
-def _chunk_group(scenario, spec, seed, pad, workers, group, *models):
+def _chunk_group(scenario, spec, seed, pad, workers, group, sets, *models):
     """One Ray task: the chunks ``group`` in ``workers`` threads of the worker process.
 
-    ``models`` are the models of the distinct data sets of ``group``, in increasing order (Ray
-    resolves object references passed as arguments, not inside a list).
+    ``models[i]`` is the model of data set ``sets[i]`` (Ray resolves object references passed
+    as arguments, not inside a list).
     """
-    by_set = dict(zip(sorted({j for j, _ in group}), models, strict=True))
+    by_set = dict(zip(sets, models, strict=True))
     return _run_chunks(scenario, spec, seed, group, by_set, pad, workers, lambda d, t: None)
 
 
@@ -316,8 +316,8 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
         largest = max(cpus, default=0)
         raise ParameterError(
             f"workers (--workers) must be at most the CPUs of the cluster's largest node "
-            f"({largest}), got "
-            f"{workers}: a Ray task runs `workers` chunks at once and asks for that many CPUs"
+            f"({largest}), got {workers}: a Ray task runs `workers` chunks at once and asks for "
+            "that many CPUs"
         )
     fit_task = ray.remote(fit_dataset)
     group_task = ray.remote(_chunk_group)
@@ -329,17 +329,18 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
     else:
         rest = [fit_task.remote(scenario, spec, seed, j) for j in range(1, datasets)]
     model_refs = [first] + rest
-    # a task runs `workers` chunks at once in threads: the loop is compiled once per task's
+    # A task runs `workers` chunks at once in threads: the loop is compiled once per task's
     # process (a worker reused for later tasks keeps it), where one task per chunk compiled it
-    # in every worker process of a machine (measured: 1.4x the local backend's wall time)
-    # the progress callback hears of a task's chunks when the task ends (`workers` at a time)
+    # in every worker process of a machine (measured: 1.4x the local backend's wall time).
+    # The progress callback hears of a task's chunks when the task ends.
     groups = [list(range(k, min(k + workers, len(chunks)))) for k in range(0, len(chunks), workers)]
     pending = {}
     for ks in groups:
         group = [chunks[k] for k in ks]
-        refs = [model_refs[j] for j in sorted({j for j, _ in group})]
+        sets = sorted({j for j, _ in group})
         task = group_task.options(num_cpus=len(ks))  # the last group may be smaller
-        pending[task.remote(scenario, spec, seed, pad, len(ks), group, *refs)] = ks
+        refs = [model_refs[j] for j in sets]
+        pending[task.remote(scenario, spec, seed, pad, len(ks), group, sets, *refs)] = ks
     models = ray.get(model_refs)  # the chunks already submitted run as their data sets finish
     t_data = time.perf_counter() - t0
     results: list[Any] = [None] * len(chunks)

@@ -213,3 +213,105 @@ def solve_rows(G, r):
                 ):
                     return z, True
         return [mp.mpf(0)] * dim, False
+
+
+def solve_qp(Q, z0, G, r, hint=None, dps=60):
+    """Exact minimiser of ``1/2 (z - z0)' Q (z - z0)`` s.t. ``G z <= r`` (Q positive definite).
+
+    Every argument is exact (floats converted exactly, or mp numbers). The active set ``hint``
+    (row indices) is tried first; otherwise every subset of at most ``dim`` rows is tried in
+    ``dps`` digits, candidates ordered by a float64 score so that the optimum is found early.
+    Returns ``(z, lam, S, cond)`` with the multipliers of the rows in ``S`` and the condition
+    number of the active rows (see ``_condition``), or None if no subset is
+    a KKT point (the rows are inconsistent). The KKT point of a strictly convex QP is unique,
+    so the result does not depend on the order in which subsets are tried.
+    """
+    import itertools
+
+    with mp.workdps(dps):
+        n, dim = len(G), len(z0)
+        Qm = mp.matrix([[_mp(x) for x in row] for row in Q])
+        Qi = mp.inverse(Qm)
+        z0m = mp.matrix([_mp(x) for x in z0])
+        Gm = [[_mp(x) for x in row] for row in G]
+        rm = [_mp(x) for x in r]
+        tiny = mp.mpf(10) ** (25 - dps)
+
+        def attempt(S):
+            if S:
+                GS = mp.matrix([Gm[i] for i in S])
+                M = GS * Qi * GS.T
+                nr = [mp.sqrt(M[i, i]) for i in range(len(S))]
+                if any(x == 0 for x in nr):
+                    return None
+                Mn = mp.matrix(len(S), len(S))
+                for i in range(len(S)):
+                    for j in range(len(S)):
+                        Mn[i, j] = M[i, j] / (nr[i] * nr[j])
+                if abs(mp.det(Mn)) < mp.mpf(10) ** (20 - 2 * dps):
+                    return None
+                try:
+                    lam = mp.lu_solve(M, GS * z0m - mp.matrix([rm[i] for i in S]))
+                except ZeroDivisionError:  # dependent rows: a smaller subset gives the point
+                    return None
+                z = z0m - Qi * (GS.T * lam)
+                lmax = max(abs(t) for t in lam)
+                if any(t < -tiny * lmax for t in lam):
+                    return None
+                lam = [lam[i] for i in range(len(S))]
+            else:
+                z, lam = z0m, []
+            for i in range(n):
+                gz = mp.fsum(Gm[i][j] * z[j] for j in range(dim))
+                scale = abs(rm[i]) + mp.fsum(abs(Gm[i][j] * z[j]) for j in range(dim))
+                if gz - rm[i] > tiny * scale:
+                    return None
+            return [z[j] for j in range(dim)], lam, tuple(S), _condition(S)
+
+        def _condition(S):
+            """kappa(normalised Gram of the active rows in the Q^-1 metric) * kappa(Q)^(1/2)."""
+            kq = mp.sqrt(mp.norm(Qm, 2) * mp.norm(Qi, 2)) if dim else mp.mpf(1)
+            if not S:
+                return float(kq)
+            GS = mp.matrix([Gm[i] for i in S])
+            M = GS * Qi * GS.T
+            nr = [mp.sqrt(M[i, i]) for i in range(len(S))]
+            Mn = mp.matrix(len(S), len(S))
+            for i in range(len(S)):
+                for j in range(len(S)):
+                    Mn[i, j] = M[i, j] / (nr[i] * nr[j])
+            ev = mp.eigsy(Mn)[0]
+            lo = min(abs(ev[i]) for i in range(len(S)))
+            hi = max(abs(ev[i]) for i in range(len(S)))
+            return float(hi / lo * kq) if lo > 0 else float("inf")
+
+        if hint is not None:
+            found = attempt(tuple(hint))
+            if found is not None:
+                return found
+        Gf = np.array([[float(x) for x in row] for row in Gm]).reshape(n, dim)
+        rf = np.array([float(x) for x in rm])
+        Qf = np.array([[float(Qm[i, j]) for j in range(dim)] for i in range(dim)])
+        Qif = np.linalg.inv(Qf)
+        z0f = np.array([float(x) for x in z0m])
+
+        def score(S):
+            if S:
+                GS = Gf[list(S)]
+                lam = np.linalg.lstsq(GS @ Qif @ GS.T, GS @ z0f - rf[list(S)], rcond=None)[0]
+                z = z0f - Qif @ GS.T @ lam
+                dual = np.max(np.maximum(-lam, 0)) / (np.max(np.abs(lam)) + 1e-300)
+            else:
+                z, dual = z0f, 0.0
+            sc = np.abs(rf) + np.abs(Gf) @ np.abs(z) + 1e-300
+            v = (np.max(np.maximum(Gf @ z - rf, 0) / sc) if n else 0.0) + dual
+            return v if np.isfinite(v) else np.inf
+
+        subsets = [S for s in range(min(n, dim) + 1) for S in itertools.combinations(range(n), s)]
+        with np.errstate(all="ignore"):
+            subsets.sort(key=lambda S: (score(S), len(S)))
+        for S in subsets:
+            found = attempt(S)
+            if found is not None:
+                return found
+        return None

@@ -26,7 +26,7 @@ from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError,
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_box, check_params
 from .formulas._kernels import condition_flags, margins
-from .formulas.multi import MAX_ROWS, multi_kernel
+from .formulas.multi import multi_kernel
 from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_margins
 from .systems import ControlAffineSystem
 
@@ -155,9 +155,6 @@ class SafetyFilter:
             u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
             u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
             check_box(u_min, u_max)
-        rows = len(self.clfs) + len(self.cbfs) + (2 * m if u_min is not None else 0)
-        if rows > MAX_ROWS:
-            raise ParameterError(f"a safety filter handles at most {MAX_ROWS} rows, got {rows}")
         own_spec = make_spec(params, "the filter")
         u_nom_of: Callable | None = None
         if u_nom is not None and callable(u_nom):

@@ -19,7 +19,7 @@ The package has one idea per module: ``single`` (Sontag's CLF formula and the CB
 (input limits), ``certificate`` (KKT residuals and the condition flags), ``multi`` (several
 CLFs and CBFs, limits inside the problem, weighted objectives) and ``results`` (the result
 types). The public functions check their arguments and call the unchecked kernels of
-the internal modules ``_kernels`` and ``_active_set``, which the controllers call as well.
+the internal modules ``_kernels`` and ``_dual_active_set``, which the controllers call as well.
 """
 
 from ._kernels import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL

@@ -7,23 +7,22 @@ The general problem behind the universal formula::
          c_i + d_i.u >= rho Gamma_i                (CBF i)
          u_min <= u <= u_max                       (limits)
 
-is solved exactly without an iterative solver: the change of variables
-``v = L^T (u - u_nom)`` (``H = L L^T``) makes the objective ``1/2 |(v, s)|^2`` with
-``s_j = sqrt(m_j) chi_j``, and every active set of at most ``dim`` rows is solved in closed form
-(a small orthogonal solve each, all subsets at once) and the unique KKT point kept
-(:mod:`safestab.formulas._active_set`). With one CLF, one CBF, no limits, ``u_nom = 0`` and
-``H = I`` this is the two-constraint formula itself (:func:`clf_cbf` /
-:func:`clf_cbf_relaxed`), bit for bit.
-
-Size: the number of subsets grows like ``C(rows, dim)``; up to ``k + 2m <= 10`` rows (the
-benchmarks measure it) the whole solve stays a few thousand fused arithmetic operations.
+is solved exactly by a dual active-set method (:mod:`safestab.formulas._dual_active_set`):
+with ``H = L L^T`` and ``w = (L^T u, sqrt(m_j) chi_j)`` the objective is ``1/2 |w - w0|^2``;
+the solver adds and drops one row at a time (rank-one factor updates, a fixed iteration
+bound), recomputes the point from the final active set, and the answer is called ``SOLVED``
+only where its KKT certificate holds at the problem's own scales. Infeasible rows fall back,
+by name, to the optimum without the hard CLFs, then to a stated penalised problem (see
+:class:`MultiStatus` and docs/theory.md). The cost grows polynomially with the rows; there is
+no limit on their number. With one CLF, one CBF, no limits, ``u_nom = 0`` and ``H = I`` this
+is the two-constraint formula itself (:func:`clf_cbf` / :func:`clf_cbf_relaxed`), bit for bit.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from enum import IntEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,14 +30,11 @@ import numpy as np
 
 from .._validation import check_finite, check_real
 from ..errors import DimensionError, ParameterError
-from ._active_set import active_sets, solve_rows
 from ._checks import as_float, check_box, check_output_finite, check_params
-from ._kernels import margins, solve_two
+from ._dual_active_set import INFEASIBLE, ITERATION_LIMIT, default_max_iter, solve_dual
+from ._kernels import SATISFIED_RTOL, margins, scaled_norm, solve_two
 
-__all__ = ["MultiStatus", "MultiResult", "clf_cbf_multi", "MAX_ROWS"]
-
-#: The most constraint rows (CLFs + CBFs + 2 per limited input) :func:`clf_cbf_multi` accepts.
-MAX_ROWS = 12
+__all__ = ["MultiStatus", "MultiResult", "clf_cbf_multi"]
 
 
 class MultiStatus(IntEnum):
@@ -48,10 +44,18 @@ class MultiStatus(IntEnum):
     #: no input meets every hard CLF together with the CBFs and limits: the CLF rows are
     #: dropped (safety first) and the result is the optimum of the rest
     CLF_DROPPED = 1
-    #: the CBFs and the limits are inconsistent: the limits hold and the CBF rows carry
-    #: slacks of weight ``FALLBACK_WEIGHT`` (in units of the normalised rows), so the squared
-    #: violations are as small as the limits allow
+    #: the CBFs and the limits are inconsistent: the limits hold, the CLF rows are dropped and
+    #: ``u`` is the exact optimum of ``min 1/2 |u - u_nom|_H^2 + W/2 sum_i sigma_i^2 /
+    #: |d_i|^2_{H^-1}`` s.t. ``d_i.u >= B_i - sigma_i`` and the limits (``W =
+    #: FALLBACK_WEIGHT``)
     CBF_RELAXED = 2
+    #: the solver's iteration bound was reached before an answer: ``u`` is its last iterate
+    #: (inside the limits), nothing is certified
+    ITERATION_LIMIT = 3
+    #: the solver stopped, but the KKT certificate of its answer does not hold at the
+    #: problem's own scales (rounding beyond the tolerance on a badly conditioned active set):
+    #: ``u`` is inside the limits, nothing else is promised
+    UNCERTIFIED = 4
 
 
 #: Weight of the CBF slacks of the last-resort problem (rows normalised to unit length).
@@ -104,73 +108,187 @@ def _unwhiten(H: Any, v: Any) -> Any:
     ]
 
 
-def multi_kernel(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H):
-    """Unchecked kernel of :func:`clf_cbf_multi` (``lo``/``hi``/``u_nom``/``H`` may be None)."""
-    p, k, m = b.shape[-2], d.shape[-2], b.shape[-1]
-    # margins per row: A_j for the CLFs, B_i for the CBFs
-    A = margins(a, b, a, b, kappa, 0.0, phi, 0.0).A
-    B = margins(c, d, c, d, 0.0, rho, 0.0, varphi).B
-    if u_nom is not None:
-        A = A + jnp.einsum("...jm,...m->...j", b, u_nom)
-        B = B - jnp.einsum("...im,...m->...i", d, u_nom)
-    rows = [b, -d]
-    rhs = [-A, -B]
-    exclusive: list[tuple[int, int]] = []
-    if lo is not None:
-        eye = jnp.broadcast_to(jnp.eye(m), b.shape[:-2] + (m, m))
-        base = jnp.zeros(b.shape[:-2] + (m,)) if u_nom is None else u_nom
-        rows += [eye, -eye]
-        rhs += [hi - base, -(lo - base)]
-        exclusive = [(p + k + i, p + k + m + i) for i in range(m)]
-    G = jnp.concatenate(rows, axis=-2)
-    r = jnp.concatenate(rhs, axis=-1)
-    if H is not None:
-        G = _whiten(H, G)
-    n_slack = p if inv_sqrt_slack is not None else 0
-    if n_slack:
-        s = jnp.broadcast_to(jnp.asarray(inv_sqrt_slack, dtype=float), b.shape[:-2] + (p,))
-        slack_cols = jnp.zeros(G.shape[:-1] + (p,))
-        slack_cols = slack_cols.at[..., jnp.arange(p), jnp.arange(p)].set(-s)
-        G = jnp.concatenate([G, slack_cols], axis=-1)
-    n_rows, dim = G.shape[-2], G.shape[-1]
-    sets = active_sets(n_rows, dim, tuple(exclusive))
-    full = solve_rows(G, r, sets)
-    # safety first: without the CLF rows (only differs from the full problem for hard CLFs)
-    no_clf = jnp.concatenate([jnp.zeros_like(G[..., :p, :]), G[..., p:, :]], axis=-2)
-    no_clf_r = jnp.concatenate([jnp.zeros_like(r[..., :p]), r[..., p:]], axis=-1)
-    safe = solve_rows(no_clf, no_clf_r, sets)
-    # last resort: slacks on the CBF rows (normalised), limits kept
-    norms = jnp.linalg.norm(G[..., p : p + k, :], axis=-1)
-    w = jnp.where(norms > 0, norms, 1.0) / np.sqrt(FALLBACK_WEIGHT)
-    relax_cols = jnp.zeros(G.shape[:-1] + (k,)).at[..., p + jnp.arange(k), jnp.arange(k)].set(-w)
-    relaxed_G = jnp.concatenate([no_clf, relax_cols], axis=-1)
-    relaxed = solve_rows(relaxed_G, no_clf_r, active_sets(n_rows, dim + k, tuple(exclusive)))
-    status = jnp.where(
-        full.found,
-        MultiStatus.SOLVED,
-        jnp.where(safe.found, MultiStatus.CLF_DROPPED, MultiStatus.CBF_RELAXED),
-    ).astype(jnp.int32)
-    z = jnp.where(
-        full.found[..., None],
-        full.z,
-        jnp.where(safe.found[..., None], safe.z, relaxed.z[..., :dim]),
+def _own_scale_ok(res: Any, scale: Any) -> Any:
+    """A condition ``res <= 0`` holds up to the rounding of its own terms."""
+    return res <= SATISFIED_RTOL * scale
+
+
+class _Problem(NamedTuple):
+    """One problem in the solver's coordinates ``w = (L^T u, sqrt(m_j) chi_j)``."""
+
+    Gw: Any  # (N, D): rows CLFs, CBFs, upper limits, lower limits
+    r: Any  # (N,)
+    w0: Any  # (D,)
+    L: Any  # (m, m) Cholesky factor of H, or None
+    A: Any  # (p,) CLF margins
+    B: Any  # (k,) CBF margins
+    clf_scale: Any  # (p,) |a| + kappa zeta
+    cbf_scale: Any  # (k,) |c| + rho Gamma
+
+
+def _setup(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H) -> _Problem:
+    p, m = b.shape
+    mg_v = margins(a, b, a, b, kappa, 0.0, phi, 0.0)
+    mg_c = margins(c, d, c, d, 0.0, rho, 0.0, varphi)
+    eye = jnp.eye(m)
+    G = jnp.concatenate([b, -d] + ([eye, -eye] if lo is not None else []), axis=0)
+    r = jnp.concatenate([-mg_v.A, -mg_c.B] + ([hi, -lo] if lo is not None else []), axis=0)
+    L = None
+    if H is None:
+        Gw, w0 = G, (jnp.zeros(m) if u_nom is None else u_nom)
+    else:
+        L = jnp.linalg.cholesky(H)
+        Gw = jax.scipy.linalg.solve_triangular(L, G.T, lower=True).T  # G L^{-T}
+        w0 = jnp.zeros(m) if u_nom is None else L.T @ u_nom
+    if inv_sqrt_slack is not None:
+        cols = jnp.zeros((G.shape[0], p)).at[jnp.arange(p), jnp.arange(p)].set(-inv_sqrt_slack)
+        Gw = jnp.concatenate([Gw, cols], axis=1)
+        w0 = jnp.concatenate([w0, jnp.zeros(p)])
+    return _Problem(
+        Gw, r, w0, L, mg_v.A, mg_c.B,
+        jnp.abs(a) + kappa * mg_v.zeta, jnp.abs(c) + rho * mg_c.Gamma,
+    )  # fmt: skip
+
+
+def _input(pr: _Problem, w: Any, m: int, lo: Any, hi: Any) -> Any:
+    """``u = L^{-T} w_u``, inside the limits (rounding only: certified points are inside)."""
+    v = w[:m]
+    u = v if pr.L is None else jax.scipy.linalg.solve_triangular(pr.L.T, v, lower=False)
+    return u if lo is None else jnp.clip(u, lo, hi)
+
+
+def _conditions_hold(pr: _Problem, b, d, u, chi, with_clf: bool) -> Any:
+    """Every CBF (and CLF) condition at ``u`` within the rounding of its own terms."""
+    bu, du = b * u, d * u
+    ok = jnp.all(_own_scale_ok(pr.B - jnp.sum(du, -1), pr.cbf_scale + jnp.sum(jnp.abs(du), -1)))
+    if with_clf:
+        clf_res = pr.A + jnp.sum(bu, -1) - chi
+        clf_scale = pr.clf_scale + jnp.sum(jnp.abs(bu), -1) + jnp.abs(chi)
+        ok = ok & jnp.all(_own_scale_ok(clf_res, clf_scale))
+    return ok
+
+
+def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter):
+    """Phase 1: the whole problem. Returns (solution, u, chi, certified)."""
+    p, m = b.shape
+    sol = solve_dual(pr.Gw, pr.r, pr.w0, jnp.ones(pr.r.shape[0], bool), max_iter)
+    u = _input(pr, sol.w, m, lo, hi)
+    chi = sol.w[m:] * inv_sqrt_slack if inv_sqrt_slack is not None else jnp.zeros(p)
+    return sol, u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
+
+
+def _phase_no_clf(pr: _Problem, b, d, lo, hi, run, max_iter):
+    """Phase 2: hard CLFs dropped (safety first)."""
+    p, m = b.shape
+    use = jnp.arange(pr.r.shape[0]) >= p
+    sol = solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0))
+    u = _input(pr, sol.w, m, lo, hi)
+    return sol, u, sol.certified & _conditions_hold(pr, b, d, u, jnp.zeros(p), False)
+
+
+def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter):
+    """Phase 3: limits kept, CBF rows relaxed by slacks, CLF rows dropped.
+
+    The slack of CBF ``i`` enters its normalised whitened row with weight
+    :data:`FALLBACK_WEIGHT`: in the original variables, the exact optimum of
+    ``min 1/2 |u - u_nom|_H^2 + W/2 sum_i sigma_i^2 / |d_i|^2_{H^-1}`` s.t.
+    ``d_i.u >= B_i - sigma_i`` and the limits.
+    """
+    p, m = b.shape
+    k = d.shape[0]
+    n_rows = pr.r.shape[0]
+    Gu = pr.Gw[:, :m]
+    nrm = scaled_norm(Gu[p : p + k])
+    relax = (
+        jnp.zeros((n_rows, k))
+        .at[p + jnp.arange(k), jnp.arange(k)]
+        .set(-jnp.where(nrm > 0, nrm, 1.0) / np.sqrt(FALLBACK_WEIGHT))
     )
-    mult = jnp.where(
-        full.found[..., None],
-        full.multipliers,
-        jnp.where(safe.found[..., None], safe.multipliers, relaxed.multipliers),
+    G3 = jnp.concatenate([Gu, relax], axis=1)
+    w03 = jnp.concatenate([pr.w0[:m], jnp.zeros(k)])
+    use = jnp.arange(n_rows) >= p
+    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0))
+    return sol, _input(pr, sol.w, m, lo, hi), sol.certified
+
+
+def multi_kernel(
+    a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None
+):
+    """Unchecked kernel of :func:`clf_cbf_multi` (``lo``/``hi``/``u_nom``/``H`` may be None).
+
+    Batched over the leading axes of ``b``; the parameters broadcast against that batch. The
+    fallback phases run only where some problem of the batch needs them (a batch-level
+    ``lax.cond``: inside a user's ``vmap`` both branches run, with the same results).
+    """
+    batch, (p, m), k = b.shape[:-2], b.shape[-2:], d.shape[-2]
+    n_rows = p + k + (2 * m if lo is not None else 0)
+    dim = m + (p if inv_sqrt_slack is not None else 0)
+    if max_iter is None:
+        max_iter = default_max_iter(n_rows, dim + k)
+    flat = int(np.prod(batch, dtype=int))
+
+    def bc(v, tail):
+        if v is None:
+            return None
+        return jnp.broadcast_to(jnp.asarray(v, float), batch + tail).reshape((flat,) + tail)
+
+    a, b, c, d = bc(a, (p,)), bc(b, (p, m)), bc(c, (k,)), bc(d, (k, m))
+    params = [bc(v, ()) for v in (kappa, rho, phi, varphi)]
+    sw, lo, hi = bc(inv_sqrt_slack, (p,)), bc(lo, (m,)), bc(hi, (m,))
+    pr = jax.vmap(_setup)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
+    full, u1, chi1, ok1 = jax.vmap(
+        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter)
+    )(pr, b, d, sw, lo, hi)
+    infeasible = full.status == INFEASIBLE
+    need2 = infeasible & (p > 0) & (inv_sqrt_slack is None)
+
+    def phase2(_):
+        return jax.vmap(
+            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter)
+        )(pr, b, d, lo, hi, need2)
+
+    skipped2 = (full, u1, jnp.zeros(flat, bool))
+    safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
+    need3 = infeasible & ~(need2 & (safe.status != INFEASIBLE))
+
+    def phase3(_):
+        sol, u, ok = jax.vmap(
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
+        )(pr, b, d, lo, hi, need3)
+        return sol._replace(w=sol.w[:, :m]), u, ok
+
+    skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))
+    relaxed, u3, ok3 = jax.lax.cond(jnp.any(need3), phase3, lambda _: skipped3, None)
+
+    S = MultiStatus
+    col = lambda v: v[:, None]  # noqa: E731
+    pick = lambda x1, x2, x3: jnp.where(  # noqa: E731
+        col(need3) if x1.ndim > 1 else need3,
+        x3,
+        jnp.where(col(need2) if x1.ndim > 1 else need2, x2, x1),
     )
-    active = jnp.where(
-        full.found[..., None],
-        full.active,
-        jnp.where(safe.found[..., None], safe.active, relaxed.active),
+    u = pick(u1, u2, u3)
+    certified = pick(ok1, ok2, ok3)
+    limit_hit = pick(
+        full.status == ITERATION_LIMIT, safe.status == ITERATION_LIMIT,
+        relaxed.status == ITERATION_LIMIT,
+    )  # fmt: skip
+    base = pick(
+        jnp.full(flat, S.SOLVED), jnp.full(flat, S.CLF_DROPPED), jnp.full(flat, S.CBF_RELAXED)
     )
-    v = z[..., :m]
-    u = v if H is None else _unwhiten(H, v)
-    if u_nom is not None:
-        u = u + u_nom
-    slack = z[..., m:dim] * s if n_slack else jnp.zeros(b.shape[:-2] + (p,))
-    return MultiResult(u=u, status=status, active=active, multipliers=mult, slack=slack)
+    status = jnp.where(limit_hit, S.ITERATION_LIMIT, jnp.where(certified, base, S.UNCERTIFIED))
+    mult = pick(full.multipliers, safe.multipliers, relaxed.multipliers)
+    active = pick(full.active, safe.active, relaxed.active)
+    slack = (
+        jnp.where(col(need2 | need3), 0.0, chi1)
+        if inv_sqrt_slack is not None
+        else jnp.zeros((flat, p))
+    )
+    shape = lambda v: v.reshape(batch + v.shape[1:])  # noqa: E731
+    return MultiResult(
+        u=shape(u), status=shape(status.astype(jnp.int32)), active=shape(active),
+        multipliers=shape(mult), slack=shape(slack),
+    )  # fmt: skip
 
 
 def _single_pair(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, u_nom, H):
@@ -235,6 +353,7 @@ def clf_cbf_multi(
     u_max: Any = None,
     u_nom: Any = None,
     H: Any = None,
+    max_iter: int | None = None,
 ) -> MultiResult:
     """Exact optimum with several CLFs and CBFs, input limits and a weighted objective.
 
@@ -261,6 +380,10 @@ def clf_cbf_multi(
         Nominal input: the objective is ``1/2 |u - u_nom|_H^2`` (a safety filter).
     H : array of shape (m, m) or (..., m, m), optional
         Positive definite weight of the objective (identity when omitted).
+    max_iter : int, optional
+        Iteration bound of the active-set solver per phase (default ``3 (rows + dim) + 10``,
+        ``dim`` the inputs, CLF slacks and, for the last-resort phase, CBF slacks); where it
+        is reached the status is ``ITERATION_LIMIT``.
 
     Returns
     -------
@@ -269,8 +392,8 @@ def clf_cbf_multi(
     Raises
     ------
     InputTypeError, DimensionError, NonFiniteError, ParameterError, NumericalError
-        As for :func:`clf_cbf`; also if there are more than :data:`MAX_ROWS` rows, ``H`` is not
-        symmetric positive definite, or only one limit is given.
+        As for :func:`clf_cbf`; also if ``H`` is not symmetric positive definite, only one
+        limit is given, or ``max_iter`` is not a positive integer.
 
     Notes
     -----
@@ -301,6 +424,8 @@ def clf_cbf_multi(
                 f"slack_weight must be a scalar or have shape ({p},), got {sw.shape}"
             )
         inv_sqrt = 1.0 / np.sqrt(sw)
+        if p == 0:
+            inv_sqrt = None  # no CLF row carries a slack
     if (u_min is None) != (u_max is None):
         raise ParameterError("give both u_min and u_max, or neither")
     lo = hi = None
@@ -308,12 +433,10 @@ def clf_cbf_multi(
         check_box(u_min, u_max, batch + (m,))
         lo = jnp.broadcast_to(jnp.asarray(u_min, float), batch + (m,))
         hi = jnp.broadcast_to(jnp.asarray(u_max, float), batch + (m,))
-    n_rows = p + k + (2 * m if lo is not None else 0)
-    if n_rows > MAX_ROWS:
-        raise ParameterError(
-            f"clf_cbf_multi handles at most {MAX_ROWS} rows (CLFs + CBFs + 2 per limited input), "
-            f"got {n_rows}"
-        )
+    if max_iter is not None and (
+        isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1
+    ):
+        raise ParameterError(f"max_iter must be an integer >= 1, got {max_iter!r}")
     if u_nom is not None:
         check_real("u_nom", u_nom)
         check_finite("u_nom", u_nom)
@@ -339,12 +462,14 @@ def clf_cbf_multi(
     if p == 1 and k == 1 and lo is None:
         res = _single_jit(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, u_nom, H)
     else:
-        res = _multi_jit(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, lo, hi, u_nom, H)
+        res = _multi_jit(
+            a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, lo, hi, u_nom, H, max_iter=max_iter
+        )
     check_output_finite("clf_cbf_multi", u=res.u, slack=res.slack, multipliers=res.multipliers)
     return res
 
 
-_multi_jit = jax.jit(multi_kernel)
+_multi_jit = jax.jit(multi_kernel, static_argnames="max_iter")
 
 
 @jax.jit

@@ -1,0 +1,252 @@
+"""Unchecked kernel: a dual active-set solver for ``min 1/2 |w - w0|^2`` s.t. ``G w <= r``.
+
+The method of Goldfarb and Idnani (1983) for an identity Hessian (the callers whiten the
+objective first): start at the unconstrained minimiser ``w0``; repeatedly take the most violated
+row (rows normalised to unit length, so violations are distances) and move along the direction
+that keeps the active rows tight, dropping an active row when its multiplier reaches zero,
+until no row is violated (optimal) or a violated row is a non-negative combination of the
+active ones with no multiplier left to drop (infeasible: ``y = (-R^{-1} Q_1^T n_p, 1) >= 0``
+is a Farkas certificate). The dual objective increases at every step, so no active set
+repeats in exact arithmetic; the loop still has a fixed bound and reports reaching it.
+
+The active rows are kept as ``Q R = N_A`` (``Q`` orthogonal ``D x D``, ``R`` upper
+triangular, ``N_A`` the active rows as columns): a row is added by one Householder reflection
+on the trailing columns of ``Q`` (``O(D^2)``), dropped by Givens rotations restoring ``R``
+(``O(D)`` each). One iteration costs ``O(N D + D^2)``; an active set changes by one row per
+iteration, so the work grows polynomially with the rows, not with the number of their subsets.
+
+At the end the point is recomputed from the final active set alone (its orthogonal projection,
+then one step of iterative refinement of the active rows), so its accuracy is that of one
+backward-stable least-squares solve and does not depend on the path; the multipliers follow
+from the same factors. Whether the point is the optimum is then *certified* by the caller
+against the problem's own scales (:func:`safestab.formulas.multi`), never assumed.
+
+Only jittable, vmappable operations: ``lax.while_loop``, ``lax.fori_loop``, dynamic slices and
+triangular solves.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.linalg import solve_triangular
+
+from ._kernels import scaled_norm
+
+__all__ = ["DualSolution", "solve_dual", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT", "ADD_RTOL"]
+
+OPTIMAL, INFEASIBLE, ITERATION_LIMIT = 0, 1, 2
+
+_EPS = float(np.finfo(float).eps)
+#: A row is taken into the active set only if it is violated by more than this fraction of its
+#: own magnitudes ``|r_i| + sum_j |G_ij w_j|`` (rounding of evaluating it is about ``D eps``
+#: of that): a row violated only by rounding (a duplicate of an active row, say) is left out.
+ADD_RTOL = 64 * _EPS
+#: A violated row whose component orthogonal to the active rows is shorter than this (it has
+#: unit length) is treated as a combination of them: ``Q^T n`` has an error of a few ``eps``.
+DEP_TOL = 1e3 * _EPS
+#: Primal tolerance of the certificate, relative to each row's own magnitudes (the same as the
+#: controllers' condition flags, :data:`safestab.formulas.SATISFIED_RTOL`).
+CERT_RTOL = 1e-13
+
+
+class DualSolution(NamedTuple):
+    """What :func:`solve_dual` returns.
+
+    The point ``w`` (D,), multipliers (N,) of the rows as given, the active mask (N,), the
+    status (``OPTIMAL``, ``INFEASIBLE``, ``ITERATION_LIMIT``), the iteration count, an estimate
+    of the condition number of the final active rows (max/min of ``|diag R|``), and whether the
+    KKT certificate of this (whitened, normalised) problem holds: every used row within
+    ``CERT_RTOL`` of its own magnitudes, multipliers >= 0 and stationarity, the last two to
+    ``64 eps cond``.
+    """
+
+    w: Any
+    multipliers: Any
+    active: Any
+    status: Any
+    iterations: Any
+    cond: Any
+    certified: Any
+
+
+def default_max_iter(n_rows: int, dim: int) -> int:
+    """The iteration bound: every row added and dropped three times, plus slack."""
+    return 3 * (n_rows + dim) + 10
+
+
+def _upper_solve(R, v):
+    return solve_triangular(R, v, lower=False)
+
+
+def _upper_t_solve(R, v):
+    return solve_triangular(R, v, lower=False, trans=1)
+
+
+def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution:
+    """Minimise ``1/2 |w - w0|^2`` subject to ``G_i w <= r_i`` for the rows with ``use_i``.
+
+    One problem (no batch axes; vmap for batches): ``G`` (N, D), ``r`` (N,), ``w0`` (D,),
+    ``use`` bool (N,). Rows that are exactly zero are dropped when ``r_i >= 0`` and make the
+    problem infeasible otherwise.
+    """
+    n_rows, dim = G.shape
+    norms = scaled_norm(G)
+    zero = norms == 0
+    infeasible0 = jnp.any(use & zero & (r < 0))
+    use = use & ~zero
+    safe = jnp.where(zero, 1.0, norms)
+    Gn = G / safe[:, None]
+    rn = r / safe
+    absG = jnp.abs(Gn)
+    idx = jnp.arange(dim)
+
+    def violations(w):
+        return Gn @ w - rn, ADD_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))
+
+    def add(state, p, d, d1, d2, nd2, lam_p):
+        w, Q, R, act, lam, in_set, q, _, _, it, status = state
+        dq = jnp.sum(jnp.where(idx == q, d, 0.0))
+        alpha = -jnp.where(dq < 0, -1.0, 1.0) * jnp.sqrt(nd2)
+        v = jnp.where(idx == q, d2 - alpha, d2)
+        Q = Q - (2.0 / (v @ v)) * jnp.outer(Q @ v, v)
+        col = jnp.where(idx < q, d1, jnp.where(idx == q, alpha, 0.0))
+        R = jnp.where(idx[None, :] == q, col[:, None], R)
+        act = jnp.where(idx == q, p, act)
+        lam = jnp.where(idx == q, lam_p, lam)
+        in_set = in_set.at[p].set(True)
+        return (w, Q, R, act, lam, in_set, q + 1, jnp.int32(-1), jnp.zeros_like(lam_p), it, status)
+
+    def drop(state, j, p, lam_p):
+        w, Q, R, act, lam, in_set, q, _, _, it, status = state
+        in_set = in_set.at[act[j]].set(False)
+        shift = jnp.where((idx >= j) & (idx < q - 1), idx + 1, idx)
+        R = R[:, shift]
+        R = jnp.where(idx[None, :] == q - 1, 0.0, R)
+        act = jnp.where(idx == q - 1, -1, act[shift])
+        lam = jnp.where(idx == q - 1, 0.0, lam[shift])
+
+        def rotate(i, QR):
+            Q, R = QR
+            a, b = R[i, i], R[i + 1, i]
+            h = jnp.hypot(a, b)
+            c, s = jnp.where(h > 0, a / h, 1.0), jnp.where(h > 0, b / h, 0.0)
+            ri, ri1 = R[i], R[i + 1]
+            R = R.at[i].set(c * ri + s * ri1).at[i + 1].set(-s * ri + c * ri1)
+            qi, qi1 = Q[:, i], Q[:, i + 1]
+            Q = Q.at[:, i].set(c * qi + s * qi1).at[:, i + 1].set(-s * qi + c * qi1)
+            return Q, R
+
+        Q, R = jax.lax.fori_loop(j, q - 1, rotate, (Q, R))
+        R = R.at[q - 1, q - 1].set(1.0)  # padding: identity beyond the active columns
+        return (w, Q, R, act, lam, in_set, q - 1, p, lam_p, it, status)
+
+    def body(state):
+        w, Q, R, act, lam, in_set, q, p, lam_p, it, status = state
+        viol, tol = violations(w)
+        cand = use & ~in_set & (viol > tol)
+        p_new = jnp.argmax(jnp.where(cand, viol, -jnp.inf)).astype(jnp.int32)
+        pending = p >= 0
+        done = ~pending & ~jnp.any(cand)
+        p = jnp.where(pending, p, p_new)
+        lam_p = jnp.where(pending, lam_p, 0.0)
+        n = Gn[p]
+        d = Q.T @ n
+        d1 = jnp.where(idx < q, d, 0.0)
+        d2 = jnp.where(idx >= q, d, 0.0)
+        nd2 = d2 @ d2
+        dependent = jnp.sqrt(nd2) <= DEP_TOL
+        dz = jnp.where(dependent, 0.0, -(Q @ d2))
+        rvec = _upper_solve(R, d1)
+        blocking = (idx < q) & (rvec > 0)
+        ratio = jnp.where(blocking, lam / jnp.where(blocking, rvec, 1.0), jnp.inf)
+        j = jnp.argmin(ratio).astype(jnp.int32)
+        t1 = ratio[j]
+        t2 = jnp.where(
+            dependent, jnp.inf, jnp.maximum(viol[p], 0.0) / jnp.where(dependent, 1.0, nd2)
+        )
+        t = jnp.minimum(t1, t2)
+        infeasible = ~done & jnp.isinf(t)
+        tt = jnp.where(done | infeasible, 0.0, t)
+        w = w + tt * dz
+        lam = jnp.where(idx < q, lam - tt * rvec, lam)
+        lam_p = lam_p + tt
+        moved = (w, Q, R, act, lam, in_set, q, p, lam_p, it + 1, status)
+        full = t2 <= t1
+        nxt = jax.lax.cond(
+            done | infeasible,
+            lambda s: s,
+            lambda s: jax.lax.cond(
+                full,
+                lambda s: add(s, p, d, d1, d2, nd2, lam_p),
+                lambda s: drop(s, j, p, lam_p),
+                s,
+            ),
+            moved,
+        )
+        new_status = jnp.where(done, OPTIMAL, jnp.where(infeasible, INFEASIBLE, status))
+        return nxt[:10] + (jnp.where(done | infeasible, new_status, -1),)
+
+    def cond(state):
+        it, status = state[9], state[10]
+        return (status < 0) & (it < max_iter)
+
+    init = (
+        jnp.asarray(w0, dtype=G.dtype),
+        jnp.eye(dim, dtype=G.dtype),
+        jnp.eye(dim, dtype=G.dtype),
+        jnp.full((dim,), -1, dtype=jnp.int32),
+        jnp.zeros(dim, dtype=G.dtype),
+        jnp.zeros(n_rows, dtype=bool),
+        jnp.int32(0),
+        jnp.int32(-1),
+        jnp.asarray(0.0, dtype=G.dtype),
+        jnp.int32(0),
+        jnp.where(infeasible0, INFEASIBLE, -1).astype(jnp.int32),
+    )
+    w, Q, R, act, lam, in_set, q, p, lam_p, it, status = jax.lax.while_loop(cond, body, init)
+    status = jnp.where(status < 0, ITERATION_LIMIT, status)
+
+    # the point from the final active set alone: projection, then one refinement step
+    used = idx < q
+    rows = Gn[jnp.where(used, act, 0)]
+    rows = jnp.where(used[:, None], rows, 0.0)
+    rhs = jnp.where(used, rn[jnp.where(used, act, 0)], 0.0)
+    Q1 = jnp.where(used[None, :], Q, 0.0)
+    y = _upper_t_solve(R, jnp.where(used, rhs - rows @ w0, 0.0))
+    w_star = w0 + Q1 @ y
+    y2 = _upper_t_solve(R, jnp.where(used, rhs - rows @ w_star, 0.0))
+    y = y + y2
+    w_star = w_star + Q1 @ y2
+    lam_act = -_upper_solve(R, y)
+    optimal = status == OPTIMAL
+    w = jnp.where(optimal, w_star, w)
+    lam_act = jnp.where(optimal, lam_act, lam)
+    diag = jnp.abs(jnp.diagonal(R))
+    cond_est = jnp.where(
+        q > 0,
+        jnp.max(jnp.where(used, diag, 0.0)) / jnp.min(jnp.where(used, diag, jnp.inf)),
+        1.0,
+    )
+    # the certificate of this problem
+    viol = Gn @ w - rn
+    primal_ok = jnp.all(~use | (viol <= CERT_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))))
+    slack_tol = 64 * _EPS * cond_est
+    lam_max = jnp.max(jnp.abs(jnp.where(used, lam_act, 0.0)))
+    dual_ok = jnp.all(~used | (lam_act >= -slack_tol * lam_max))
+    grad = rows.T @ jnp.where(used, lam_act, 0.0)
+    stat = jnp.max(jnp.abs(w - w0 + grad))
+    stat_scale = (
+        jnp.max(jnp.abs(w))
+        + jnp.max(jnp.abs(w0))
+        + jnp.max(jnp.abs(rows.T) @ jnp.abs(jnp.where(used, lam_act, 0.0)))
+    )
+    stat_ok = stat <= slack_tol * stat_scale
+    certified = optimal & primal_ok & dual_ok & stat_ok
+    lam_act = jnp.maximum(lam_act, 0.0)
+    onehot = (act[:, None] == jnp.arange(n_rows)[None, :]) & used[:, None]
+    mult = jnp.sum(jnp.where(onehot, lam_act[:, None], 0.0), axis=0) / safe
+    return DualSolution(w, mult, in_set, status.astype(jnp.int32), it, cond_est, certified)

@@ -1,0 +1,223 @@
+"""The filter's several-row solver (dual active set) against independent references.
+
+Oracles: a 60-digit active-set reference (tests/mpref.solve_qp, exact inputs) over random
+problems at wide scales (tests/filter_cases.py: rows from 1e-6 to 1e6, near-parallel,
+antiparallel, duplicated and inconsistent rows, far nominal inputs, weights up to cond 1e6);
+quadprog (an exact dual active-set solver in float64) on problems too large to enumerate.
+"""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import pytest
+
+from safestab import MultiStatus, ParameterError, clf_cbf_multi
+
+from . import filter_cases as fc
+
+EPS = np.finfo(float).eps
+
+
+def _review(n_cases: int, seed: int) -> tuple[collections.Counter, list]:
+    rng = np.random.default_rng(seed)
+    cases = [
+        fc.random_case(
+            rng, fc.GEOMETRIES[i % len(fc.GEOMETRIES)], fc.SIGNATURES[(i // 6) % len(fc.SIGNATURES)]
+        )
+        for i in range(n_cases)
+    ]
+    answers = fc.solve_cases(cases, clf_cbf_multi)
+    counts: collections.Counter = collections.Counter()
+    faults = []
+    for case, (u, status, slack, active) in zip(cases, answers, strict=True):
+        name = MultiStatus(status).name
+        j = fc.judge(case, u, name, slack, active)
+        counts[(j["ref"], name)] += 1
+        ill_posed = j["cond"] * EPS > 1e-3  # feasible only beyond float64's resolution
+        fault = None
+        if j["limits_broken"]:
+            fault = "limits broken"
+        elif j["violated"]:
+            fault = f"{name} with violated conditions {j['violated']}"
+        elif name == "SOLVED" and j["ref"] != "SOLVED":
+            fault = f"SOLVED on a problem whose reference is {j['ref']}"
+        elif name != j["ref"] and not ill_posed:
+            fault = f"{name} where the reference is {j['ref']} (cond {j['cond']:.2g})"
+        elif name == j["ref"] and j["error_over_eps_cond"] > 100:
+            fault = f"{name} off by {j['rel_error']:.2g} (cond {j['cond']:.2g})"
+        if fault:
+            faults.append((case["geometry"], fault))
+    return counts, faults
+
+
+def test_no_wrong_solved_and_no_broken_limit_against_the_50_digit_reference():
+    counts, faults = _review(480, seed=0)
+    assert faults == []
+    # the draw exercises every status and mostly solvable problems
+    assert counts[("SOLVED", "SOLVED")] >= 160
+    assert counts[("CLF_DROPPED", "CLF_DROPPED")] >= 15
+    assert counts[("CBF_RELAXED", "CBF_RELAXED")] >= 60
+
+
+@pytest.mark.slow
+def test_twenty_thousand_cases_against_the_50_digit_reference():
+    """The acceptance run of the filter issue: 20,160 cases (about 40 minutes)."""
+    total: collections.Counter = collections.Counter()
+    for seed in range(1, 29):
+        counts, faults = _review(720, seed=seed)
+        assert faults == [], seed
+        total.update(counts)
+    assert sum(total.values()) >= 20000
+
+
+def _quadprog(H, g_u, G, r):
+    quadprog = pytest.importorskip("quadprog")
+    # quadprog: min 1/2 x'Hx - a'x s.t. C'x >= b
+    x = quadprog.solve_qp(H, g_u, -G.T, -r, 0)[0]
+    return x
+
+
+def _point_robot(rng, n_states, k, m=2):
+    """A point robot among k discs: CBF rows d = 2(x - o), c = beta (|x - o|^2 - R^2)."""
+    x = rng.uniform(-5, 5, (n_states, m))
+    obstacles = rng.uniform(-6, 6, (k, m))
+    radius = 0.5
+    diff = x[:, None, :] - obstacles[None]
+    d = 2 * diff
+    c = np.sum(diff**2, -1) - radius**2
+    u_nom = -x  # towards the origin
+    return c, d, u_nom
+
+
+@pytest.mark.parametrize("k", [8, 32, 100])
+def test_many_obstacles_match_quadprog(k):
+    rng = np.random.default_rng(k)
+    c, d, u_nom = _point_robot(rng, 30, k)
+    res = clf_cbf_multi(
+        np.zeros((30, 0)), np.zeros((30, 0, 2)), c, d, kappa=0.0, rho=0.0, phi=0.0, varphi=0.0,
+        u_min=-1.0, u_max=1.0, u_nom=u_nom,
+    )  # fmt: skip
+    status = np.asarray(res.status)
+    checked = 0
+    for i in range(30):
+        G = np.concatenate([-d[i], np.eye(2), -np.eye(2)])
+        r = np.concatenate([c[i], np.ones(2), np.ones(2)])
+        try:
+            ref = _quadprog(np.eye(2), u_nom[i], G, r)
+        except ValueError:  # quadprog: "constraints are inconsistent"
+            assert status[i] != MultiStatus.SOLVED
+            continue
+        assert status[i] == MultiStatus.SOLVED, i
+        assert np.max(np.abs(np.asarray(res.u[i]) - ref)) <= 1e-10 * max(1.0, np.abs(ref).max())
+        checked += 1
+    assert checked >= 20
+
+
+def test_a_swarm_sized_problem_100_inputs_and_1300_rows():
+    """A 50-robot swarm solved centrally: 100 inputs, 1,225 pair barriers, 200 limit rows."""
+    rng = np.random.default_rng(7)
+    n_robots, m = 50, 100
+    pos = rng.uniform(-10, 10, (n_robots, 2))
+    goal = -pos
+    rows, rhs = [], []
+    for i in range(n_robots):
+        for j in range(i + 1, n_robots):
+            diff = pos[i] - pos[j]
+            row = np.zeros(m)  # d = grad of |p_i - p_j|^2 - R^2 with respect to (v_i, v_j)
+            row[2 * i : 2 * i + 2], row[2 * j : 2 * j + 2] = 2 * diff, -2 * diff
+            rows.append(row)
+            rhs.append(diff @ diff - 0.3**2)
+    d = np.array(rows)[None]
+    c = np.array(rhs)[None]
+    u_nom = (goal - pos).reshape(1, m)
+    res = clf_cbf_multi(
+        np.zeros((1, 0)), np.zeros((1, 0, m)), c, d, kappa=0.0, rho=0.0, phi=0.0, varphi=0.0,
+        u_min=-2.0, u_max=2.0, u_nom=u_nom,
+    )  # fmt: skip
+    assert d.shape[1] + 2 * m >= 1300
+    assert int(res.status[0]) == MultiStatus.SOLVED
+    G = np.concatenate([-d[0], np.eye(m), -np.eye(m)])
+    r = np.concatenate([c[0], 2 * np.ones(m), 2 * np.ones(m)])
+    ref = _quadprog(np.eye(m), u_nom[0], G, r)
+    assert np.max(np.abs(np.asarray(res.u[0]) - ref)) <= 1e-9 * np.abs(ref).max()
+
+
+def test_the_iteration_bound_is_reported_and_keeps_the_limits():
+    rng = np.random.default_rng(3)
+    c, d, u_nom = _point_robot(rng, 50, 32)
+    kw = dict(kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, u_min=-1.0, u_max=1.0, u_nom=u_nom)
+    full = clf_cbf_multi(np.zeros((50, 0)), np.zeros((50, 0, 2)), c, d, **kw)
+    cut = clf_cbf_multi(np.zeros((50, 0)), np.zeros((50, 0, 2)), c, d, max_iter=1, **kw)
+    status = np.asarray(cut.status)
+    # one iteration adds one row: states that need two or more active rows stop at the bound
+    needs_more = np.asarray(full.active).sum(-1) >= 2
+    assert needs_more.any()
+    assert np.all(status[needs_more] == MultiStatus.ITERATION_LIMIT)
+    assert np.all(np.abs(np.asarray(cut.u)) <= 1.0)
+    with pytest.raises(ParameterError, match="max_iter must be an integer >= 1, got 0"):
+        clf_cbf_multi(np.zeros((50, 0)), np.zeros((50, 0, 2)), c, d, max_iter=0, **kw)
+
+
+def test_per_point_parameters_broadcast_over_the_batch():
+    """A kappa per point (the review's raw TypeError) agrees with one call per point."""
+    rng = np.random.default_rng(2)
+    a, b = rng.standard_normal((4, 1)), rng.standard_normal((4, 1, 2))
+    c, d = rng.standard_normal((4, 2)), rng.standard_normal((4, 2, 2))
+    kappa = np.array([0.1, 0.5, 1.0, 2.0])
+    kw = dict(rho=0.2, phi=1.0, varphi=0.5, u_min=-3.0, u_max=3.0)
+    batched = clf_cbf_multi(a, b, c, d, kappa=kappa, **kw)
+    for i in range(4):
+        one = clf_cbf_multi(a[i], b[i], c[i], d[i], kappa=kappa[i], **kw)
+        assert np.array_equal(np.asarray(one.u), np.asarray(batched.u[i]))
+
+
+def test_safety_filter_beyond_twelve_rows_matches_quadprog():
+    """Ten obstacles and limits (14 rows; the enumerating solver refused more than 12)."""
+    import jax.numpy as jnp
+
+    from safestab import CBF, ControlAffineSystem, SafetyFilter
+
+    rng = np.random.default_rng(11)
+    obstacles = rng.uniform(-4, 4, (10, 2))
+    system = ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    cbfs = [CBF(lambda x, o=o: jnp.sum((x - o) ** 2) - 0.25, beta=1.0) for o in obstacles]
+    filt = SafetyFilter(system, cbfs, u_nom=lambda x: -x, u_min=-1.0, u_max=1.0)
+    x = rng.uniform(-5, 5, (40, 2))
+    x = x[np.min(np.linalg.norm(x[:, None] - obstacles[None], axis=-1), axis=1) > 0.6]
+    out = filt.step(x)
+    for i in range(len(x)):
+        diff = x[i] - obstacles
+        G = np.concatenate([-2 * diff, np.eye(2), -np.eye(2)])
+        r = np.concatenate([np.sum(diff**2, -1) - 0.25, np.ones(2), np.ones(2)])
+        ref = _quadprog(np.eye(2), -x[i], G, r)
+        assert int(out.formula_status[i]) == MultiStatus.SOLVED
+        assert np.max(np.abs(np.asarray(out.u[i]) - ref)) <= 1e-12 * max(1.0, np.abs(ref).max())
+        assert bool(np.all(np.asarray(out.cbf_satisfied[i])))
+
+
+@pytest.mark.parametrize("u_nom", [0.0, 1e3, 1e6])
+def test_contradicting_barriers_are_never_solved(u_nom):
+    """u >= 1 and u <= 1 - 1e-6 (the review's case): a fallback, never SOLVED, at any u_nom."""
+    import jax.numpy as jnp
+
+    from safestab import CBF, ControlAffineSystem, SafetyFilter
+
+    system = ControlAffineSystem(lambda x: jnp.zeros(1), lambda x: jnp.ones((1, 1)), 1)
+    cbfs = [CBF(lambda x: x[0] - 1.0, beta=1.0), CBF(lambda x: -x[0] + 1.0 - 1e-6, beta=1.0)]
+    out = SafetyFilter(system, cbfs, u_nom=np.array([u_nom])).step(np.array([0.0]))
+    assert int(out.formula_status) == MultiStatus.CBF_RELAXED
+    assert not bool(np.all(np.asarray(out.cbf_satisfied)))
+    res = clf_cbf_multi(
+        np.zeros(0), np.zeros((0, 1)), np.array([-1.0, 1.0 - 1e-6]), np.array([[1.0], [-1.0]]),
+        kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, u_nom=np.array([u_nom]),
+    )  # fmt: skip
+    assert int(res.status) == MultiStatus.CBF_RELAXED
+    # the stated penalised problem, solved by hand: with v = u - 1, violations
+    # s1 = max(0, -v) and s2 = max(0, v + 1e-6); minimise (u - u_nom)^2/2 + W/2 (s1^2 + s2^2)
+    W = 1e8
+    v = (u_nom - 1.0 - W * 1e-6) / (1.0 + 2 * W)  # both violated: -1e-6 < v < 0
+    if v >= 0:  # only the second
+        v = (u_nom - 1.0 - W * 1e-6) / (1.0 + W)
+    assert abs(float(res.u[0]) - (1.0 + v)) <= 1e-15 * max(1.0, abs(u_nom))

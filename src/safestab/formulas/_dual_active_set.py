@@ -21,8 +21,8 @@ backward-stable least-squares solve and does not depend on the path; the multipl
 from the same factors. Whether the point is the optimum is then *certified* by the caller
 against the problem's own scales (:func:`safestab.formulas.multi`), never assumed.
 
-Only jittable, vmappable operations: ``lax.while_loop``, ``lax.fori_loop``, dynamic slices and
-triangular solves.
+Only jittable, vmappable operations: ``lax.while_loop``, ``lax.fori_loop`` and slices by
+loop counters; indices that differ between problems select by masks.
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
 
 from ._kernels import scaled_norm
 
@@ -79,11 +78,42 @@ def default_max_iter(n_rows: int, dim: int) -> int:
 
 
 def _upper_solve(R, v):
-    return solve_triangular(R, v, lower=False)
+    """``R^{-1} v`` for upper triangular ``R`` (D, D), by back substitution.
+
+    A loop over the rows, the same in every problem of a batch, rather than LAPACK's
+    triangular solve: under vmap each step is one dense operation over the batch (a batched
+    LAPACK call costs a call per problem), and the C export needs no LAPACK.
+    """
+    dim = v.shape[0]
+
+    def step(t, x):
+        i = dim - 1 - t
+        return x.at[i].set((v[i] - R[i] @ x) / R[i, i])
+
+    return _loop(dim, step, jnp.zeros_like(v))
 
 
 def _upper_t_solve(R, v):
-    return solve_triangular(R, v, lower=False, trans=1)
+    """``R^{-T} v`` for upper triangular ``R`` (D, D), by forward substitution."""
+    dim = v.shape[0]
+
+    def step(i, x):
+        return x.at[i].set((v[i] - R[:, i] @ x) / R[i, i])
+
+    return _loop(dim, step, jnp.zeros_like(v))
+
+
+#: Loops of at most this many steps are unrolled (each step then fuses with its neighbours;
+#: a rolled loop of a few steps costs more in loop overhead than in arithmetic).
+UNROLL = 8
+
+
+def _loop(n: int, step, init):
+    if n <= UNROLL:
+        for i in range(n):
+            init = step(i, init)
+        return init
+    return jax.lax.fori_loop(0, n, step, init)
 
 
 def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution:
@@ -103,6 +133,9 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
     rn = r / safe
     absG = jnp.abs(Gn)
     idx = jnp.arange(dim)
+    rows_idx = jnp.arange(n_rows)
+    # Indices that differ between problems (p, j, q) select by masks, not by gathers and
+    # scatters: under vmap a mask is a dense operation, a gather per problem is not.
 
     def violations(w):
         return Gn @ w - rn, ADD_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))
@@ -117,31 +150,39 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
         R = jnp.where(idx[None, :] == q, col[:, None], R)
         act = jnp.where(idx == q, p, act)
         lam = jnp.where(idx == q, lam_p, lam)
-        in_set = in_set.at[p].set(True)
+        in_set = in_set | (rows_idx == p)
         return (w, Q, R, act, lam, in_set, q + 1, jnp.int32(-1), jnp.zeros_like(lam_p), it, status)
 
     def drop(state, j, p, lam_p):
         w, Q, R, act, lam, in_set, q, _, _, it, status = state
-        in_set = in_set.at[act[j]].set(False)
-        shift = jnp.where((idx >= j) & (idx < q - 1), idx + 1, idx)
-        R = R[:, shift]
+        act_j = jnp.sum(jnp.where(idx == j, act, 0))
+        in_set = in_set & (rows_idx != act_j)
+        moves = (idx >= j) & (idx < q - 1)  # column c takes column c + 1
+        R = jnp.where(moves[None, :], jnp.roll(R, -1, axis=1), R)
         R = jnp.where(idx[None, :] == q - 1, 0.0, R)
-        act = jnp.where(idx == q - 1, -1, act[shift])
-        lam = jnp.where(idx == q - 1, 0.0, lam[shift])
+        act = jnp.where(idx == q - 1, -1, jnp.where(moves, jnp.roll(act, -1), act))
+        lam = jnp.where(idx == q - 1, 0.0, jnp.where(moves, jnp.roll(lam, -1), lam))
 
         def rotate(i, QR):
+            # rows i, i + 1 of R (columns of Q), only for j <= i < q - 1; i is the same in
+            # every problem of a batch, so the slices stay slices under vmap
             Q, R = QR
             a, b = R[i, i], R[i + 1, i]
             h = jnp.hypot(a, b)
-            c, s = jnp.where(h > 0, a / h, 1.0), jnp.where(h > 0, b / h, 0.0)
+            on = (i >= j) & (i < q - 1) & (h > 0)
+            c, s = (
+                jnp.where(on, a / jnp.where(h > 0, h, 1.0), 1.0),
+                jnp.where(on, b / jnp.where(h > 0, h, 1.0), 0.0),
+            )
             ri, ri1 = R[i], R[i + 1]
             R = R.at[i].set(c * ri + s * ri1).at[i + 1].set(-s * ri + c * ri1)
             qi, qi1 = Q[:, i], Q[:, i + 1]
             Q = Q.at[:, i].set(c * qi + s * qi1).at[:, i + 1].set(-s * qi + c * qi1)
             return Q, R
 
-        Q, R = jax.lax.fori_loop(j, q - 1, rotate, (Q, R))
-        R = R.at[q - 1, q - 1].set(1.0)  # padding: identity beyond the active columns
+        Q, R = _loop(dim - 1, rotate, (Q, R))
+        # padding: identity beyond the active columns
+        R = jnp.where((idx[:, None] == q - 1) & (idx[None, :] == q - 1), 1.0, R)
         return (w, Q, R, act, lam, in_set, q - 1, p, lam_p, it, status)
 
     def body(state):
@@ -153,7 +194,9 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
         done = ~pending & ~jnp.any(cand)
         p = jnp.where(pending, p, p_new)
         lam_p = jnp.where(pending, lam_p, 0.0)
-        n = Gn[p]
+        pick = rows_idx == p
+        n = jnp.sum(jnp.where(pick[:, None], Gn, 0.0), axis=0)
+        viol_p = jnp.sum(jnp.where(pick, viol, 0.0))
         d = Q.T @ n
         d1 = jnp.where(idx < q, d, 0.0)
         d2 = jnp.where(idx >= q, d, 0.0)
@@ -164,9 +207,9 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
         blocking = (idx < q) & (rvec > 0)
         ratio = jnp.where(blocking, lam / jnp.where(blocking, rvec, 1.0), jnp.inf)
         j = jnp.argmin(ratio).astype(jnp.int32)
-        t1 = ratio[j]
+        t1 = jnp.min(ratio)
         t2 = jnp.where(
-            dependent, jnp.inf, jnp.maximum(viol[p], 0.0) / jnp.where(dependent, 1.0, nd2)
+            dependent, jnp.inf, jnp.maximum(viol_p, 0.0) / jnp.where(dependent, 1.0, nd2)
         )
         t = jnp.minimum(t1, t2)
         infeasible = ~done & jnp.isinf(t)

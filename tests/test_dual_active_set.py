@@ -221,3 +221,26 @@ def test_contradicting_barriers_are_never_solved(u_nom):
     if v >= 0:  # only the second
         v = (u_nom - 1.0 - W * 1e-6) / (1.0 + W)
     assert abs(float(res.u[0]) - (1.0 + v)) <= 1e-15 * max(1.0, abs(u_nom))
+
+
+def test_the_last_resort_phase_in_chunks_equals_one_problem_at_a_time():
+    """More infeasible problems than one chunk (RELAXED_CHUNK), mixed with feasible ones."""
+    from safestab.formulas.multi import FALLBACK_WEIGHT, RELAXED_CHUNK
+
+    rng = np.random.default_rng(5)
+    n = 2 * RELAXED_CHUNK + 37
+    d = rng.standard_normal((n, 3, 2))
+    d[:, 1] = -d[:, 0]  # rows 0 and 1 antiparallel: inconsistent where c0 + c1 < 0
+    c = rng.standard_normal((n, 3))
+    kw = dict(kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, u_min=-2.0, u_max=2.0)
+    res = clf_cbf_multi(np.zeros((n, 0)), np.zeros((n, 0, 2)), c, d, **kw)
+    status = np.asarray(res.status)
+    assert np.sum(status == MultiStatus.CBF_RELAXED) > RELAXED_CHUNK
+    assert np.sum(status == MultiStatus.SOLVED) > 50
+    for i in rng.choice(n, 40, replace=False):
+        one = clf_cbf_multi(np.zeros(0), np.zeros((0, 2)), c[i], d[i], **kw)
+        assert int(one.status) == status[i]
+        # the same problem, compiled for another batch size: equal to its rounding, which for
+        # the penalised problem is eps times its conditioning, about FALLBACK_WEIGHT = 1e8
+        tol = 1e-14 if status[i] == MultiStatus.SOLVED else 1e-15 * FALLBACK_WEIGHT * 10
+        assert np.max(np.abs(np.asarray(one.u) - np.asarray(res.u[i]))) <= tol

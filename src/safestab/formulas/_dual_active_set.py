@@ -21,8 +21,9 @@ backward-stable least-squares solve and does not depend on the path; the multipl
 from the same factors. Whether the point is the optimum is then *certified* by the caller
 against the problem's own scales (:func:`safestab.formulas.multi`), never assumed.
 
-Only jittable, vmappable operations: ``lax.while_loop``, ``lax.fori_loop`` and slices by
-loop counters; indices that differ between problems select by masks.
+Only jittable, vmappable operations: ``lax.while_loop``, loops and slices by loop counters,
+indices that differ between problems select by masks; beyond a few rows, LAPACK's triangular
+solve and QR (one call instead of a loop of small steps).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.linalg import solve_triangular
 
 from ._kernels import scaled_norm
 
@@ -80,11 +82,13 @@ def default_max_iter(n_rows: int, dim: int) -> int:
 def _upper_solve(R, v):
     """``R^{-1} v`` for upper triangular ``R`` (D, D), by back substitution.
 
-    A loop over the rows, the same in every problem of a batch, rather than LAPACK's
-    triangular solve: under vmap each step is one dense operation over the batch (a batched
-    LAPACK call costs a call per problem), and the C export needs no LAPACK.
+    Up to :data:`UNROLL` rows, an unrolled loop: under vmap each step is one dense operation
+    over the batch (a batched LAPACK call costs a call per problem). Beyond, LAPACK's
+    triangular solve (a rolled loop of ``D`` steps costs ``D`` times the loop overhead).
     """
     dim = v.shape[0]
+    if dim > UNROLL:
+        return solve_triangular(R, v, lower=False)
 
     def step(t, x):
         i = dim - 1 - t
@@ -96,6 +100,8 @@ def _upper_solve(R, v):
 def _upper_t_solve(R, v):
     """``R^{-T} v`` for upper triangular ``R`` (D, D), by forward substitution."""
     dim = v.shape[0]
+    if dim > UNROLL:
+        return solve_triangular(R, v, lower=False, trans=1)
 
     def step(i, x):
         return x.at[i].set((v[i] - R[:, i] @ x) / R[i, i])
@@ -180,7 +186,14 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
             Q = Q.at[:, i].set(c * qi + s * qi1).at[:, i + 1].set(-s * qi + c * qi1)
             return Q, R
 
-        Q, R = _loop(dim - 1, rotate, (Q, R))
+        if dim <= UNROLL:
+            Q, R = _loop(dim - 1, rotate, (Q, R))
+        else:  # one Householder QR of the Hessenberg matrix: one LAPACK call, not D - 1 steps
+            Qh, R = jnp.linalg.qr(R)
+            Q = Q @ Qh
+            R = jnp.where(
+                idx[None, :] >= q - 1, jnp.where(idx[:, None] == idx[None, :], 1.0, 0.0), R
+            )
         # padding: identity beyond the active columns
         R = jnp.where((idx[:, None] == q - 1) & (idx[None, :] == q - 1), 1.0, R)
         return (w, Q, R, act, lam, in_set, q - 1, p, lam_p, it, status)

@@ -211,6 +211,42 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter):
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 
+#: Problems of a batch solved together by the last-resort phase. Its coordinates include a
+#: slack per CBF, so its factors take ``(m + k)^2`` per problem: the problems that need it
+#: are gathered into chunks of this size, which bounds its memory whatever the batch.
+RELAXED_CHUNK = 256
+
+
+def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
+    """Phase 3 for the problems with ``need``, in chunks; ``out`` holds the other answers."""
+    flat = need.shape[0]
+    size = min(flat, RELAXED_CHUNK)
+    m = b.shape[-1]
+    order = jnp.argsort(~need, stable=True)  # the problems that need it first
+    count = jnp.sum(need)
+    take = lambda tree, lanes: jax.tree_util.tree_map(  # noqa: E731
+        lambda x: None if x is None else x[lanes], tree, is_leaf=lambda x: x is None
+    )
+
+    def chunk(i, acc):
+        start = jnp.minimum(i * size, flat - size)
+        lanes = jax.lax.dynamic_slice(order, (start,), (size,))
+        run = start + jnp.arange(size) < count
+        sol, u, ok = jax.vmap(
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
+        )(take(pr, lanes), b[lanes], d[lanes], take(lo, lanes), take(hi, lanes), run)
+        new = (sol._replace(w=sol.w[:, :m]), u, ok)
+
+        def put(old, val):
+            keep = run.reshape(run.shape + (1,) * (val.ndim - 1))
+            return old.at[lanes].set(jnp.where(keep, val, old[lanes]))
+
+        return jax.tree_util.tree_map(put, acc, new)
+
+    n_chunks = (count + size - 1) // size
+    return jax.lax.fori_loop(0, n_chunks, chunk, out)
+
+
 def multi_kernel(
     a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None
 ):
@@ -251,14 +287,13 @@ def multi_kernel(
     safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
     need3 = infeasible & ~(need2 & (safe.status != INFEASIBLE))
 
-    def phase3(_):
-        sol, u, ok = jax.vmap(
-            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
-        )(pr, b, d, lo, hi, need3)
-        return sol._replace(w=sol.w[:, :m]), u, ok
-
     skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))
-    relaxed, u3, ok3 = jax.lax.cond(jnp.any(need3), phase3, lambda _: skipped3, None)
+    relaxed, u3, ok3 = jax.lax.cond(
+        jnp.any(need3),
+        lambda _: _relaxed_in_chunks(pr, b, d, lo, hi, need3, max_iter, skipped3),
+        lambda _: skipped3,
+        None,
+    )
 
     S = MultiStatus
     col = lambda v: v[:, None]  # noqa: E731

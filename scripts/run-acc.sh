@@ -1,8 +1,19 @@
 #!/usr/bin/env bash
 # Set up .venv (if needed) and run the main job into results/: the ACC study (presets "paper"
-# and "stress") and the obstacle scenario (preset "obstacle", the paper's Fig. 2).
+# and "stress"), the obstacle scenario (preset "obstacle", the paper's Fig. 2) and the swarm
+# (preset "swarm", the safety filter with a barrier per pair).
 # Extra arguments go to every run, e.g. --seed 3.
 source "$(dirname "$0")/_venv.sh" test
 .venv/bin/safestab run --scenario paper --out results "$@"
 .venv/bin/safestab run --scenario stress --out results "$@"
 .venv/bin/safestab run --scenario obstacle --out results "$@"
+# the swarm learns nothing: it takes --seed and --t-final of the extra arguments, not the rest
+swarm_args=()
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --seed|--t-final) swarm_args+=("$1" "$2"); shift 2 ;;
+    --seed=*|--t-final=*) swarm_args+=("$1"); shift ;;
+    *) shift ;;
+  esac
+done
+.venv/bin/safestab run --scenario swarm --out results "${swarm_args[@]}"

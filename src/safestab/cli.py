@@ -207,6 +207,57 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
 
 
+def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
+    """Run the swarm study and write its figure, metrics and summary table."""
+    from rich.table import Table
+
+    from .scenarios import swarm_study
+
+    console = _console()
+    result = _guard(
+        lambda: _with_progress(console, lambda r: swarm_study.run_swarm_study(sc, progress=r)),
+        debug=debug,
+        code=EXIT_RUN_FAILED,
+    )
+
+    def write():
+        from .plotting import plot_swarm
+
+        stem = out_dir / f"swarm_{sc.name}"
+        return _write_figures(
+            {stem: plot_swarm(result)},
+            {out_dir / f"swarm_{sc.name}_metrics.json": result.metrics_document()},
+        )
+
+    written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
+    doc = result.metrics_document()
+    table = Table(title=f"swarm '{sc.name}' ({sc.n_robots} robots, {doc['pairs']} pair barriers)")
+    columns = ("filter", "min distance [m]", "steps < safety", "all arrived [s]",
+               "mean change [m/s]", "statuses")  # fmt: skip
+    for col in columns:
+        table.add_column(col, justify="right", no_wrap=False)
+    for mode, m in doc["runs"].items():
+        arrived = m["arrival_time_s"]
+        table.add_row(
+            mode,
+            f"{m['min_distance_m']:.4f}",
+            str(m["steps_below_safety_distance"]),
+            "never" if arrived is None else f"{arrived:.2f}",
+            f"{m['mean_input_change_mps']:.3f}",
+            ", ".join(f"{k} {v}" for k, v in m["solver_statuses"].items()),
+        )
+    console.print(table)
+    for solver, gap in doc["loose_solvers_on_centralized_states"].items():
+        if isinstance(gap, dict) and gap.get("states"):
+            console.print(
+                f"{solver} at default tolerances on {gap['states']} centralized states: input "
+                f"off by up to {gap['max_input_gap_mps']:.2e} m/s, a barrier violated in "
+                f"{100 * gap['share_of_states_violating']:.0f} % of them (by up to "
+                f"{gap['max_barrier_violation_m2ps']:.2e} m^2/s)"
+            )
+    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+
+
 def _overrides(seed, n_samples, t_final) -> dict:
     return {
         k: v
@@ -246,7 +297,8 @@ def acc(
 @app.command()
 def run(
     scenario: str = typer.Option(
-        ..., help="A preset ('paper', 'stress', 'obstacle') or a TOML file (its kind key)."
+        ...,
+        help="A preset ('paper', 'stress', 'obstacle', 'swarm') or a TOML file (its kind key).",
     ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
     seed: int | None = typer.Option(None, help="Seed for data collection and GP fitting."),
@@ -260,25 +312,37 @@ def run(
     ),
     debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
 ) -> None:
-    """Run any scenario's study, dispatching on its kind (ACC or obstacle).
+    """Run any scenario's study, dispatching on its kind (ACC, obstacle or swarm).
 
     ACC writes OUT/acc_<name>.png, .pdf, _metrics.json; obstacle writes
     OUT/obstacle_<name>.png, .pdf (trajectories), OUT/obstacle_<name>_maps.png, .pdf
-    (compatibility maps) and OUT/obstacle_<name>_metrics.json; all or none.
+    (compatibility maps) and OUT/obstacle_<name>_metrics.json; swarm writes
+    OUT/swarm_swarm.png, .pdf and OUT/swarm_swarm_metrics.json; all or none.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     from ._io import ensure_writable_dir
-    from .scenarios import ACCScenario, load, parse_override
+    from .errors import ScenarioError
+    from .scenarios import ACCScenario, load, parse_override, swarm
 
     def check_inputs():
+        if scenario in swarm.PRESETS:
+            if set_ or n_samples is not None:
+                raise ScenarioError(
+                    "the swarm preset takes --seed and --t-final only (it has no data to "
+                    f"learn and no scenario file yet), got {'--set' if set_ else '--n-samples'}"
+                )
+            sc = swarm.SwarmScenario().replace(**_overrides(seed, None, t_final))
+            return sc, ensure_writable_dir(out, name="--out")
         overrides = dict(parse_override(text) for text in set_)
         sc = load(scenario, overrides=overrides).replace(**_overrides(seed, n_samples, t_final))
         return sc, ensure_writable_dir(out, name="--out")
 
     sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    if isinstance(sc, ACCScenario):
+    if isinstance(sc, swarm.SwarmScenario):
+        _swarm_outputs(sc, out_dir, debug)
+    elif isinstance(sc, ACCScenario):
         _acc_outputs(sc, out_dir, debug)
     else:
         _obstacle_outputs(sc, out_dir, debug)

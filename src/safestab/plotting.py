@@ -11,6 +11,7 @@ __all__ = [
     "plot_acc_study",
     "plot_compatibility_maps",
     "plot_obstacle_plane",
+    "plot_swarm",
     "plot_trajectory_h",
 ]
 
@@ -159,7 +160,8 @@ def plot_obstacle_plane(result: Any, axes: Any = None) -> Any:
                 if run.outcome[k] in ("stuck", "unsafe"):
                     ax.plot(*run.x[k, -1], marker="x", ms=7, mew=1.8, color="black", zorder=6)
             counts = ", ".join(
-                f"{int(np.sum(run.outcome == o))} {o}" for o in OUTCOME_COLORS
+                f"{int(np.sum(run.outcome == o))} {o}"
+                for o in OUTCOME_COLORS
                 if np.any(run.outcome == o)
             )
             ax.set_title(
@@ -251,4 +253,49 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
     fig.suptitle(
         f"Obstacle scenario '{sc.name}': where the CLF and CBF are compatible", fontsize=10
     )
+    return fig
+
+
+def plot_swarm(result: Any, axes: Any = None) -> Any:
+    """The swarm study: paths per filter, least pair distance and the filter's input change.
+
+    ``result`` is a :class:`~safestab.scenarios.swarm_study.SwarmStudy`. Returns the figure.
+    """
+    import matplotlib.pyplot as plt
+
+    sc, runs = result.scenario, result.runs
+    if axes is None:
+        fig, axes = plt.subplots(1, 4, figsize=(15, 3.8), constrained_layout=True)
+    else:
+        fig = axes[0].figure
+    colors = plt.get_cmap("hsv")(np.linspace(0, 1, sc.n_robots, endpoint=False))
+    for ax, mode in zip(axes[:2], ("centralized", "decentralized"), strict=True):
+        run = runs[mode]
+        for i in range(sc.n_robots):
+            ax.plot(run.p[:, i, 0], run.p[:, i, 1], color=colors[i], lw=1.0)
+            ax.plot(*run.p[0, i], "o", color=colors[i], ms=3)
+            ax.add_patch(
+                plt.Circle(run.p[-1, i], sc.safety_distance / 2, color=colors[i], alpha=0.3)
+            )
+        ax.set_aspect("equal")
+        ax.set_title(f"{mode} filter")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    styles = {"centralized": "-", "decentralized": "--", "nominal": ":"}
+    for mode, run in runs.items():
+        axes[2].plot(run.t, run.min_distance(), styles[mode], label=mode)
+        nominal = np.clip(run.u_nom, -sc.speed_limit, sc.speed_limit)
+        change = np.linalg.norm(run.u - nominal, axis=-1).mean(-1)
+        if mode != "nominal":
+            axes[3].plot(run.t[:-1], change, styles[mode], label=mode)
+    axes[2].axhline(sc.safety_distance, color="0.4", lw=0.8)
+    axes[2].set_xlabel("time (s)")
+    axes[2].set_ylabel("least pair distance (m)")
+    axes[2].set_yscale("log")
+    axes[2].legend(fontsize=8)
+    axes[2].set_title(f"safety distance {sc.safety_distance} m (grey)")
+    axes[3].set_xlabel("time (s)")
+    axes[3].set_ylabel(r"mean $|u - \mathrm{clip}(u_{nom})|$ per robot (m/s)")
+    axes[3].legend(fontsize=8)
+    axes[3].set_title("the filter's change to the input")
     return fig

@@ -1,0 +1,208 @@
+"""A swarm of robots swapping places: the safety filter with a barrier per pair.
+
+``N`` single integrators in the plane, ``p_i' = u_i`` (positions in m, inputs in m/s), start
+evenly on a circle of radius ``arena_radius`` and go to the antipodal point, so that every
+path crosses the centre. The nominal input is ``u_nom,i = gain (goal_i - p_i)`` (a
+proportional go-to-goal controller, 1/s), the limits ``|u_i,x|, |u_i,y| <= speed_limit``.
+Each pair keeps ``h_ij = |p_i - p_j|^2 - safety_distance^2 >= 0`` (m^2) with the linear rate
+``beta`` (1/s): ``2 (p_i - p_j).(u_i - u_j) >= -beta h_ij``.
+
+Two filters, both exact (:func:`~safestab.formulas.clf_cbf_multi`'s dual active-set solver):
+
+* **centralized**: one QP over all ``2N`` inputs with the ``N(N-1)/2`` pair barriers and the
+  limits, ``min |u - u_nom|^2``;
+* **decentralized**: each robot solves its own QP over its 2 inputs with ``N - 1`` barriers,
+  taking half of each pair's budget, ``2 (p_i - p_j).u_i >= -beta h_ij / 2`` (the usual
+  split: when both robots of a pair keep their halves, the pair's condition holds).
+
+A small seeded perturbation of the start angles (``start_jitter``, rad) breaks the exact
+symmetry of the swap, in which a symmetric deadlock at the centre is an equilibrium.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ScenarioError
+from ..formulas.multi import multi_kernel
+
+__all__ = ["SwarmScenario", "SwarmRun", "PRESETS", "simulate_swarm", "pair_terms"]
+
+PRESETS = ("swarm",)
+
+
+@dataclasses.dataclass(frozen=True)
+class SwarmScenario:
+    """Parameters of the swarm study (units in the field comments)."""
+
+    name: str = "swarm"
+    n_robots: int = 12  #: N, robots
+    arena_radius: float = 4.0  #: m, radius of the start circle
+    safety_distance: float = 0.6  #: m, least distance between two robots' centres
+    speed_limit: float = 1.0  #: m/s, per axis
+    gain: float = 1.0  #: 1/s, nominal go-to-goal gain
+    beta: float = 2.0  #: 1/s, barrier rate
+    t_final: float = 16.0  #: s
+    dt: float = 0.02  #: s, control period (zero-order hold: exact for integrators)
+    start_jitter: float = 0.02  #: rad, seeded perturbation of the start angles
+    goal_tolerance: float = 0.05  #: m, a robot within this of its goal has arrived
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = {
+            "n_robots": self.n_robots - 1,  # at least 2
+            "arena_radius": self.arena_radius,
+            "safety_distance": self.safety_distance,
+            "speed_limit": self.speed_limit,
+            "gain": self.gain,
+            "beta": self.beta,
+            "t_final": self.t_final,
+            "dt": self.dt,
+            "goal_tolerance": self.goal_tolerance,
+        }
+        for key, value in positive.items():
+            if not np.isfinite(value) or value <= 0:
+                expected = "an integer >= 2" if key == "n_robots" else "a finite number > 0"
+                raise ScenarioError(f"swarm.{key} must be {expected}, got {getattr(self, key)!r}")
+        if not isinstance(self.n_robots, int) or isinstance(self.n_robots, bool):
+            raise ScenarioError(f"swarm.n_robots must be an integer >= 2, got {self.n_robots!r}")
+        if not (np.isfinite(self.start_jitter) and self.start_jitter >= 0):
+            raise ScenarioError(f"swarm.start_jitter must be >= 0, got {self.start_jitter!r}")
+        spacing = 2 * self.arena_radius * np.sin(np.pi / self.n_robots)
+        if spacing <= self.safety_distance * 1.05:
+            raise ScenarioError(
+                f"swarm: {self.n_robots} robots on a circle of radius {self.arena_radius} m are "
+                f"{spacing:.3f} m apart, not more than the safety distance "
+                f"{self.safety_distance} m: enlarge arena_radius or reduce n_robots"
+            )
+
+    def replace(self, **changes: Any) -> SwarmScenario:
+        """A copy with some fields changed (checked again); unknown names are an error."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise ScenarioError(f"swarm: unknown parameter(s) {unknown}; known: {sorted(names)}")
+        return dataclasses.replace(self, **changes)
+
+    def starts_and_goals(self) -> tuple[np.ndarray, np.ndarray]:
+        """Start and goal positions, each of shape (N, 2), m."""
+        rng = np.random.default_rng(self.seed)
+        angles = 2 * np.pi * np.arange(self.n_robots) / self.n_robots
+        angles = angles + rng.uniform(-self.start_jitter, self.start_jitter, self.n_robots)
+        start = self.arena_radius * np.stack([np.cos(angles), np.sin(angles)], -1)
+        return start, -start
+
+
+def pair_terms(pos: Any, beta: float, safety_distance: float) -> tuple[Any, Any, Any]:
+    """Pair barriers at positions ``pos`` (N, 2): ``h`` (P,), ``c = beta h`` (P,), ``d`` (P, 2N).
+
+    Pairs in the order of ``numpy.triu_indices(N, 1)``.
+    """
+    n = pos.shape[0]
+    i, j = np.triu_indices(n, 1)
+    diff = pos[i] - pos[j]  # (P, 2)
+    h = jnp.sum(diff**2, -1) - safety_distance**2
+    rows = jnp.arange(len(i))
+    d = jnp.zeros((len(i), n, 2))
+    d = d.at[rows, i].set(2 * diff).at[rows, j].set(-2 * diff)
+    return h, beta * h, d.reshape(len(i), 2 * n)
+
+
+def _centralized(sc: SwarmScenario, pos, u_nom):
+    n = sc.n_robots
+    _, c, d = pair_terms(pos, sc.beta, sc.safety_distance)
+    lim = jnp.full(2 * n, sc.speed_limit)
+    res = multi_kernel(
+        jnp.zeros(0), jnp.zeros((0, 2 * n)), c, d, 0.0, 0.0, 0.0, 0.0, None, -lim, lim,
+        u_nom.reshape(-1), None,
+    )  # fmt: skip
+    return res.u.reshape(n, 2), jnp.full(n, res.status)
+
+
+def _decentralized(sc: SwarmScenario, pos, u_nom):
+    n = sc.n_robots
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])  # (N, N-1)
+    diff = pos[:, None, :] - pos[others]  # (N, N-1, 2)
+    h = jnp.sum(diff**2, -1) - sc.safety_distance**2
+    lim = jnp.full((n, 2), sc.speed_limit)
+    res = multi_kernel(
+        jnp.zeros((n, 0)), jnp.zeros((n, 0, 2)), sc.beta * h / 2, 2 * diff, 0.0, 0.0, 0.0, 0.0,
+        None, -lim, lim, u_nom, None,
+    )  # fmt: skip
+    return res.u, res.status
+
+
+@dataclasses.dataclass(frozen=True)
+class SwarmRun:
+    """One closed-loop run of the swarm.
+
+    ``t`` (T+1,) s, positions ``p`` (T+1, N, 2) m, inputs ``u`` and nominal inputs ``u_nom``
+    (T, N, 2) m/s, solver statuses (T, N) (a :class:`~safestab.formulas.MultiStatus`, per
+    robot; the centralized status is repeated).
+    """
+
+    mode: str
+    t: np.ndarray
+    p: np.ndarray
+    u: np.ndarray
+    u_nom: np.ndarray
+    status: np.ndarray
+
+    def min_distance(self) -> np.ndarray:
+        """Least distance between two robots at each time, (T+1,) m."""
+        i, j = np.triu_indices(self.p.shape[1], 1)
+        return np.min(np.linalg.norm(self.p[:, i] - self.p[:, j], axis=-1), axis=-1)
+
+
+def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
+    """Run the swarm from its starts for ``t_final`` with the filter ``mode``.
+
+    Parameters
+    ----------
+    sc : SwarmScenario
+    mode : {"centralized", "decentralized", "nominal"}
+        ``"nominal"`` applies the nominal input clipped to the limits (no filter).
+
+    Returns
+    -------
+    SwarmRun
+
+    Raises
+    ------
+    ScenarioError
+        For an unknown ``mode``.
+    """
+    if mode not in ("centralized", "decentralized", "nominal"):
+        raise ScenarioError(
+            f"mode must be 'centralized', 'decentralized' or 'nominal', got {mode!r}"
+        )
+    start, goal = sc.starts_and_goals()
+    goal_j = jnp.asarray(goal)
+    steps = int(round(sc.t_final / sc.dt))
+
+    def control(pos):
+        u_nom = sc.gain * (goal_j - pos)
+        if mode == "centralized":
+            u, status = _centralized(sc, pos, u_nom)
+        elif mode == "decentralized":
+            u, status = _decentralized(sc, pos, u_nom)
+        else:
+            u = jnp.clip(u_nom, -sc.speed_limit, sc.speed_limit)
+            status = jnp.zeros(sc.n_robots, jnp.int32)
+        return u, u_nom, status
+
+    def step(pos, _):
+        u, u_nom, status = control(pos)
+        return pos + sc.dt * u, (pos, u, u_nom, status)
+
+    final, (p, u, u_nom, status) = jax.jit(lambda p0: jax.lax.scan(step, p0, None, steps))(
+        jnp.asarray(start)
+    )
+    p = np.concatenate([np.asarray(p), np.asarray(final)[None]], axis=0)
+    t = sc.dt * np.arange(steps + 1)
+    return SwarmRun(mode, t, p, np.asarray(u), np.asarray(u_nom), np.asarray(status))

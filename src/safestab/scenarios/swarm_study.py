@@ -1,0 +1,162 @@
+"""The swarm study: centralized and decentralized filters against the unfiltered swarm.
+
+``run_swarm_study(scenario)`` runs the three closed loops of :mod:`~safestab.scenarios.swarm`
+and measures what a reader asks of a safety filter: the least distance between two robots, the
+steps below the safety distance, when every robot has arrived, how much the filter changed the
+nominal input, and the solver's statuses. It also measures how far a general QP solver at its
+default (loose) tolerances, as robot testbeds run it, is from the exact optimum: OSQP and
+Clarabel through qpsolvers on states of the centralized run, their input difference to the
+exact answer and their barrier violations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._io import atomic_write_json, replace_non_finite
+from ..formulas import MultiStatus
+from .swarm import SwarmRun, SwarmScenario, pair_terms, simulate_swarm
+
+__all__ = ["SwarmStudy", "run_swarm_study", "MODES"]
+
+MODES = ("centralized", "decentralized", "nominal")
+Progress = Callable[[str, float], None]
+
+
+def _summary(sc: SwarmScenario, run: SwarmRun) -> dict[str, Any]:
+    """The run's safety, progress and intervention figures (``solver_statuses``: filters only)."""
+    dist = run.min_distance()
+    goal = sc.starts_and_goals()[1]
+    err = np.max(np.linalg.norm(run.p - goal[None], axis=-1), axis=-1)
+    arrived = np.flatnonzero(err <= sc.goal_tolerance)
+    # the filter's change against the nominal input inside the limits (what an unfiltered
+    # robot would do), so the limits alone do not count as a change
+    change = np.linalg.norm(run.u - np.clip(run.u_nom, -sc.speed_limit, sc.speed_limit), axis=-1)
+    statuses = {s.name: int(np.sum(run.status == s)) for s in MultiStatus}
+    return {
+        "min_distance_m": float(dist.min()),
+        "steps_below_safety_distance": int(np.sum(dist < sc.safety_distance)),
+        "arrival_time_s": float(run.t[arrived[0]]) if arrived.size else None,
+        "final_max_goal_error_m": float(err[-1]),
+        "mean_input_change_mps": float(change.mean()),
+        "max_input_change_mps": float(change.max()),
+        "max_abs_input_mps": float(np.abs(run.u).max()),
+        "solver_statuses": {k: v for k, v in statuses.items() if v}
+        if run.mode != "nominal"
+        else {},
+    }
+
+
+def loose_solver_gap(sc: SwarmScenario, run: SwarmRun, every: int = 25) -> dict[str, Any]:
+    """OSQP and Clarabel at their default tolerances on states of a centralized run.
+
+    Returns, per solver: states compared, the largest ``|u_solver - u_exact|`` (m/s), the
+    largest barrier violation of the solver's answer (m^2/s, ``max(0, -(c + d.u))``) and the
+    share of states where some barrier is violated; or a note where qpsolvers is missing.
+    """
+    try:
+        import qpsolvers
+        from scipy import sparse
+    except ImportError:  # the "qp" extra
+        return {"note": "qpsolvers not installed (pip install safestab[qp])"}
+    n = sc.n_robots
+    m = 2 * n
+    out: dict[str, Any] = {}
+    states = range(0, len(run.u), every)
+    for solver in ("osqp", "clarabel"):
+        if solver not in qpsolvers.available_solvers:
+            out[solver] = {"note": "not installed"}
+            continue
+        gaps, violations, violated = [], [], 0
+        for k in states:
+            _, c, d = (np.asarray(v) for v in pair_terms(run.p[k], sc.beta, sc.safety_distance))
+            G = sparse.csc_matrix(np.concatenate([-d, np.eye(m), -np.eye(m)]))
+            h = np.concatenate([c, np.full(2 * m, sc.speed_limit)])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                x = qpsolvers.solve_qp(
+                    sparse.eye(m, format="csc"), -run.u_nom[k].reshape(-1), G, h, solver=solver
+                )
+            if x is None:
+                continue
+            gaps.append(float(np.abs(x - run.u[k].reshape(-1)).max()))
+            viol = float(np.max(np.maximum(0.0, -(c + d @ x))))
+            violations.append(viol)
+            violated += viol > 0
+        out[solver] = {
+            "states": len(gaps),
+            "max_input_gap_mps": max(gaps) if gaps else None,
+            "median_input_gap_mps": float(np.median(gaps)) if gaps else None,
+            "max_barrier_violation_m2ps": max(violations) if violations else None,
+            "share_of_states_violating": violated / len(gaps) if gaps else None,
+            "tolerances": "qpsolvers defaults",
+        }
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SwarmStudy:
+    """The three runs, their summaries, the loose-solver gap and the wall times."""
+
+    scenario: SwarmScenario
+    runs: dict[str, SwarmRun]
+    loose_solvers: dict[str, Any]
+    timings: dict[str, float]
+
+    def metrics_document(self) -> dict[str, Any]:
+        """Settings, per-mode summaries, the loose-solver gap and timings, as strict JSON data.
+
+        Non-finite numbers become ``None`` (JSON ``null``), listed under ``non_finite`` with
+        ``status = "non-finite"``; otherwise ``status = "ok"``.
+        """
+        sc = self.scenario
+        doc = {
+            "scenario": sc.name,
+            "kind": "swarm",
+            "settings": dataclasses.asdict(sc),
+            "pairs": sc.n_robots * (sc.n_robots - 1) // 2,
+            "runs": {mode: _summary(sc, run) for mode, run in self.runs.items()},
+            "loose_solvers_on_centralized_states": self.loose_solvers,
+            "timings_s": self.timings,
+        }
+        clean, found = replace_non_finite(doc)
+        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+
+    def write_metrics(self, path: str | Path) -> None:
+        """Write :meth:`metrics_document` as strict JSON, atomically."""
+        atomic_write_json(path, self.metrics_document())
+
+
+def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None) -> SwarmStudy:
+    """Run the centralized, decentralized and unfiltered swarms, and the loose-solver check.
+
+    Parameters
+    ----------
+    scenario : SwarmScenario
+    progress : callable, optional
+        Called as ``progress(message, fraction_done)``.
+
+    Returns
+    -------
+    SwarmStudy
+    """
+    report = progress or (lambda msg, frac: None)
+    runs, timings = {}, {}
+    for i, mode in enumerate(MODES):
+        report(f"closed loop: {mode}", i / (len(MODES) + 1))
+        t0 = time.perf_counter()
+        runs[mode] = simulate_swarm(scenario, mode)
+        timings[f"{mode}_closed_loop_with_compilation"] = time.perf_counter() - t0
+    report("general QP solvers at default tolerances", len(MODES) / (len(MODES) + 1))
+    t0 = time.perf_counter()
+    loose = loose_solver_gap(scenario, runs["centralized"])
+    timings["loose_solvers"] = time.perf_counter() - t0
+    report("done", 1.0)
+    return SwarmStudy(scenario, runs, loose, timings)

@@ -305,10 +305,12 @@ def main():
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument(
-        "--only", choices=("all", "gp", "export", "multi"), default="all",
+        "--only", choices=("all", "gp", "export", "multi", "filter"), default="all",
         help="'gp': rerun only the GP fit-scaling and fast-cache sections; 'export': only the "
         "native controller rows; each merged into the existing performance.json; 'multi': only "
-        "the several-CBF rows (benchmarks/multi.py, saved to performance_multi.json)",
+        "the several-CBF rows (benchmarks/multi.py, saved to performance_multi.json); 'filter': "
+        "only the safety filter's solver against daqp, quadprog, Clarabel and qpax "
+        "(benchmarks/filter.py, saved to performance_filter.json)",
     )  # fmt: skip
     parser.add_argument("--gp-scaling-worker", type=int, help=argparse.SUPPRESS)
     # Monte Carlo rows (issue 13): benchmarks/mc_rows.py, also runnable on their own
@@ -331,6 +333,11 @@ def main():
         import multi
 
         multi.main(args.out)
+        return
+    if args.only == "filter":
+        import filter as filter_rows
+
+        filter_rows.main(args.out)
         return
     rng = np.random.default_rng(0)
     results: dict = {"machine": machine()}
@@ -491,6 +498,9 @@ def main():
     import multi  # the several-CBF rows (issue 10): cheap, so rerun with every full run
 
     multi.main(args.out)
+    import filter as filter_rows  # the safety filter's solver against small-QP solvers
+
+    filter_rows.main(args.out)
     print(f"wrote {args.out / 'performance.json'} and performance.md")
 
 
@@ -577,15 +587,18 @@ def export_markdown(e):
 def write_page(results, out):
     """Rewrite performance.md from ``results``, keeping the blocks that other runs measured.
 
-    The Monte Carlo and several-CBF blocks come from their own runs (performance_mc.json,
-    performance_multi.json) and are put back, so a partial rerun loses neither.
+    The Monte Carlo, several-CBF and filter blocks come from their own runs
+    (performance_mc.json, performance_multi.json, performance_filter.json) and are put back,
+    so a partial rerun loses none.
     """
+    import filter as filter_rows
     import mc_rows
     import multi
 
     write_markdown(results, out / "performance.md")
     mc_rows.update_markdown(out / "performance.md", out / "performance_mc.json")
     multi.update_markdown(out / "performance.md", out / "performance_multi.json")
+    filter_rows.update_markdown(out / "performance.md", out / "performance_filter.json")
 
 
 def write_markdown(r, path):

@@ -244,3 +244,16 @@ def test_the_last_resort_phase_in_chunks_equals_one_problem_at_a_time():
         # the penalised problem is eps times its conditioning, about FALLBACK_WEIGHT = 1e8
         tol = 1e-14 if status[i] == MultiStatus.SOLVED else 1e-15 * FALLBACK_WEIGHT * 10
         assert np.max(np.abs(np.asarray(one.u) - np.asarray(res.u[i]))) <= tol
+
+
+@pytest.mark.parametrize("name", ["u_nom", "H"])
+def test_safety_filter_refuses_a_non_finite_constant(name):
+    """The review's SafetyFilter(u_nom=[nan]) returned u = [nan] and no error."""
+    import jax.numpy as jnp
+
+    from safestab import CBF, ControlAffineSystem, NonFiniteError, SafetyFilter
+
+    system = ControlAffineSystem(lambda x: jnp.zeros(1), lambda x: jnp.ones((1, 1)), 1)
+    bad = {"u_nom": np.array([np.nan]), "H": np.array([[np.inf]])}[name]
+    with pytest.raises(NonFiniteError, match=name):
+        SafetyFilter(system, CBF(lambda x: x[0], beta=1.0), **{name: bad})

@@ -19,7 +19,7 @@ import numpy as np
 
 from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
-from ._validation import check_real
+from ._validation import check_finite, check_real
 from .certificates import CBF, CLF
 from .controllers import StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
@@ -164,6 +164,7 @@ class SafetyFilter:
             u_nom_of = bind(u_nom, own_spec is not None)
         elif u_nom is not None:
             check_real("u_nom", u_nom)
+            check_finite("u_nom", u_nom)
             if np.shape(u_nom) != (m,):
                 raise DimensionError(f"u_nom must have shape ({m},), got {np.shape(u_nom)}")
             const = jnp.asarray(u_nom, dtype=float)
@@ -171,6 +172,7 @@ class SafetyFilter:
             u_nom_of = bind(u_nom, False)
         if H is not None:
             check_real("H", H)
+            check_finite("H", H)
             Hn = np.asarray(H, dtype=float)
             if Hn.shape != (m, m):
                 raise DimensionError(f"H must have shape ({m}, {m}), got {Hn.shape}")

@@ -211,17 +211,20 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter):
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 
-#: Problems of a batch solved together by the last-resort phase. Its coordinates include a
-#: slack per CBF, so its factors take ``(m + k)^2`` per problem: the problems that need it
-#: are gathered into chunks of this size, which bounds its memory whatever the batch.
+#: Problems of a batch solved together by the last-resort phase, at most. Its coordinates
+#: include a slack per CBF, so its rows and factors take ``(rows + m + k)(m + k)`` numbers per
+#: problem: the problems that need it are gathered into chunks of at most this many, and of
+#: at most ``RELAXED_CHUNK_NUMBERS`` such numbers together, which bounds its memory whatever
+#: the batch.
 RELAXED_CHUNK = 256
+RELAXED_CHUNK_NUMBERS = 2**22
 
 
 def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     """Phase 3 for the problems with ``need``, in chunks; ``out`` holds the other answers."""
-    flat = need.shape[0]
-    size = min(flat, RELAXED_CHUNK)
-    m = b.shape[-1]
+    flat, (k, m) = need.shape[0], d.shape[-2:]
+    per_problem = (pr.r.shape[-1] + m + k) * (m + k)
+    size = max(1, min(flat, RELAXED_CHUNK, RELAXED_CHUNK_NUMBERS // per_problem))
     order = jnp.argsort(~need, stable=True)  # the problems that need it first
     count = jnp.sum(need)
     take = lambda tree, lanes: jax.tree_util.tree_map(  # noqa: E731

@@ -20,3 +20,56 @@ def put_block(md_path: Path, block: str, begin: str, end: str) -> None:
     tmp = md_path.with_name(md_path.name + ".tmp")
     tmp.write_text(text)
     tmp.replace(md_path)
+
+
+def update_block(md_path: Path, json_path: Path, markdown, begin: str, end: str) -> None:
+    """Put the block that ``markdown(results)`` makes of the saved results into the page."""
+    import json
+
+    if json_path.exists():
+        put_block(md_path, markdown(json.loads(json_path.read_text())), begin, end)
+
+
+def save_results(out_dir: Path, json_name: str, results: dict, markdown, begin, end) -> None:
+    """Write ``results`` as strict JSON (atomically) and put their block into performance.md."""
+    import json
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    json_path = out_dir / json_name
+    tmp = json_path.with_name(json_path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2, allow_nan=False))
+    tmp.replace(json_path)
+    update_block(out_dir / "performance.md", json_path, markdown, begin, end)
+    print(markdown(results))
+
+
+def machine() -> dict:
+    """Where a benchmark ran: platform, CPUs, JAX and its device, the load average."""
+    import os
+    import platform
+
+    import jax
+
+    return {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "device": str(jax.devices()[0]),
+        "load_average_at_start": os.getloadavg()[0],
+    }
+
+
+def median_us(fn, args, repeat):
+    """Median time of ``fn(args[i % len(args)])`` over ``repeat`` calls (3 warm-ups), in us."""
+    import time
+
+    import numpy as np
+
+    for x in args[:3]:
+        fn(x)
+    times = []
+    for i in range(repeat):
+        t0 = time.perf_counter()
+        fn(args[i % len(args)])
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e6)

@@ -22,9 +22,6 @@ writes ``docs/performance_filter.json`` and the block between the ``filter`` mar
 
 from __future__ import annotations
 
-import json
-import os
-import platform
 import time
 import warnings
 from pathlib import Path
@@ -33,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from _page import put_block
+from _page import machine, median_us, save_results, update_block
 from safestab.formulas import MultiStatus
 from safestab.formulas.multi import multi_kernel
 
@@ -87,17 +84,6 @@ def ours(m):
     return jax.jit(fn)
 
 
-def _median_us(fn, problems, repeat):
-    for s in problems[:3]:
-        fn(s)
-    times = []
-    for t in range(repeat):
-        t0 = time.perf_counter()
-        fn(problems[t % len(problems)])
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e6)
-
-
 def _batched(fn, args, repeat=3):
     jax.block_until_ready(fn(*args))
     times = []
@@ -120,7 +106,7 @@ def run_row(name, c, d, u_nom, batch_args, repeat):
     row = {"problem": name, "inputs": m, "barriers": k, "rows": k + 2 * m}
     probs = [(c[i], d[i], u_nom[i]) for i in range(n)]
     fn = ours(m)
-    row["ours_us"] = _median_us(lambda s: jax.block_until_ready(fn(*s)), probs, repeat)
+    row["ours_us"] = median_us(lambda s: jax.block_until_ready(fn(*s)), probs, repeat)
     u_ours = [fn(*s) for s in probs]
 
     H = np.eye(m)
@@ -130,7 +116,7 @@ def run_row(name, c, d, u_nom, batch_args, repeat):
          np.concatenate([-np.ones(m), -s[0]]), np.zeros(m + k, dtype=np.int32))
         for s in probs
     ]  # fmt: skip
-    row["daqp_us"] = _median_us(lambda a: daqp.solve(*a), daqp_args, repeat)
+    row["daqp_us"] = median_us(lambda a: daqp.solve(*a), daqp_args, repeat)
     quad_args = [
         (H, s[2], np.ascontiguousarray(np.concatenate([s[1], np.eye(m), -np.eye(m)]).T),
          np.concatenate([-s[0], -np.ones(m), -np.ones(m)]))
@@ -143,7 +129,7 @@ def run_row(name, c, d, u_nom, batch_args, repeat):
         except ValueError:
             return None
 
-    row["quadprog_us"] = _median_us(quad, quad_args, repeat)
+    row["quadprog_us"] = median_us(quad, quad_args, repeat)
     cl_args = [
         (sparse.csc_matrix(np.concatenate([-s[1], np.eye(m), -np.eye(m)])),
          np.concatenate([s[0], np.ones(m), np.ones(m)]), -s[2])
@@ -157,7 +143,7 @@ def run_row(name, c, d, u_nom, batch_args, repeat):
             warnings.simplefilter("ignore")
             return qpsolvers.solve_qp(P, a[2], a[0], a[1], solver="clarabel", **tight)
 
-    row["clarabel_us"] = _median_us(clarabel, cl_args, max(20, repeat // 5))
+    row["clarabel_us"] = median_us(clarabel, cl_args, max(20, repeat // 5))
     qp1 = jax.jit(
         lambda c, d, u: qpax.solve_qp(
             jnp.eye(m), -u, jnp.zeros((0, m)), jnp.zeros(0),
@@ -165,7 +151,7 @@ def run_row(name, c, d, u_nom, batch_args, repeat):
             jnp.concatenate([c, jnp.ones(m), jnp.ones(m)]),
         )[0]
     )  # fmt: skip
-    row["qpax_us"] = _median_us(lambda s: jax.block_until_ready(qp1(*s)), probs, repeat)
+    row["qpax_us"] = median_us(lambda s: jax.block_until_ready(qp1(*s)), probs, repeat)
 
     # accuracy against Clarabel at tight tolerances, and agreement of the others
     diffs = {"ours": [], "daqp": [], "quadprog": [], "qpax": []}
@@ -217,15 +203,6 @@ def run(repeat: int = 300, seed: int = 0) -> list[dict]:
         big = tuple(jnp.asarray(v) for v in swarm(rng, batch, robots))
         rows.append(run_row(f"swarm, N = {robots} (centralized)", c, d, u, big, repeat // 3))
     return rows
-
-
-def _machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "jax": jax.__version__,
-        "load_average_at_start": os.getloadavg()[0],
-    }
 
 
 def markdown(results: dict) -> str:
@@ -307,20 +284,13 @@ def markdown(results: dict) -> str:
 
 def update_markdown(md_path: Path, json_path: Path) -> None:
     """Put the block for the saved results into performance.md (replacing an old one)."""
-    if json_path.exists():
-        put_block(md_path, markdown(json.loads(json_path.read_text())), BEGIN, END)
+    update_block(md_path, json_path, markdown, BEGIN, END)
 
 
 def main(out_dir: Path, repeat: int = 300) -> None:
     """Run the rows, save them to performance_filter.json and update performance.md."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    results = {"machine": _machine(), "command": COMMAND, "rows": run(repeat)}
-    json_path = out_dir / "performance_filter.json"
-    tmp = json_path.with_name(json_path.name + ".tmp")
-    tmp.write_text(json.dumps(results, indent=2, allow_nan=False))
-    tmp.replace(json_path)
-    update_markdown(out_dir / "performance.md", json_path)
-    print(markdown(results))
+    results = {"machine": machine(), "command": COMMAND, "rows": run(repeat)}
+    save_results(out_dir, "performance_filter.json", results, markdown, BEGIN, END)
 
 
 if __name__ == "__main__":

@@ -69,18 +69,25 @@ def main():
     args = parser.parse_args()
     sc = load_scenario("stress")
     rows = []
-    print("| seed | conformal beta | states in band, beta = 2 | conformal | trajectories "
-          "entirely in band, beta = 2 | conformal | max abs(omega - m)/sigma |")
+    print(
+        "| seed | conformal beta | states in band, beta = 2 | conformal | trajectories "
+        "entirely in band, beta = 2 | conformal | max abs(omega - m)/sigma |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for seed in args.seeds:
         r = one_seed(sc, seed)
         rows.append(r)
-        print(f"| {seed} | {r['beta_conformal']:.2f} | {r['state_coverage_chosen']:.3f} "
-              f"| {r['state_coverage_conformal']:.3f} | {r['trajectory_coverage_chosen']:.3f} "
-              f"| {r['trajectory_coverage_conformal']:.3f} | {r['max_score']:.2f} |", flush=True)
+        print(
+            f"| {seed} | {r['beta_conformal']:.2f} | {r['state_coverage_chosen']:.3f} "
+            f"| {r['state_coverage_conformal']:.3f} | {r['trajectory_coverage_chosen']:.3f} "
+            f"| {r['trajectory_coverage_conformal']:.3f} | {r['max_score']:.2f} |",
+            flush=True,
+        )
     tc = np.array([r["trajectory_coverage_conformal"] for r in rows])
-    print(f"\nmean over seeds of the fraction of fresh trajectories entirely inside the "
-          f"conformal band: {tc.mean():.3f} (guarantee: >= {1 - DELTA})")
+    print(
+        f"\nmean over seeds of the fraction of fresh trajectories entirely inside the "
+        f"conformal band: {tc.mean():.3f} (guarantee: >= {1 - DELTA})"
+    )
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=2)

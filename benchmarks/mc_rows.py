@@ -88,9 +88,18 @@ def bench_montecarlo(trials: int, ray_trials: int, batch: int = 4096) -> dict:
     # refit by conditioning with reused hyperparameters (Q = 2000, n = 3)
     from safestab.learning import collect_data
 
-    data = collect_data(sc.system("true"), sc.system("nominal"), x0=(sc.x0_low, sc.x0_high),
-                        u_low=-0.3, u_high=0.3, n_samples=sc.n_samples, rate=sc.sample_rate,
-                        horizon=sc.sample_horizon, noise_std=sc.noise_std, seed=11)
+    data = collect_data(
+        sc.system("true"),
+        sc.system("nominal"),
+        x0=(sc.x0_low, sc.x0_high),
+        u_low=-0.3,
+        u_high=0.3,
+        n_samples=sc.n_samples,
+        rate=sc.sample_rate,
+        horizon=sc.sample_horizon,
+        noise_std=sc.noise_std,
+        seed=11,
+    )
     import warnings
 
     condition(model.hyper, data.x, data.y)  # warm up: compiles once per Q, as a study does
@@ -169,11 +178,16 @@ def markdown(r: dict) -> str:
         f"{loc['n_steps']} steps, local (after imports: data set and every compilation) | "
         f"{loc['wall_seconds']:.1f} s |",
         f"| of which data set (collect + fit) | {loc['timings']['datasets']:.1f} s |",
-        *([f"| same, in a fresh process (interpreter start, imports, every compilation) | "
-           f"{r['local_fresh_process']['wall_seconds']:.1f} s |",
-           f"| of which data set (collect + fit, the fit's functions compiled) | "
-           f"{r['local_fresh_process']['timings']['datasets']:.1f} s |"]
-          if "local_fresh_process" in r else []),
+        *(
+            [
+                f"| same, in a fresh process (interpreter start, imports, every compilation) | "
+                f"{r['local_fresh_process']['wall_seconds']:.1f} s |",
+                f"| of which data set (collect + fit, the fit's functions compiled) | "
+                f"{r['local_fresh_process']['timings']['datasets']:.1f} s |",
+            ]
+            if "local_fresh_process" in r
+            else []
+        ),
         f"| per trial (all controllers) | {per_trial * 1e3:.2f} ms |",
         f"| per trial, trials only (wall minus data set) | "
         f"{(loc['wall_seconds'] - loc['timings']['datasets']) / loc['trials'] * 1e3:.2f} ms |",
@@ -202,8 +216,13 @@ def markdown(r: dict) -> str:
         ]
         if "identical_to_local" in ray:
             lines.append(f"| Ray records identical to local | {ray['identical_to_local']} |")
-        targets.append(("Ray <= 1.3x local (in-process run)",
-                        ray["trials"] == loc["trials"] and ratio <= 1.3, f"{ratio:.2f}x"))
+        targets.append(
+            (
+                "Ray <= 1.3x local (in-process run)",
+                ray["trials"] == loc["trials"] and ratio <= 1.3,
+                f"{ratio:.2f}x",
+            )
+        )
         if fresh and ray["trials"] == fresh["trials"]:
             # both cold: the Ray workers are fresh processes (imports included)
             cold = ray["wall_seconds"] / fresh["wall_seconds"]
@@ -212,8 +231,12 @@ def markdown(r: dict) -> str:
     lines += ["", "| target | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
     missed = "" if all(ok for _, ok, _ in targets) else ", and why the missed targets are missed"
-    lines += ["", f"What was measured and changed to get here{missed}: docs/montecarlo.md "
-              "(\"Speed\").", "", END]
+    lines += [
+        "",
+        f'What was measured and changed to get here{missed}: docs/montecarlo.md ("Speed").',
+        "",
+        END,
+    ]
     return "\n".join(lines)
 
 

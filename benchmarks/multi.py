@@ -16,9 +16,6 @@ writes ``docs/performance_multi.json`` and the block between the ``multi`` marke
 
 from __future__ import annotations
 
-import json
-import os
-import platform
 import time
 import warnings
 from pathlib import Path
@@ -26,7 +23,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from _page import put_block
+from _page import machine, median_us, save_results, update_block
 from safestab.formulas import MultiStatus
 from safestab.formulas.multi import multi_kernel
 
@@ -66,17 +63,6 @@ def _qp_rows(a, b, c, d, limits):
     return np.asarray(G), np.asarray(h)
 
 
-def _median_us(fn, args, repeat):
-    for x in args[:3]:
-        fn(x)
-    times = []
-    for i in range(repeat):
-        t0 = time.perf_counter()
-        fn(args[i % len(args)])
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e6)
-
-
 def _kernel(limits, batch_shape=()):
     inv = np.asarray(1.0 / np.sqrt(SW))
     lo = np.broadcast_to(-2.0 * np.ones(M), batch_shape + (M,)) if limits else None
@@ -100,14 +86,14 @@ def run(repeat: int = 300, batch: int = 10_000, seed: int = 0) -> list[dict]:
     rows = []
     empty = jax.jit(lambda a, b, c, d: a)
     floor = [tuple(x[0] for x in _problems(rng, 1, 1)) for _ in range(8)]
-    floor_us = _median_us(lambda s: jax.block_until_ready(empty(*s)), floor, repeat)
+    floor_us = median_us(lambda s: jax.block_until_ready(empty(*s)), floor, repeat)
     Pm = sparse.csc_matrix(np.diag([1.0] * M + [SW]))
     q = np.zeros(M + 1)
     for k in (1, 2, 4):
         for limits in (False, True):
             fn = _kernel(limits)
             singles = [tuple(x[0] for x in _problems(rng, 1, k)) for _ in range(64)]
-            closed_us = _median_us(lambda s: jax.block_until_ready(fn(*s)), singles, repeat)
+            closed_us = median_us(lambda s: jax.block_until_ready(fn(*s)), singles, repeat)
             closed = [fn(*s) for s in singles]
             big = _problems(rng, batch, k)
             fn_b = _kernel(limits, (batch,))
@@ -138,7 +124,7 @@ def run(repeat: int = 300, batch: int = 10_000, seed: int = 0) -> list[dict]:
                             Pm, q, sparse.csc_matrix(gh[0]), gh[1], solver=solver
                         )
 
-                row[f"{solver}_us"] = _median_us(solve, qps, max(50, repeat // 3))
+                row[f"{solver}_us"] = median_us(solve, qps, max(50, repeat // 3))
                 row[f"{solver}_ratio"] = row[f"{solver}_us"] / closed_us
                 diffs = []
                 for gh, (u, status) in zip(qps, closed, strict=True):
@@ -154,16 +140,6 @@ def run(repeat: int = 300, batch: int = 10_000, seed: int = 0) -> list[dict]:
                 flush=True,
             )
     return rows
-
-
-def _machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "jax": jax.__version__,
-        "device": str(jax.devices()[0]),
-        "load_average_at_start": os.getloadavg()[0],
-    }
 
 
 def markdown(results: dict) -> str:
@@ -219,20 +195,13 @@ def markdown(results: dict) -> str:
 
 def update_markdown(md_path: Path, json_path: Path) -> None:
     """Put the block for the saved results into performance.md (replacing an old one)."""
-    if json_path.exists():
-        put_block(md_path, markdown(json.loads(json_path.read_text())), BEGIN, END)
+    update_block(md_path, json_path, markdown, BEGIN, END)
 
 
 def main(out_dir: Path, repeat: int = 300, batch: int = 10_000) -> None:
     """Run the rows, save them to performance_multi.json and update performance.md."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    results = {"machine": _machine(), "command": COMMAND, "rows": run(repeat, batch)}
-    json_path = out_dir / "performance_multi.json"
-    tmp = json_path.with_name(json_path.name + ".tmp")
-    tmp.write_text(json.dumps(results, indent=2, allow_nan=False))
-    tmp.replace(json_path)
-    update_markdown(out_dir / "performance.md", json_path)
-    print(markdown(results))
+    results = {"machine": machine(), "command": COMMAND, "rows": run(repeat, batch)}
+    save_results(out_dir, "performance_multi.json", results, markdown, BEGIN, END)
 
 
 if __name__ == "__main__":

@@ -157,13 +157,21 @@ def c_loop_ns(ctrl, states, native_flags, steps=200_000):
         src = C_TIMER.replace("NAME_UPPER", "BENCH").replace("NAME", "bench")
         Path(tmp, "timer.c").write_text(src.replace("STEPS", str(steps)))
         cc = find_compiler()
-        flags = list(native_flags_of(cc)) if native_flags else ["-std=c99", "-O2", "-ffp-contract=off"]
+        flags = (
+            list(native_flags_of(cc)) if native_flags else ["-std=c99", "-O2", "-ffp-contract=off"]
+        )
         exe = str(Path(tmp, "timer"))
         subprocess.run([cc, *flags, "bench.c", "timer.c", "-lm", "-o", exe], cwd=tmp, check=True)
         out = subprocess.run([exe], capture_output=True, text=True, check=False).stdout.split()
     reps = [float(v) for v in out]
-    return {"median_ns": float(np.median(reps)), "min_ns": float(np.min(reps)), "steps": steps,
-            "repetitions": len(reps), "flags": " ".join(flags), "stack_bytes": ex.stack_bytes}
+    return {
+        "median_ns": float(np.median(reps)),
+        "min_ns": float(np.min(reps)),
+        "steps": steps,
+        "repetitions": len(reps),
+        "flags": " ".join(flags),
+        "stack_bytes": ex.stack_bytes,
+    }
 
 
 def bench_export(c_fast, c_nom, states_1, xb, repeat):
@@ -178,12 +186,24 @@ def bench_export(c_fast, c_nom, states_1, xb, repeat):
     out["cffi_mode"] = n_fast.function.mode
     states_np = [np.asarray(x) for x in states_1]
     lat = {}
-    lat["JAX fused step (controller.input_fn), GP-robust"] = latency_blocks(block(c_fast.input_fn), states_1, repeat)
-    lat["native GP-robust step from Python (NativeController.input_fn)"] = latency_blocks(n_fast.input_fn, states_np, repeat)
-    lat["native GP-robust step from Python (NativeController(x))"] = latency_blocks(n_fast, states_np, repeat)
-    lat["native GP-robust step() with all diagnostics"] = latency_blocks(n_fast.step, states_np, repeat)
-    lat["JAX fused step (controller.input_fn), nominal"] = latency_blocks(block(c_nom.input_fn), states_1, repeat)
-    lat["native nominal step from Python (NativeController.input_fn)"] = latency_blocks(n_nom.input_fn, states_np, repeat)
+    lat["JAX fused step (controller.input_fn), GP-robust"] = latency_blocks(
+        block(c_fast.input_fn), states_1, repeat
+    )
+    lat["native GP-robust step from Python (NativeController.input_fn)"] = latency_blocks(
+        n_fast.input_fn, states_np, repeat
+    )
+    lat["native GP-robust step from Python (NativeController(x))"] = latency_blocks(
+        n_fast, states_np, repeat
+    )
+    lat["native GP-robust step() with all diagnostics"] = latency_blocks(
+        n_fast.step, states_np, repeat
+    )
+    lat["JAX fused step (controller.input_fn), nominal"] = latency_blocks(
+        block(c_nom.input_fn), states_1, repeat
+    )
+    lat["native nominal step from Python (NativeController.input_fn)"] = latency_blocks(
+        n_nom.input_fn, states_np, repeat
+    )
     out["latency"] = lat
     out["c_loop"] = {
         "GP-robust, flags of NativeController": c_loop_ns(c_fast, states_np[:200], True),
@@ -257,7 +277,10 @@ def bench_fast_cache(sc, gp, fast, test):
     """The cache's guaranteed band against the exact one: how much wider, and containment."""
     lo, hi = np.asarray(sc.x0_low), np.asarray(sc.x0_high)
     far = (lo + hi) / 2 + 10 * (hi - lo) / 2 * np.random.default_rng(1).uniform(-1, 1, (2000, 3))
-    out = {"n_inducing": fast.n_inducing_.tolist(), "mean_error_norm": fast.mean_error_norm_.tolist()}
+    out = {
+        "n_inducing": fast.n_inducing_.tolist(),
+        "mean_error_norm": fast.mean_error_norm_.tolist(),
+    }
     for name, x in (("held_out", test.x), ("ten_times_the_box", far)):
         _, v_ex = gp.predict(x)
         _, s_fa = fast.predict(x)
@@ -534,8 +557,14 @@ def export_markdown(e):
     lat, loop, thr = e["latency"], e["c_loop"], e["throughput"]
     jax_gp = lat["JAX fused step (controller.input_fn), GP-robust"]["median_us"]
     # the target's row: input_fn, the plain function, as the JAX baseline's controller.input_fn
-    nat_row = next(k for k in ("native GP-robust step from Python (NativeController.input_fn)",
-                               "native GP-robust step from Python (NativeController(x))") if k in lat)
+    nat_row = next(
+        k
+        for k in (
+            "native GP-robust step from Python (NativeController.input_fn)",
+            "native GP-robust step from Python (NativeController(x))",
+        )
+        if k in lat
+    )
     nat_gp = lat[nat_row]["median_us"]
     lines = [
         "## Native controller (exported C, `safestab.export`)",
@@ -549,38 +578,70 @@ def export_markdown(e):
     ]
     if "machine" in e:
         load = e["machine"].get("load_average_at_start", float("nan"))
-        lines += ["", f"Measured on {e['machine']['platform']}, {e['machine']['cpus']} CPUs, "
-                  f"load average {load:.1f} at the start."]
-    lines += ["", "| step | median (us) | quartiles (us) | JAX fused step / this |", "|---|---:|---:|---:|"]
+        lines += [
+            "",
+            f"Measured on {e['machine']['platform']}, {e['machine']['cpus']} CPUs, "
+            f"load average {load:.1f} at the start.",
+        ]
+    lines += [
+        "",
+        "| step | median (us) | quartiles (us) | JAX fused step / this |",
+        "|---|---:|---:|---:|",
+    ]
     for name, v in lat.items():
-        base = jax_gp if "GP" in name else lat["JAX fused step (controller.input_fn), nominal"]["median_us"]
+        base = (
+            jax_gp
+            if "GP" in name
+            else lat["JAX fused step (controller.input_fn), nominal"]["median_us"]
+        )
         lines.append(
             f"| {name} | {v['median_us']:.2f} | {v['q1_us']:.2f} - {v['q3_us']:.2f} | {base / v['median_us']:.1f}x |"
         )
-    lines += ["", "| C function alone, in a C loop (process CPU time) | ns per step (median of 7) | best | flags |", "|---|---:|---:|---|"]
+    lines += [
+        "",
+        "| C function alone, in a C loop (process CPU time) | ns per step (median of 7) | best | flags |",
+        "|---|---:|---:|---|",
+    ]
     for name, v in loop.items():
         lines.append(f"| {name} | {v['median_ns']:.0f} | {v['min_ns']:.0f} | `{v['flags']}` |")
     lines += ["", "| batched (100,000 states) | states per second |", "|---|---:|"]
     for name, v in thr.items():
         lines.append(f"| {name} | {v['states_per_second']:.3g} |")
     loop_gp = loop["GP-robust, flags of NativeController"]["median_ns"]
-    thr_nat = thr["native batched GP-robust step (NativeController(x), C loop)"]["states_per_second"]
+    thr_nat = thr["native batched GP-robust step (NativeController(x), C loop)"][
+        "states_per_second"
+    ]
     thr_jax = thr["JAX batched GP-robust step (input_fn)"]["states_per_second"]
     targets = [
-        (f"native GP-robust step from Python, median <= 2 us (`{nat_row.split('(')[-1][:-1]}`)", nat_gp <= 2.0, f"{nat_gp:.2f} us"),
-        ("native >= 10x faster than the JAX fused step", jax_gp / nat_gp >= 10, f"{jax_gp / nat_gp:.1f}x"),
+        (
+            f"native GP-robust step from Python, median <= 2 us (`{nat_row.split('(')[-1][:-1]}`)",
+            nat_gp <= 2.0,
+            f"{nat_gp:.2f} us",
+        ),
+        (
+            "native >= 10x faster than the JAX fused step",
+            jax_gp / nat_gp >= 10,
+            f"{jax_gp / nat_gp:.1f}x",
+        ),
         ("C loop <= 1 us per GP-robust step", loop_gp <= 1000, f"{loop_gp:.0f} ns"),
-        ("native batched throughput >= JAX batched", thr_nat >= thr_jax, f"{thr_nat / thr_jax:.2f}x"),
+        (
+            "native batched throughput >= JAX batched",
+            thr_nat >= thr_jax,
+            f"{thr_nat / thr_jax:.2f}x",
+        ),
     ]
     lines += ["", "| target (issue 9) | met | measured |", "|---|---|---:|"]
     lines += [f"| {t} | {'yes' if ok else 'NO'} | {m} |" for t, ok, m in targets]
     nom_nat = thr["native batched nominal step"]["states_per_second"]
     nom_jax = thr["JAX batched nominal step (input_fn)"]["states_per_second"]
-    lines += ["", "The batched-throughput target is read for the GP-robust step, the product's "
-              "controller. For the nominal step the C loop reaches "
-              f"{nom_nat / nom_jax:.2f}x JAX's batched throughput: XLA evaluates that short "
-              "formula for several states at once (SIMD across the batch), while the C loop "
-              "goes state after state (SIMD only within a state's GP kernel rows)."]
+    lines += [
+        "",
+        "The batched-throughput target is read for the GP-robust step, the product's "
+        "controller. For the nominal step the C loop reaches "
+        f"{nom_nat / nom_jax:.2f}x JAX's batched throughput: XLA evaluates that short "
+        "formula for several states at once (SIMD across the batch), while the C loop "
+        "goes state after state (SIMD only within a state's GP kernel rows).",
+    ]
     return lines + [""]
 
 

@@ -223,6 +223,11 @@ RELAXED_CHUNK_NUMBERS = 2**22
 def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     """Phase 3 for the problems with ``need``, in chunks; ``out`` holds the other answers."""
     flat, (k, m) = need.shape[0], d.shape[-2:]
+    if flat == 1:  # one problem: no gathering (and no index that depends on the data)
+        sol, u, ok = jax.vmap(
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
+        )(pr, b, d, lo, hi, need)
+        return sol._replace(w=sol.w[:, :m]), u, ok
     per_problem = (pr.r.shape[-1] + m + k) * (m + k)
     size = max(1, min(flat, RELAXED_CHUNK, RELAXED_CHUNK_NUMBERS // per_problem))
     order = jnp.argsort(~need, stable=True)  # the problems that need it first

@@ -257,3 +257,23 @@ def test_safety_filter_refuses_a_non_finite_constant(name):
     bad = {"u_nom": np.array([np.nan]), "H": np.array([[np.inf]])}[name]
     with pytest.raises(NonFiniteError, match=name):
         SafetyFilter(system, CBF(lambda x: x[0], beta=1.0), **{name: bad})
+
+
+def test_strict_filter_names_an_uncertified_answer():
+    import jax.numpy as jnp
+
+    from safestab import CBF, ControlAffineSystem, InfeasibleError, SafetyFilter
+
+    system = ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    far = CBF(lambda x: jnp.sum((x - 50.0) ** 2) - 0.25, beta=1.0)  # never active here
+    kw = dict(u_nom=lambda x: -10 * x, u_min=-1.0, u_max=1.0)
+    x = np.array([4.0, 4.0])  # u_nom = (-40, -40): both lower limits active at the optimum
+    out = SafetyFilter(system, far, **kw).step(x)
+    assert int(out.formula_status) == MultiStatus.SOLVED
+    assert int(np.asarray(out.active).sum()) == 2
+    cut = SafetyFilter(system, far, max_iter=1, **kw)
+    assert int(cut.step(x).formula_status) == MultiStatus.ITERATION_LIMIT
+    with pytest.raises(InfeasibleError, match="did not certify its input at state index 0"):
+        cut.step(x, strict=True)
+    with pytest.raises(ParameterError, match="max_iter must be an integer >= 1, got -1"):
+        SafetyFilter(system, far, max_iter=-1, **kw)

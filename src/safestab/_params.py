@@ -57,8 +57,7 @@ class ParamSpec:
         leaves, treedef = jax.tree_util.tree_flatten_with_path(example)
         if not leaves:
             raise ParameterError(
-                f"params of {owner} must be a pytree with at least one array leaf, got "
-                f"{example!r}"
+                f"params of {owner} must be a pytree with at least one array leaf, got {example!r}"
             )
         values = []
         for path, leaf in leaves:

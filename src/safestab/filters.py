@@ -24,7 +24,7 @@ from .certificates import CBF, CLF
 from .controllers import StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
-from .formulas._checks import check_box, check_params
+from .formulas._checks import check_box, check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
 from .formulas.multi import multi_kernel
 from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_margins
@@ -111,6 +111,10 @@ class SafetyFilter:
         ``u_nom`` takes ``(x, p)`` (a set-point, say). The system and the certificates declare
         their own; all declared examples must agree, and one ``p`` reaches every function:
         ``step(x, params=p)``, ``step_fn(x, p)``. New values of ``p`` never recompile.
+    max_iter : int, optional
+        Iteration bound of the solver per phase (default: as
+        :func:`~safestab.formulas.clf_cbf_multi`); where it is reached, ``formula_status`` is
+        ``ITERATION_LIMIT``.
 
     Raises
     ------
@@ -136,11 +140,13 @@ class SafetyFilter:
         uncertainty: UncertaintyModel | None = None,
         gp_beta: Any = 2.0,
         params: Any = None,
+        max_iter: int | None = None,
     ) -> None:
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
         if not self.cbfs:
             raise ParameterError("give at least one CBF")
+        self.max_iter = check_max_iter(max_iter)
         check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
@@ -251,8 +257,9 @@ class SafetyFilter:
             hi = jnp.broadcast_to(jnp.asarray(self.u_max), batch + (m,))
         H = None if self.H is None else jnp.broadcast_to(jnp.asarray(self.H), batch + self.H.shape)
         res = multi_kernel(
-            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], inv, lo, hi, u_nom, H
-        )
+            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], inv, lo, hi, u_nom, H,
+            max_iter=self.max_iter,
+        )  # fmt: skip
         u = res.u
         ub = u[..., None, :]
         mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
@@ -300,7 +307,8 @@ class SafetyFilter:
         ModelError
             If the uncertainty model returns a negative standard deviation.
         InfeasibleError
-            With ``strict=True``, where a fallback was used or a CBF condition is violated.
+            With ``strict=True``, where a fallback was used, the solver stopped uncertified
+            (``ITERATION_LIMIT``, ``UNCERTIFIED``) or a CBF condition is violated.
         """
         check_real("x", x)
         x = self.system.check_state(x)
@@ -319,9 +327,14 @@ class SafetyFilter:
                 np.all(np.asarray(out.cbf_satisfied))
             ):
                 i = int(np.argmax(fstat != MultiStatus.SOLVED))
+                name = MultiStatus(int(fstat[i])).name
+                if fstat[i] in (MultiStatus.ITERATION_LIMIT, MultiStatus.UNCERTIFIED):
+                    raise InfeasibleError(
+                        f"the solver did not certify its input at state index {i} ({name}: "
+                        "see MultiStatus)"
+                    )
                 raise InfeasibleError(
-                    f"the CBF conditions and limits cannot all be met (state index {i}, "
-                    f"{MultiStatus(int(fstat[i])).name})"
+                    f"the CBF conditions and limits cannot all be met (state index {i}, {name})"
                 )
         return out
 

@@ -187,8 +187,7 @@ def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]
         out = jax.eval_shape(params, jax.ShapeDtypeStruct((), jnp.float64))
     except TypeError as err:
         raise InputTypeError(
-            f"params must be a pytree or a function params(t) of the time; calling it failed: "
-            f"{err}"
+            f"params must be a pytree or a function params(t) of the time; calling it failed: {err}"
         ) from None
     # check the structure and leaf shapes of params(t) against the example, symbolically
     spec.check(jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out), "params(t)")

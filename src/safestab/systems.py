@@ -175,9 +175,7 @@ class ControlAffineSystem:
         f = self.f
         name = name or f"{self.name}+omega"
         if self.params_spec is None:
-            return ControlAffineSystem(
-                lambda x: f(x) + omega(x), self.g, self.n_states, name=name
-            )
+            return ControlAffineSystem(lambda x: f(x) + omega(x), self.g, self.n_states, name=name)
         return ControlAffineSystem(
             lambda x, p: f(x, p) + omega(x),
             self.g,

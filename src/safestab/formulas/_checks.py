@@ -19,7 +19,14 @@ from ..errors import DimensionError, NumericalError, ParameterError
 
 _TINY = float(np.finfo(float).tiny)
 
-__all__ = ["check_lie_terms", "check_params", "check_box", "as_float", "check_output_finite"]
+__all__ = [
+    "check_lie_terms",
+    "check_params",
+    "check_box",
+    "check_max_iter",
+    "as_float",
+    "check_output_finite",
+]
 
 
 def check_lie_terms(
@@ -141,3 +148,18 @@ def check_output_finite(function: str, **outputs: Any) -> None:
                 f"at {int(np.sum(~np.isfinite(arr)))} entries) although every input is finite; "
                 "rescale the problem (units of a, b, c, d or of the input)"
             )
+
+
+def check_max_iter(max_iter: Any) -> int | None:
+    """Check an iteration bound (None, or an integer >= 1) and return it as an int or None.
+
+    Raises
+    ------
+    ParameterError
+        If it is not None and not an integer >= 1.
+    """
+    if max_iter is None:
+        return None
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int | np.integer) or max_iter < 1:
+        raise ParameterError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    return int(max_iter)

@@ -263,9 +263,7 @@ def solve_two(
     mu1_p3 = w / _safe(den)
     fallback_mu1 = jnp.where(d_nz, 0.0, jnp.maximum(Ah, 0.0) / _safe(pp))
     fallback_mu2 = jnp.maximum(Bh, 0.0) / _safe(qq)
-    mu1 = _by_region(
-        region, {R.P1: Ah / _safe(pp), R.P3: mu1_p3, R.INCOMPATIBLE: fallback_mu1}
-    )
+    mu1 = _by_region(region, {R.P1: Ah / _safe(pp), R.P3: mu1_p3, R.INCOMPATIBLE: fallback_mu1})
     mu1 = jnp.where(p_nz, mu1, 0.0)
     # P3: z = (B'/|q|^2) q - y p_perp; elsewhere z = -mu1 p + mu2 q with one of them zero
     coef_d = _by_region(

@@ -30,7 +30,7 @@ import numpy as np
 
 from .._validation import check_finite, check_real
 from ..errors import DimensionError, ParameterError
-from ._checks import as_float, check_box, check_output_finite, check_params
+from ._checks import as_float, check_box, check_max_iter, check_output_finite, check_params
 from ._dual_active_set import INFEASIBLE, ITERATION_LIMIT, default_max_iter, solve_dual
 from ._kernels import SATISFIED_RTOL, margins, scaled_norm, solve_two
 
@@ -426,7 +426,8 @@ def clf_cbf_multi(
     max_iter : int, optional
         Iteration bound of the active-set solver per phase (default ``3 (rows + dim) + 10``,
         ``dim`` the inputs, CLF slacks and, for the last-resort phase, CBF slacks); where it
-        is reached the status is ``ITERATION_LIMIT``.
+        is reached the status is ``ITERATION_LIMIT``. Unused where the closed form applies
+        (one CLF, one CBF, no limits).
 
     Returns
     -------
@@ -476,10 +477,7 @@ def clf_cbf_multi(
         check_box(u_min, u_max, batch + (m,))
         lo = jnp.broadcast_to(jnp.asarray(u_min, float), batch + (m,))
         hi = jnp.broadcast_to(jnp.asarray(u_max, float), batch + (m,))
-    if max_iter is not None and (
-        isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1
-    ):
-        raise ParameterError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    max_iter = check_max_iter(max_iter)
     if u_nom is not None:
         check_real("u_nom", u_nom)
         check_finite("u_nom", u_nom)

@@ -102,10 +102,14 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     b_term = b @ m_z
     c_term = b @ kzz @ b
     m = z.shape[0]
-    err = 2 * _U * (
-        (q + 2) * (np.abs(alpha) @ ka_abs)
-        + 2 * (q + m + 2) * (np.abs(b) @ (kzx @ np.abs(alpha)))
-        + (m + 2) * (np.abs(b) @ kzz @ np.abs(b))
+    err = (
+        2
+        * _U
+        * (
+            (q + 2) * (np.abs(alpha) @ ka_abs)
+            + 2 * (q + m + 2) * (np.abs(b) @ (kzx @ np.abs(alpha)))
+            + (m + 2) * (np.abs(b) @ kzz @ np.abs(b))
+        )
     )
     return float(a_term - 2 * b_term + c_term), float(err)
 
@@ -218,6 +222,7 @@ class FastGP:
 
             def kfn(x1, x2, amp=amp, ls_j=ls_j):
                 return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
+
             floor = (noise_tol * float(model.noise_[j])) ** 2
             idx, _ = _pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol, floor)
             z = xs[idx]

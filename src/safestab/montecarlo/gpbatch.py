@@ -319,9 +319,7 @@ def one_blas_thread() -> Any:
     return threadpool_limits(limits=1)
 
 
-def condition(
-    hyper: Hyperparameters, x: Any, y: Any, *, seed: int = 0
-) -> GaussianProcessModel:
+def condition(hyper: Hyperparameters, x: Any, y: Any, *, seed: int = 0) -> GaussianProcessModel:
     """Condition a GP with given hyperparameters on data ``(x, y)``; no optimisation.
 
     Parameters

@@ -295,8 +295,7 @@ def check_count(source: str, what: str, unit: str, ratio: float) -> None:
     n = round(ratio)
     if not 1 <= n <= LIMITS.max_steps:
         raise ScenarioError(
-            f"{source}: {what} must give between 1 and {LIMITS.max_steps:,} {unit}, "
-            f"got {ratio:.6g}"
+            f"{source}: {what} must give between 1 and {LIMITS.max_steps:,} {unit}, got {ratio:.6g}"
         )
 
 

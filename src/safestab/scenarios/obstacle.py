@@ -67,8 +67,18 @@ _KEYS = {
     **{
         k: f"learning.{k}"
         for k in (
-            "n_samples", "sample_rate", "sample_horizon", "noise_std", "gp_beta", "delta",
-            "kernel", "x0_low", "x0_high", "excitation_limit", "hyper_subset", "n_inducing",
+            "n_samples",
+            "sample_rate",
+            "sample_horizon",
+            "noise_std",
+            "gp_beta",
+            "delta",
+            "kernel",
+            "x0_low",
+            "x0_high",
+            "excitation_limit",
+            "hyper_subset",
+            "n_inducing",
             "seed",
         )
     },  # fmt: skip
@@ -306,7 +316,7 @@ def load_obstacle_scenario(
             flat["name"] = FIELDS["name"]("name", name, source)
         except ScenarioError as exc:
             raise ScenarioError(
-                f"{exc} (the file has no name key, so its stem was used; add name = \"...\")"
+                f'{exc} (the file has no name key, so its stem was used; add name = "...")'
             ) from None
     v = check_values(flat, source)
     return ObstacleScenario(name=v["name"], **{attr: v[key] for attr, key in _KEYS.items()})

@@ -160,9 +160,7 @@ def _robust(sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerm
     @jax.jit
     def margins(x):
         mean, std = jax.vmap(uncertainty.mean_std)(x)
-        return robust_margins(
-            clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta)
-        )
+        return robust_margins(clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta))
 
     return probabilistic_compatibility(
         terms, margins(x), **_params(sc), delta=sc.delta, n_components=2
@@ -253,8 +251,7 @@ class ObstacleRun:
                 for i in stuck
             ],
             "unsafe": [
-                {"x0_m": self.x0[i].tolist(), "min_h_m2": float(np.min(self.h[i]))}
-                for i in unsafe
+                {"x0_m": self.x0[i].tolist(), "min_h_m2": float(np.min(self.h[i]))} for i in unsafe
             ],
         }
 
@@ -352,9 +349,7 @@ class ObstacleStudyResult:
             },
             "doa_c_star_m2": self.doa,
             "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},
-            "runs": {
-                f"{c} / {lim}": run.summary() for (c, lim), run in self.runs.items()
-            },
+            "runs": {f"{c} / {lim}": run.summary() for (c, lim), run in self.runs.items()},
             "gp": self.coverage,
             "maps": {
                 "grid": [len(self.maps.x1), len(self.maps.x2)],
@@ -449,7 +444,9 @@ def run_obstacle_study(
 
     report(f"fitting the GP (Q = {q}, n = 2)", 0.1)
     t0 = time.perf_counter()
-    gp = GaussianProcessModel(kernel=sc.kernel).fit(  # type: ignore[arg-type]
+    gp = GaussianProcessModel(
+        kernel=sc.kernel
+    ).fit(  # type: ignore[arg-type]
         data.x[:q], data.y[:q], hyper_subset=min(sc.hyper_subset, q), seed=sc.seed
     )
     uncertainty: Any = gp

@@ -277,3 +277,19 @@ def test_strict_filter_names_an_uncertified_answer():
         cut.step(x, strict=True)
     with pytest.raises(ParameterError, match="max_iter must be an integer >= 1, got -1"):
         SafetyFilter(system, far, max_iter=-1, **kw)
+
+
+def test_a_bound_reached_on_the_last_step_is_still_optimal_and_no_rows_is_no_problem():
+    """Review findings: the check for "no row violated" must not need an iteration of its own,
+    and a problem without rows is the unconstrained minimiser."""
+    from safestab.formulas._dual_active_set import OPTIMAL, solve_dual
+
+    sol = solve_dual(np.array([[1.0, 0.0]]), np.array([-1.0]), np.zeros(2), np.array([True]), 1)
+    assert int(sol.status) == OPTIMAL and bool(sol.certified)
+    assert np.array_equal(np.asarray(sol.w), [-1.0, 0.0])
+    res = clf_cbf_multi(
+        np.zeros(0), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)),
+        kappa=1.0, rho=1.0, phi=0.0, varphi=0.0, u_nom=np.array([1.0, -2.0]),
+    )  # fmt: skip
+    assert int(res.status) == MultiStatus.SOLVED
+    assert np.array_equal(np.asarray(res.u), [1.0, -2.0])

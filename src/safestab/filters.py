@@ -323,10 +323,10 @@ class SafetyFilter:
                 name = StepStatus(int(status[i])).name
                 raise NonFiniteError(f"filter step failed with status {name} at state index {i}")
             fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
-            if np.any(fstat != MultiStatus.SOLVED) or not bool(
-                np.all(np.asarray(out.cbf_satisfied))
-            ):
-                i = int(np.argmax(fstat != MultiStatus.SOLVED))
+            cbf_ok = np.asarray(out.cbf_satisfied).reshape(fstat.shape[0], -1).all(-1)
+            failing = (fstat != MultiStatus.SOLVED) | ~cbf_ok
+            if np.any(failing):
+                i = int(np.argmax(failing))
                 name = MultiStatus(int(fstat[i])).name
                 if fstat[i] in (MultiStatus.ITERATION_LIMIT, MultiStatus.UNCERTIFIED):
                     raise InfeasibleError(

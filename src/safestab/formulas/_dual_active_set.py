@@ -61,8 +61,9 @@ class DualSolution(NamedTuple):
     status (``OPTIMAL``, ``INFEASIBLE``, ``ITERATION_LIMIT``), the iteration count, an estimate
     of the condition number of the final active rows (max/min of ``|diag R|``), and whether the
     KKT certificate of this (whitened, normalised) problem holds: every used row within
-    ``CERT_RTOL`` of its own magnitudes, multipliers >= 0 and stationarity, the last two to
-    ``64 eps cond``.
+    ``CERT_RTOL`` of its own magnitudes and every active row tight to the same tolerance,
+    multipliers ``>= -64 eps cond`` times the largest, and stationarity to ``64 eps (iterations
+    + D)`` of its terms.
     """
 
     w: Any
@@ -130,6 +131,11 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
     problem infeasible otherwise.
     """
     n_rows, dim = G.shape
+    if n_rows == 0:  # nothing to satisfy: the unconstrained minimiser
+        return DualSolution(
+            jnp.asarray(w0, G.dtype), jnp.zeros(0, G.dtype), jnp.zeros(0, bool),
+            jnp.int32(OPTIMAL), jnp.int32(0), jnp.asarray(1.0, G.dtype), jnp.asarray(True),
+        )  # fmt: skip
     norms = scaled_norm(G)
     zero = norms == 0
     infeasible0 = jnp.any(use & zero & (r < 0))
@@ -220,20 +226,24 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
         blocking = (idx < q) & (rvec > 0)
         ratio = jnp.where(blocking, lam / jnp.where(blocking, rvec, 1.0), jnp.inf)
         j = jnp.argmin(ratio).astype(jnp.int32)
-        t1 = jnp.min(ratio)
+        t1 = jnp.maximum(jnp.min(ratio), 0.0)  # a multiplier rounded below zero: a zero step
         t2 = jnp.where(
             dependent, jnp.inf, jnp.maximum(viol_p, 0.0) / jnp.where(dependent, 1.0, nd2)
         )
         t = jnp.minimum(t1, t2)
-        infeasible = ~done & jnp.isinf(t)
-        tt = jnp.where(done | infeasible, 0.0, t)
+        # infeasible: the row is a combination of the active ones and no multiplier can give
+        # way (a Farkas certificate); a step that overflows is a numerical failure instead
+        infeasible = ~done & dependent & ~jnp.any(blocking)
+        overflow = ~done & ~infeasible & ~jnp.isfinite(t)
+        stop = done | infeasible | overflow
+        tt = jnp.where(stop, 0.0, t)
         w = w + tt * dz
-        lam = jnp.where(idx < q, lam - tt * rvec, lam)
-        lam_p = lam_p + tt
+        lam = jnp.where(idx < q, jnp.maximum(lam - tt * rvec, 0.0), lam)
+        lam_p = jnp.maximum(lam_p, 0.0) + tt
         moved = (w, Q, R, act, lam, in_set, q, p, lam_p, it + 1, status)
         full = t2 <= t1
         nxt = jax.lax.cond(
-            done | infeasible,
+            stop,
             lambda s: s,
             lambda s: jax.lax.cond(
                 full,
@@ -243,8 +253,8 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
             ),
             moved,
         )
-        new_status = jnp.where(done, OPTIMAL, jnp.where(infeasible, INFEASIBLE, status))
-        return nxt[:10] + (jnp.where(done | infeasible, new_status, -1),)
+        new_status = jnp.where(done, OPTIMAL, jnp.where(infeasible, INFEASIBLE, ITERATION_LIMIT))
+        return nxt[:10] + (jnp.where(stop, new_status, -1).astype(jnp.int32),)
 
     def cond(state):
         it, status = state[9], state[10]
@@ -264,7 +274,10 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
         jnp.where(infeasible0, INFEASIBLE, -1).astype(jnp.int32),
     )
     w, Q, R, act, lam, in_set, q, p, lam_p, it, status = jax.lax.while_loop(cond, body, init)
-    status = jnp.where(status < 0, ITERATION_LIMIT, status)
+    # the bound reached just as the last step finished: the point may still be optimal
+    viol, tol = violations(w)
+    finished = (status < 0) & (p < 0) & ~jnp.any(use & ~in_set & (viol > tol))
+    status = jnp.where(finished, OPTIMAL, jnp.where(status < 0, ITERATION_LIMIT, status))
 
     # the point from the final active set alone: projection, then one refinement step
     used = idx < q
@@ -290,18 +303,25 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
     # the certificate of this problem
     viol = Gn @ w - rn
     primal_ok = jnp.all(~use | (viol <= CERT_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))))
-    slack_tol = 64 * _EPS * cond_est
-    lam_max = jnp.max(jnp.abs(jnp.where(used, lam_act, 0.0)))
-    dual_ok = jnp.all(~used | (lam_act >= -slack_tol * lam_max))
-    grad = rows.T @ jnp.where(used, lam_act, 0.0)
+    # multipliers: their sign is as accurate as the triangular solve, eps times cond(R);
+    # stationarity and the active rows' slackness only carry the factors' drift over the
+    # updates, eps times the iterations, with no cond factor (backward stable solves)
+    dual_tol = 64 * _EPS * cond_est
+    drift_tol = 64 * _EPS * (it + dim)
+    lam_used = jnp.where(used, lam_act, 0.0)
+    lam_max = jnp.max(jnp.abs(lam_used))
+    dual_ok = jnp.all(~used | (lam_act >= -dual_tol * lam_max))
+    grad = rows.T @ lam_used
     stat = jnp.max(jnp.abs(w - w0 + grad))
     stat_scale = (
-        jnp.max(jnp.abs(w))
-        + jnp.max(jnp.abs(w0))
-        + jnp.max(jnp.abs(rows.T) @ jnp.abs(jnp.where(used, lam_act, 0.0)))
+        jnp.max(jnp.abs(w)) + jnp.max(jnp.abs(w0)) + jnp.max(jnp.abs(rows.T) @ jnp.abs(lam_used))
     )
-    stat_ok = stat <= slack_tol * stat_scale
-    certified = optimal & primal_ok & dual_ok & stat_ok
+    stat_ok = stat <= drift_tol * stat_scale
+    slack_rows = rows @ w - rhs
+    tight_ok = jnp.all(
+        ~used | (jnp.abs(slack_rows) <= CERT_RTOL * (jnp.abs(rhs) + jnp.abs(rows) @ jnp.abs(w)))
+    )
+    certified = optimal & primal_ok & dual_ok & stat_ok & tight_ok
     lam_act = jnp.maximum(lam_act, 0.0)
     onehot = (act[:, None] == jnp.arange(n_rows)[None, :]) & used[:, None]
     mult = jnp.sum(jnp.where(onehot, lam_act[:, None], 0.0), axis=0) / safe

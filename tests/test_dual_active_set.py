@@ -43,6 +43,8 @@ def _review(n_cases: int, seed: int) -> tuple[collections.Counter, list]:
             fault = f"{name} with violated conditions {j['violated']}"
         elif name == "SOLVED" and j["ref"] != "SOLVED":
             fault = f"SOLVED on a problem whose reference is {j['ref']}"
+        elif name == "UNCERTIFIED" and j["cond"] * EPS > 1e-6:
+            pass  # honest: the certificate cannot be met at this conditioning (counted above)
         elif name != j["ref"] and not ill_posed:
             fault = f"{name} where the reference is {j['ref']} (cond {j['cond']:.2g})"
         elif name == j["ref"] and j["error_over_eps_cond"] > 100:
@@ -70,6 +72,8 @@ def test_twenty_thousand_cases_against_the_50_digit_reference():
         assert faults == [], seed
         total.update(counts)
     assert sum(total.values()) >= 20000
+    uncertified = sum(v for (_, ours), v in total.items() if ours == "UNCERTIFIED")
+    assert uncertified <= 20  # 0.1 %: only badly conditioned problems (eps cond > 1e-6)
 
 
 def _quadprog(H, g_u, G, r):

@@ -50,6 +50,7 @@ __all__ = [
     "save_figure",
     "strict_json_dumps",
     "text_writer",
+    "with_finite_status",
     "write_all",
 ]
 
@@ -376,3 +377,13 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def with_finite_status(doc: dict[str, Any]) -> dict[str, Any]:
+    """A metrics document made strict: non-finite numbers become ``None``, listed by path.
+
+    Returns ``{"status": "ok" | "non-finite", "non_finite": {...}, **doc}`` with the numbers
+    replaced as :func:`replace_non_finite` does.
+    """
+    clean, found = replace_non_finite(doc)
+    return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}

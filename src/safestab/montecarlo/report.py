@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._io import replace_non_finite
+from .._io import with_finite_status
 from .runner import MonteCarloRun
 from .stats import summarize
 
@@ -55,8 +55,7 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
         ],
         "timings_s": run.timings,
     }
-    clean, found = replace_non_finite(doc)
-    return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+    return with_finite_status(doc)
 
 
 def trials_npz_bytes(run: MonteCarloRun) -> bytes:

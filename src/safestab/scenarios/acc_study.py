@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .._io import atomic_write_json, replace_non_finite
+from .._io import atomic_write_json, with_finite_status
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import (
@@ -86,8 +86,7 @@ class StudyResult:
             },
             "timings_s": self.timings,
         }
-        clean, found = replace_non_finite(doc)
-        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+        return with_finite_status(doc)
 
     def write_metrics(self, path: str | Path) -> None:
         """Write :meth:`metrics_document` as JSON, atomically (no NaN or Infinity tokens)."""

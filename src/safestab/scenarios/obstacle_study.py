@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._io import atomic_write_json, replace_non_finite
+from .._io import atomic_write_json, with_finite_status
 from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
@@ -360,8 +360,7 @@ class ObstacleStudyResult:
             },
             "timings_s": self.timings,
         }
-        clean, found = replace_non_finite(doc)
-        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+        return with_finite_status(doc)
 
     def write_metrics(self, path: str | Path) -> None:
         """Write :meth:`metrics_document` as strict JSON, atomically."""

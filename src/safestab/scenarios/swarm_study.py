@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .._io import atomic_write_json, replace_non_finite
+from .._io import atomic_write_json, with_finite_status
 from ..formulas import MultiStatus
 from .swarm import SwarmRun, SwarmScenario, pair_terms, simulate_swarm
 
@@ -126,8 +126,7 @@ class SwarmStudy:
             "loose_solvers_on_centralized_states": self.loose_solvers,
             "timings_s": self.timings,
         }
-        clean, found = replace_non_finite(doc)
-        return {"status": "non-finite" if found else "ok", "non_finite": found, **clean}
+        return with_finite_status(doc)
 
     def write_metrics(self, path: str | Path) -> None:
         """Write :meth:`metrics_document` as strict JSON, atomically."""

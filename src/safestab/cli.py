@@ -219,18 +219,17 @@ def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
         debug=debug,
         code=EXIT_RUN_FAILED,
     )
+    doc = result.metrics_document()  # written and tabulated: computed once
 
     def write():
         from .plotting import plot_swarm
 
         stem = out_dir / f"swarm_{sc.name}"
         return _write_figures(
-            {stem: plot_swarm(result)},
-            {out_dir / f"swarm_{sc.name}_metrics.json": result.metrics_document()},
+            {stem: plot_swarm(result)}, {out_dir / f"swarm_{sc.name}_metrics.json": doc}
         )
 
     written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-    doc = result.metrics_document()
     table = Table(title=f"swarm '{sc.name}' ({sc.n_robots} robots, {doc['pairs']} pair barriers)")
     columns = ("filter", "min distance [m]", "steps < safety", "all arrived [s]",
                "mean change [m/s]", "statuses")  # fmt: skip

@@ -174,7 +174,10 @@ def test_per_point_parameters_broadcast_over_the_batch():
     batched = clf_cbf_multi(a, b, c, d, kappa=kappa, **kw)
     for i in range(4):
         one = clf_cbf_multi(a[i], b[i], c[i], d[i], kappa=kappa[i], **kw)
-        assert np.array_equal(np.asarray(one.u), np.asarray(batched.u[i]))
+        # one problem runs the solver without vmap (its branches stay branches): the same
+        # steps, rounded in another order
+        assert int(one.status) == int(batched.status[i])
+        np.testing.assert_allclose(np.asarray(one.u), np.asarray(batched.u[i]), rtol=1e-13)
 
 
 def test_safety_filter_beyond_twelve_rows_matches_quadprog():

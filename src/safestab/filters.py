@@ -71,6 +71,37 @@ jax.tree_util.register_dataclass(
 )
 
 
+def raise_where_failed(out: Any) -> None:
+    """The ``strict=True`` check of a filter step (JAX or native) on its outputs.
+
+    Raises
+    ------
+    NonFiniteError
+        Where a step failed (a non-finite state, model or input).
+    InfeasibleError
+        Where a fallback was used, the solver stopped uncertified or a CBF condition is
+        violated; the message names the first such state.
+    """
+    status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
+    if np.any(status != StepStatus.OK):
+        i = int(np.flatnonzero(status != StepStatus.OK)[0])
+        name = StepStatus(int(status[i])).name
+        raise NonFiniteError(f"filter step failed with status {name} at state index {i}")
+    fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
+    cbf_ok = np.asarray(out.cbf_satisfied).reshape(fstat.shape[0], -1).all(-1)
+    failing = (fstat != MultiStatus.SOLVED) | ~cbf_ok
+    if np.any(failing):
+        i = int(np.argmax(failing))
+        name = MultiStatus(int(fstat[i])).name
+        if fstat[i] in (MultiStatus.ITERATION_LIMIT, MultiStatus.UNCERTIFIED):
+            raise InfeasibleError(
+                f"the solver did not certify its input at state index {i} ({name}: see MultiStatus)"
+            )
+        raise InfeasibleError(
+            f"the CBF conditions and limits cannot all be met (state index {i}, {name})"
+        )
+
+
 def _as_tuple(value: Any, kind: type, name: str) -> tuple:
     items = (value,) if isinstance(value, kind) else tuple(value)
     if not all(isinstance(v, kind) for v in items):
@@ -318,24 +349,7 @@ class SafetyFilter:
         if np.any(status == StepStatus.NEGATIVE_STD):
             raise ModelError("the uncertainty model returned a negative standard deviation")
         if strict:
-            if np.any(status != StepStatus.OK):
-                i = int(np.flatnonzero(status != StepStatus.OK)[0])
-                name = StepStatus(int(status[i])).name
-                raise NonFiniteError(f"filter step failed with status {name} at state index {i}")
-            fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
-            cbf_ok = np.asarray(out.cbf_satisfied).reshape(fstat.shape[0], -1).all(-1)
-            failing = (fstat != MultiStatus.SOLVED) | ~cbf_ok
-            if np.any(failing):
-                i = int(np.argmax(failing))
-                name = MultiStatus(int(fstat[i])).name
-                if fstat[i] in (MultiStatus.ITERATION_LIMIT, MultiStatus.UNCERTIFIED):
-                    raise InfeasibleError(
-                        f"the solver did not certify its input at state index {i} ({name}: "
-                        "see MultiStatus)"
-                    )
-                raise InfeasibleError(
-                    f"the CBF conditions and limits cannot all be met (state index {i}, {name})"
-                )
+            raise_where_failed(out)
         return out
 
     def __call__(self, x: Any, params: Any = None) -> jax.Array:

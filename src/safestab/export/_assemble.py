@@ -50,6 +50,30 @@ def _block_comment(text: str, width: int = 92) -> list[str]:
     return lines + " */".split("\n")
 
 
+_SIZEOF = {"double": 8, "float": 4, "int": 4, "long long": 8, "unsigned char": 1}
+
+
+def stack_bytes(e: Emitter, stmts: Sequence[Stmt]) -> int:
+    """Bytes of the run-time values the statements declare, nested blocks included."""
+    total = 0
+    for st in stmts:
+        outs_rt = [v for v in st.outs if v.const is None and v.base is None]
+        total += sum(v.size * _SIZEOF.get(e.ctype(v.dtype), 8) for v in outs_rt)
+        total += sum(stack_bytes(e, block) for block in st.blocks)
+    return total
+
+
+def render(e: Emitter, stmts: Sequence[Stmt]) -> list[str]:
+    """C lines of statements, each after a comment naming its outputs, primitive and origin."""
+    lines: list[str] = []
+    for st in stmts:
+        outs_rt = [v for v in st.outs if v.const is None and v.base is None]
+        names = ", ".join(f"{e.name(v)} {_shape_text(v)}" for v in outs_rt)
+        lines.append(_comment(f"{names} = {st.prim}   {_short_where(st.where)}"))
+        lines += st.gen(e)
+    return lines
+
+
 def assemble(
     *,
     name: str,
@@ -68,17 +92,10 @@ def assemble(
     real = e.real
     upper = name.upper()
     n = n_states
-    sizeof = {"double": 8, "float": 4, "int": 4, "long long": 8, "unsigned char": 1}
 
     # -- body of the step -------------------------------------------------------------
-    body: list[str] = []
-    stack = 0
-    for st in stmts:
-        outs_rt = [v for v in st.outs if v.const is None and v.base is None]
-        names = ", ".join(f"{e.name(v)} {_shape_text(v)}" for v in outs_rt)
-        body.append(_comment(f"{names} = {st.prim}   {_short_where(st.where)}"))
-        body += st.gen(e)
-        stack += sum(v.size * sizeof.get(e.ctype(v.dtype), 8) for v in outs_rt)
+    body = render(e, stmts)
+    stack = stack_bytes(e, stmts)
 
     # -- outputs ---------------------------------------------------------------------
     writes: list[str] = []

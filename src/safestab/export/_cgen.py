@@ -313,7 +313,61 @@ def _exp(name: str, ct: str, flt: bool, e: Emitter) -> str:
     )
 
 
-_HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp}
+def _qr(name: str, ct: str, flt: bool, e: Emitter) -> str:
+    # Householder QR of the M x N matrix a (row-major, overwritten), K = min(M, N): q (M x K),
+    # r (K x N). LAPACK's conventions (dgeqr2 with dlarfg, then dorg2r), so the signs of r's
+    # diagonal and q's columns are those of jnp.linalg.qr: beta = -sign(alpha) |(alpha, x)|,
+    # tau = (beta - alpha) / beta, v = x / (alpha - beta); a column with x = 0 is left as it is.
+    # Literals of the real type throughout (GCC 12 stops with an internal error on the float
+    # version inlined into a step when the norm's update mixes an int literal in).
+    f = "f" if ct == "float" else ""
+    one, zero = ("1.0f", "0.0f") if f else ("1.0", "0.0")
+    return (
+        f"static void {name}(int M, int N, {ct} *a, {ct} *tau, {ct} *q, {ct} *r)\n{{\n"
+        "    const int K = M < N ? M : N;\n"
+        "    for (int j = 0; j < K; ++j) {\n"
+        f"        {ct} scale = {zero}, ssq = {one}, xnorm;\n"
+        "        for (int i = j + 1; i < M; ++i) {\n"
+        f"            const {ct} v = fabs{f}(a[i * N + j]);\n"
+        f"            if (v > scale) {{ ssq = {one} + ssq * (scale / v) * (scale / v);"
+        " scale = v; }\n"
+        f"            else if (v > {zero}) ssq += (v / scale) * (v / scale);\n"
+        "        }\n"
+        f"        xnorm = scale * sqrt{f}(ssq);\n"
+        f"        if (xnorm == {zero}) {{ tau[j] = {zero}; continue; }}\n"
+        f"        const {ct} alpha = a[j * N + j];\n"
+        f"        const {ct} beta = -copysign{f}(hypot{f}(alpha, xnorm), alpha);\n"
+        "        tau[j] = (beta - alpha) / beta;\n"
+        f"        const {ct} s = {one} / (alpha - beta);\n"
+        "        for (int i = j + 1; i < M; ++i) a[i * N + j] *= s;\n"
+        "        a[j * N + j] = beta;\n"
+        "        for (int c = j + 1; c < N; ++c) {\n"
+        f"            {ct} w = a[j * N + c];\n"
+        "            for (int i = j + 1; i < M; ++i) w += a[i * N + j] * a[i * N + c];\n"
+        "            w *= tau[j];\n"
+        "            a[j * N + c] -= w;\n"
+        "            for (int i = j + 1; i < M; ++i) a[i * N + c] -= w * a[i * N + j];\n"
+        "        }\n"
+        "    }\n"
+        "    for (int i = 0; i < K; ++i)\n"
+        f"        for (int c = 0; c < N; ++c) r[i * N + c] = c >= i ? a[i * N + c] : {zero};\n"
+        "    for (int i = 0; i < M; ++i)\n"
+        f"        for (int c = 0; c < K; ++c) q[i * K + c] = i == c ? {one} : {zero};\n"
+        "    for (int j = K - 1; j >= 0; --j) {\n"
+        f"        if (tau[j] == {zero}) continue;\n"
+        "        for (int c = j; c < K; ++c) {\n"
+        f"            {ct} w = q[j * K + c];\n"
+        "            for (int i = j + 1; i < M; ++i) w += a[i * N + j] * q[i * K + c];\n"
+        "            w *= tau[j];\n"
+        "            q[j * K + c] -= w;\n"
+        "            for (int i = j + 1; i < M; ++i) q[i * K + c] -= w * a[i * N + j];\n"
+        "        }\n"
+        "    }\n"
+        "}"
+    )
+
+
+_HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp, "qr": _qr}
 
 
 def _float_to_int(name: str, ct: str, dct: str, dst: np.dtype) -> str:

@@ -89,14 +89,16 @@ class Val:
 class Stmt:
     """Run-time code for one equation: ``gen(emitter)`` returns its C lines."""
 
-    __slots__ = ("prim", "where", "outs", "ins", "gen")
+    __slots__ = ("prim", "where", "outs", "ins", "gen", "blocks")
 
-    def __init__(self, prim: str, where: str, outs, ins, gen) -> None:
+    def __init__(self, prim: str, where: str, outs, ins, gen, blocks=()) -> None:
         self.prim = prim
         self.where = where
         self.outs: list[Val] = list(outs)
         self.ins: list[Val] = list(ins)
         self.gen: Callable[[Any], list[str]] = gen
+        #: Nested statement lists (a loop's body, a branch), written by ``gen`` itself.
+        self.blocks: tuple[list[Stmt], ...] = tuple(blocks)
 
 
 def where_from(eqn: Any) -> str:
@@ -145,8 +147,10 @@ class Program:
             return Val(shape, dtype, const=src.const.reshape(shape))
         return Val(shape, dtype, base=src)
 
-    def stmt(self, outs: Sequence[Val], ins: Sequence[Val], gen: Callable) -> None:
-        st = Stmt(self._prim, self._where, outs, ins, gen)
+    def stmt(
+        self, outs: Sequence[Val], ins: Sequence[Val], gen: Callable, blocks: Sequence = ()
+    ) -> None:
+        st = Stmt(self._prim, self._where, outs, ins, gen, blocks)
         for v in outs:
             v.producer = st
         self.stmts.append(st)
@@ -155,6 +159,24 @@ class Program:
         return UnsupportedPrimitiveError(
             f"cannot export primitive '{self._prim}' (from {self._where}): {detail}"
         )
+
+    def block(
+        self, jaxpr: Any, consts: Sequence[Any], args: Sequence[Val]
+    ) -> tuple[list[Stmt], list[Val]]:
+        """Walk a nested jaxpr (a loop body, a branch) into its own statement list.
+
+        Returns the live statements of the block and its outputs. Nothing is shared with the
+        enclosing code by common-subexpression merging, in either direction: a value computed
+        inside is out of scope after the block, and a value the block uses from outside must
+        reach it as an argument (so the enclosing statement lists it as an input).
+        """
+        saved = self.stmts, self._seen
+        self.stmts, self._seen = [], {}
+        try:
+            outs = self.run(jaxpr, consts, args)
+            return live_statements(self.stmts, outs), outs
+        finally:
+            self.stmts, self._seen = saved
 
     # -- the walk --------------------------------------------------------------------
 
@@ -194,6 +216,9 @@ class Program:
                 raise self.unsupported("it has side effects (callbacks, prints, RNG state)")
             if all(v.const is not None for v in ins) and name not in NO_FOLD:
                 return self.fold(eqn, ins)
+            avals = [var.aval for var in eqn.outvars]
+            if all(math.prod(a.shape) == 0 for a in avals):  # no elements: nothing to compute
+                return [self.const(np.zeros(a.shape, a.dtype)) for a in avals]
             key = _cse_key(eqn, ins)
             if key is not None and key in self._seen:
                 return self._seen[key][0]
@@ -235,13 +260,15 @@ def _cse_key(eqn: Any, ins: list[Val]) -> Any:
     return (eqn.primitive.name, params, tuple(parts))
 
 
-#: Primitives never folded: folding a loop at export time would hide an unsupported primitive
-#: behind the particular constants; they are reported instead.
-NO_FOLD = frozenset({"while", "scan"})
+#: Primitives never folded: a loop is written as a loop (folding it would run it at export
+#: time, and hide an unsupported primitive inside behind the particular constants);
+#: ``platform_index`` is resolved by its rule (the C code is one platform: the default).
+NO_FOLD = frozenset({"while", "scan", "platform_index"})
 
 
-def live_statements(program: Program, outputs: Sequence[Val]) -> list[Stmt]:
-    """The statements some output depends on, in program order."""
+def live_statements(program: Program | list[Stmt], outputs: Sequence[Val]) -> list[Stmt]:
+    """The statements (of a program or a list) some output depends on, in their order."""
+    stmts = program.stmts if isinstance(program, Program) else program
     live: set[int] = set()
     stack = [v for v in outputs]
     seen: set[int] = set()
@@ -256,4 +283,4 @@ def live_statements(program: Program, outputs: Sequence[Val]) -> list[Stmt]:
         if st is not None and id(st) not in live:
             live.add(id(st))
             stack.extend(st.ins)
-    return [st for st in program.stmts if id(st) in live]
+    return [st for st in stmts if id(st) in live]

@@ -13,6 +13,7 @@ to 0 and saturates; ``argmax``/``argmin`` pick the first NaN.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -544,6 +545,43 @@ def _dot_general(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
 # control flow
 
 
+def _copy_into(e: Emitter, dst: Val, src: Val) -> list[str]:
+    """Assign every element of ``src`` to the (mutable) run-time value ``dst``."""
+    if dst.size == 0 or src.root() is dst.root():
+        return []
+    if dst.size == 1:
+        return [f"{e.target(dst, 0)} = {e.ref(src, 0)};"]
+    return [f"for (int i = 0; i < {dst.size}; ++i) {e.name(dst)}[i] = {e.ref(src, 'i')};"]
+
+
+def _assign_all(e: Emitter, dsts: list[Val], srcs: list[Val]) -> list[str]:
+    """``dsts = srcs`` as one simultaneous assignment (a source may be another destination)."""
+    roots = {id(d.root()): k for k, d in enumerate(dsts)}
+    lines: list[str] = []
+    staged: list[tuple[Val, Val]] = []
+    for k, (dst, src) in enumerate(zip(dsts, srcs, strict=True)):
+        j = roots.get(id(src.root()))
+        if j is not None and j != k and dst.size:  # read before it is overwritten: stage it
+            tmp = Val(src.shape, src.dtype)
+            lines += [e.declare(tmp)] + _copy_into(e, tmp, src)
+            staged.append((dst, tmp))
+        else:
+            staged.append((dst, src))
+    for dst, src in staged:
+        lines += _copy_into(e, dst, src)
+    return lines
+
+
+def _declare_mutable(e: Emitter, vals: list[Val]) -> list[str]:
+    # "(void)": a result that nothing after the statement reads is not a warning (the
+    # statement is kept whole for the results that are read)
+    return [f"{e.declare(v)} (void){e.name(v)};" for v in vals if v.size]
+
+
+def _indent(lines: list[str]) -> list[str]:
+    return ["    " + ln for ln in lines]
+
+
 @_register("cond")
 def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     branches = eqn.params["branches"]
@@ -551,32 +589,175 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     if index.const is not None:
         k = int(np.clip(int(index.const), 0, len(branches) - 1))
         return p.run(branches[k].jaxpr, branches[k].consts, args)
-    # both branches are pure: compute each and select, as XLA may do for small branches
-    results = [p.run(b.jaxpr, b.consts, args) for b in branches]
-    outs = []
-    for j, var in enumerate(eqn.outvars):
+    # only the branch taken runs: if / else if / else (an index out of range is clamped, as
+    # in lax.cond)
+    outs = [p.new(var.aval) for var in eqn.outvars]
+    blocks = [p.block(b.jaxpr, b.consts, args) for b in branches]
 
-        def expr(e: Emitter, c: str, *refs: str) -> str:
-            text = refs[-1]
-            for k in range(len(refs) - 2, -1, -1):
-                text = f"{c} == {k} ? {refs[k]} : ({text})"
-            return text
+    def gen(e: Emitter) -> list[str]:
+        from ._assemble import render
 
-        sub = _FakeEqn(var)
-        outs += elementwise(p, sub, [index] + [r[j] for r in results], expr)
+        c = e.ref(index, 0)
+        lines = _declare_mutable(e, outs)
+        last = len(blocks) - 1
+        for k, (stmts, res) in enumerate(blocks):
+            head = (
+                f"if ({c} <= 0) {{" if k == 0
+                else ("} else {" if k == last else f"}} else if ({c} == {k}) {{")
+            )  # fmt: skip
+            lines += [head] + _indent(render(e, stmts) + _assign_all(e, outs, res))
+        return lines + ["}"]
+
+    p.stmt(outs, ins, gen, blocks=[b[0] for b in blocks])
     return outs
 
 
-class _FakeEqn:
-    """Just enough of an equation for :func:`elementwise` (one output variable)."""
+@_register("while")
+def _while(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """``lax.while_loop`` (and ``fori_loop`` with bounds known only at run time).
 
-    def __init__(self, var: Any) -> None:
-        self.outvars = [var]
+    The carried values are mutable variables declared before the loop; each pass evaluates
+    the condition, leaves the loop when it is false, runs the body and assigns its results to
+    the carried variables (simultaneously). The iteration bound is the program's own: the
+    loop runs exactly as many passes as the JAX loop.
+    """
+    cj, bj = eqn.params["cond_jaxpr"], eqn.params["body_jaxpr"]
+    nc, nb = eqn.params["cond_nconsts"], eqn.params["body_nconsts"]
+    cconsts, bconsts, init = ins[:nc], ins[nc : nc + nb], ins[nc + nb :]
+    carried = [p.new(var.aval) for var in eqn.outvars]
+    cond_stmts, (pred,) = p.block(cj.jaxpr, cj.consts, cconsts + carried)
+    body_stmts, res = p.block(bj.jaxpr, bj.consts, bconsts + carried)
+
+    def gen(e: Emitter) -> list[str]:
+        from ._assemble import render
+
+        lines = _declare_mutable(e, carried) + _assign_all(e, carried, init)
+        inner = render(e, cond_stmts) + [f"if (!({e.ref(pred, 0)})) break;"]
+        inner += render(e, body_stmts) + _assign_all(e, carried, res)
+        return lines + ["for (;;) {"] + _indent(inner) + ["}"]
+
+    p.stmt(carried, ins, gen, blocks=[cond_stmts, body_stmts])
+    return carried
 
 
-@_register("while", "scan")
-def _loop(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
-    raise p.unsupported(
-        "loops (lax.while_loop, lax.fori_loop, lax.scan) are not exported; write the loop "
-        "as a Python for loop over a fixed count so that it is unrolled when traced"
-    )
+@_register("platform_index")
+def _platform_index(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    # the C code is one platform, the default one (None), as on CPU
+    platforms = eqn.params["platforms"]
+    for k, names in enumerate(platforms):
+        if names is None or "cpu" in names:
+            return [p.const(k, eqn.outvars[0].aval.dtype)]
+    raise p.unsupported(f"no default branch among the platforms {platforms}")
+
+
+@_register("stop_gradient")
+def _stop_gradient(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    return list(ins)
+
+
+# --------------------------------------------------------------------------------------
+# linear algebra (small dense matrices; loops in C)
+
+
+@_register("triangular_solve")
+def _triangular_solve(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    a, b = ins
+    prm = eqn.params
+    if not prm["left_side"]:
+        raise p.unsupported("right-side triangular solves (x A = b) are not exported")
+    out = p.new(eqn.outvars[0].aval)
+    m, n = b.shape[-2], b.shape[-1]
+    batch = math.prod(b.shape[:-2])
+    a_batched = math.prod(a.shape[:-2]) > 1
+    trans, unit = bool(prm["transpose_a"]), bool(prm["unit_diagonal"])
+    forward = bool(prm["lower"]) != trans  # op(A) lower triangular: forward substitution
+
+    def gen(e: Emitter) -> list[str]:
+        ct = e.ctype(out.dtype)
+        ab = f"tri_b * {m * m} + " if a_batched else ""
+
+        def A(r: str, c: str) -> str:  # element (r, c) of op(A)
+            return e.ref(a, f"{ab}({c}) * {m} + ({r})" if trans else f"{ab}({r}) * {m} + ({c})")
+
+        X = lambda r: e.target(out, f"tri_b * {m * n} + ({r}) * {n} + tri_j")  # noqa: E731
+        rng = "tri_c = 0; tri_c < tri_r; ++tri_c" if forward else (
+            f"tri_c = tri_r + 1; tri_c < {m}; ++tri_c"
+        )  # fmt: skip
+        row = "tri_r0" if forward else f"{m - 1} - tri_r0"
+        div = "" if unit else f" / {A('tri_r', 'tri_r')}"
+        return [
+            e.declare(out),
+            f"for (int tri_b = 0; tri_b < {batch}; ++tri_b)",
+            f"for (int tri_j = 0; tri_j < {n}; ++tri_j)",
+            f"for (int tri_r0 = 0; tri_r0 < {m}; ++tri_r0) {{",
+            f"    const int tri_r = {row};",
+            f"    {ct} tri_s = {e.ref(b, f'tri_b * {m * n} + tri_r * {n} + tri_j')};",
+            f"    for (int {rng}) tri_s -= {A('tri_r', 'tri_c')} * {X('tri_c')};",
+            f"    {X('tri_r')} = tri_s{div};",
+            "}",
+        ]
+
+    p.stmt([out], [a, b], gen)
+    return [out]
+
+
+@_register("qr")
+def _qr(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """Householder QR with LAPACK's conventions (``geqrf`` + ``orgqr``: same signs)."""
+    (a,) = ins
+    if eqn.params.get("pivoting") or eqn.params.get("full_matrices"):
+        raise p.unsupported("only the reduced QR without pivoting is exported")
+    q, r = (p.new(var.aval) for var in eqn.outvars)
+    M, N = a.shape[-2:]
+    K = min(M, N)
+    batch = math.prod(a.shape[:-2])
+    work = Val((M * N,), a.dtype)
+    tau = Val((K,), a.dtype)
+
+    def gen(e: Emitter) -> list[str]:
+        fn = e.helper("qr", a.dtype)
+        return [
+            e.declare(q), e.declare(r),
+            f"for (int qr_b = 0; qr_b < {batch}; ++qr_b) {{",
+            f"    {e.ctype(a.dtype)} {e.name(work)}[{M * N}], {e.name(tau)}[{K}];",
+            f"    for (int i = 0; i < {M * N}; ++i) "
+            f"{e.name(work)}[i] = {e.ref(a, f'qr_b * {M * N} + i')};",
+            f"    {fn}({M}, {N}, {e.name(work)}, {e.name(tau)}, {e.name(q)} + qr_b * {M * K}, "
+            f"{e.name(r)} + qr_b * {K * N});",
+            "}",
+        ]  # fmt: skip
+
+    if q.size == 1 or r.size == 1:
+        raise p.unsupported("a 1 x 1 QR")
+    p.stmt([q, r], [a], gen)
+    return [q, r]
+
+
+@_register("scan")
+def _scan(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """A counted ``for`` loop: ``lax.fori_loop`` with bounds known when traced.
+
+    JAX writes such a loop as a scan without scanned inputs or stacked outputs; the loop runs
+    ``length`` passes over the carry. Any other scan is reported as unsupported.
+    """
+    prm = eqn.params
+    nc, ncarry = prm["num_consts"], prm["num_carry"]
+    if len(ins) != nc + ncarry or len(eqn.outvars) != ncarry:
+        raise p.unsupported(
+            "lax.scan over arrays (scanned inputs or stacked outputs) is not exported; "
+            "lax.fori_loop and lax.while_loop are, and a Python for loop is unrolled"
+        )
+    consts, init = ins[:nc], ins[nc:]
+    carried = [p.new(var.aval) for var in eqn.outvars]
+    body_stmts, res = p.block(prm["jaxpr"].jaxpr, prm["jaxpr"].consts, consts + carried)
+
+    def gen(e: Emitter) -> list[str]:
+        from ._assemble import render
+
+        lines = _declare_mutable(e, carried) + _assign_all(e, carried, init)
+        inner = render(e, body_stmts) + _assign_all(e, carried, res)
+        head = f"for (int scan_s = 0; scan_s < {int(prm['length'])}; ++scan_s) {{"
+        return lines + [head] + _indent(inner) + ["}"]
+
+    p.stmt(carried, ins, gen, blocks=[body_stmts])
+    return carried

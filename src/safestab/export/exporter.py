@@ -324,6 +324,36 @@ def _describe_controller(controller: Any) -> str:
     return "\n".join(lines)
 
 
+def _describe_filter(filt: Any) -> str:
+    """The problem a SafetyFilter solves, for the header."""
+    p = filt.params
+    k, n_clf = len(filt.cbfs), len(filt.clfs)
+    lines = [
+        f"Safety filter on system '{filt.system.name}': n_states = {filt.system.n_states}, "
+        f"n_inputs = {filt.system.n_inputs}; {k} CBF(s), {n_clf} CLF(s).",
+        "Solves min 1/2 (u - u_nom)' H (u - u_nom) + 1/2 m sum chi_j^2 over the CBF rows, the "
+        "CLF rows and the input limits exactly (a dual active-set method with a fixed "
+        "iteration bound); formula_status says SOLVED only where its KKT certificate holds.",
+        f"kappa = {p['kappa']!r}, rho = {p['rho']!r}, phi = {p['phi']!r}, "
+        f"varphi = {p['varphi']!r}; CLF slack weight = {filt.slack_weight!r}; "
+        f"H = {'identity' if filt.H is None else np.asarray(filt.H).tolist()}.",
+        "CBF rates beta = " + ", ".join(repr(cb.rate) for cb in filt.cbfs) + ".",
+    ]
+    if filt.u_min is not None:
+        lines.append(
+            f"Input limits u_min = {np.asarray(filt.u_min).tolist()}, "
+            f"u_max = {np.asarray(filt.u_max).tolist()} (inside the problem)."
+        )
+    else:
+        lines.append("No input limits.")
+    if filt.uncertainty is not None:
+        lines.append(
+            f"GP-robust rows (Lemma 3) from {type(filt.uncertainty).__name__}, "
+            f"beta = {np.asarray(filt.gp_beta).tolist()}."
+        )
+    return "\n".join(lines)
+
+
 def export_c(
     controller: Any,
     name: str = "controller",
@@ -336,8 +366,12 @@ def export_c(
 
     Parameters
     ----------
-    controller : UniversalController
-        The controller; its fused step ``controller.step_fn`` is traced for one state.
+    controller : UniversalController or SafetyFilter
+        The controller; its fused step ``controller.step_fn`` is traced for one state. A
+        :class:`~safestab.SafetyFilter` is exported with its solver (loops in C; at most
+        :data:`~safestab.formulas._dual_active_set.UNROLL` whitened coordinates are written
+        without LAPACK-style helpers, beyond that a Householder QR and triangular solves in
+        plain C).
     name : str
         Prefix of the C names: ``<name>_step``, ``<name>_info``, files ``<name>.c/.h``.
     out_dir : path, optional
@@ -365,7 +399,13 @@ def export_c(
             "export_c does not support controllers with run-time parameters (params=...); "
             "build the controller with the values fixed in its functions to export it"
         )
-    text = _describe_controller(controller)
+    from ..filters import SafetyFilter
+
+    text = (
+        _describe_filter(controller)
+        if isinstance(controller, SafetyFilter)
+        else _describe_controller(controller)
+    )
     if description:
         text += "\n" + description
     exported = export_function(

@@ -36,8 +36,12 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
 
     Parameters
     ----------
-    controller : UniversalController
-        The controller whose step produced ``out``.
+    controller : UniversalController or SafetyFilter
+        The controller whose step produced ``out``. For a filter, every real leaf's scale is
+        its largest magnitude over the N states: the solver's point is recomputed from its
+        final active set by one backward-stable projection, in C as in JAX, so the two agree
+        to rounding of the inputs' size where they end on the same active set (the integer
+        leaves, statuses and active sets, must be identical).
     out : ControlOutput
         The JAX step at ``states`` (leaves with a leading axis N).
     states : array of shape (N, n)
@@ -64,9 +68,11 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     (:meth:`~safestab.learning.FastGP.std_rounding_scale`, its variance is a difference) is
     included as well.
     """
-    from .. import Region, clf_cbf, clf_cbf_relaxed
+    from .. import Region, SafetyFilter, clf_cbf, clf_cbf_relaxed
     from ..certificates import lie_terms_point
 
+    if isinstance(controller, SafetyFilter):
+        return _largest_magnitudes(out)
     x = np.asarray(states, float)
     xj = jax.numpy.asarray(x)
     a, b, c, d = (np.asarray(t) for t in out.terms)
@@ -138,6 +144,16 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
         else:
             finite = np.abs(leaf[np.isfinite(leaf)])
             scales.append(np.asarray(finite.max() if finite.size else 0.0))
+    return scales
+
+
+def _largest_magnitudes(out: Any) -> list[np.ndarray]:
+    """Per leaf, its largest finite magnitude over the states (zero for integer leaves)."""
+    scales = []
+    for leaf in jax.tree_util.tree_leaves(out):
+        leaf = np.asarray(leaf)
+        finite = np.abs(leaf[np.isfinite(leaf)]) if leaf.dtype.kind == "f" else np.zeros(0)
+        scales.append(np.asarray(finite.max() if finite.size else 0.0))
     return scales
 
 

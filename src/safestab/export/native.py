@@ -13,6 +13,7 @@ import sys
 import sysconfig
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,8 @@ _SPEED_FLAGS = (
     "-funroll-loops",
 )
 _FLAG_CACHE: dict[tuple[str, bool], tuple[str, ...]] = {}
+#: Added when the compiler stops with an internal error (seen with GCC 12 on float steps).
+_FALLBACK_FLAGS = ["-fno-tree-loop-vectorize"]
 
 
 def native_flags(cc: str, *, march_native: bool = True) -> tuple[str, ...]:
@@ -199,7 +202,22 @@ class NativeFunction:
             exported.write(build)
             obj = build / f"{exported.name}.o"
             flags = [*native_flags(cc, march_native=march_native), "-fPIC"]
-            _run([cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)], build)
+            cmd = [cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)]
+            try:
+                _run(cmd, build)
+            except CompilationError as exc:
+                # GCC 12 stops with an internal error on some large float steps (a solver's
+                # loops) when it vectorises loops for this CPU; without loop vectorisation
+                # it compiles them (the results are the same: no flag here changes one)
+                if "internal compiler error" not in str(exc):
+                    raise
+                _run(cmd[:1] + _FALLBACK_FLAGS + cmd[1:], build)
+                warnings.warn(
+                    f"{cc} failed with an internal compiler error on {exported.name}.c; "
+                    f"compiled it again with {' '.join(_FALLBACK_FLAGS)}",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
             module = f"_safestab_native_{exported.name}_{digest}"
             try:
                 self._ffi, self._lib = _load_api_module(exported, cc, obj, build, module)
@@ -295,13 +313,14 @@ def compile_native(
 class NativeController:
     """A controller's exported step, compiled and called through cffi.
 
-    Same ``step`` and ``__call__`` as :class:`~safestab.UniversalController`, for one state
-    of shape (n,) or a batch (..., n) (a loop in C); outputs are NumPy arrays. Results equal
-    the JAX step to rounding (see docs/export.md for the measured agreement).
+    Same ``step`` and ``__call__`` as :class:`~safestab.UniversalController` (or
+    :class:`~safestab.SafetyFilter`), for one state of shape (n,) or a batch (..., n) (a loop
+    in C); outputs are NumPy arrays. Results equal the JAX step to rounding (see
+    docs/export.md for the measured agreement).
 
     Parameters
     ----------
-    controller : UniversalController
+    controller : UniversalController or SafetyFilter
     name : str
         Prefix of the C names.
     precision : {"double", "float"}
@@ -338,7 +357,10 @@ class NativeController:
         compiler: str | None = None,
         march_native: bool = True,
     ) -> None:
+        from ..filters import SafetyFilter
+
         self.controller = controller
+        self._is_filter = isinstance(controller, SafetyFilter)
         self.system = controller.system
         self.n_states = controller.system.n_states
         self.n_inputs = controller.system.n_inputs
@@ -368,11 +390,13 @@ class NativeController:
         x : array of shape (..., n)
         strict : bool
             Raise :class:`~safestab.errors.InfeasibleError` where the conditions are
-            incompatible or the applied input violates the CBF condition.
+            incompatible or the applied input violates the CBF condition (for a
+            :class:`~safestab.SafetyFilter`, as its own ``step(strict=True)``: also where a
+            fallback was used or the solver did not certify its input).
 
         Returns
         -------
-        ControlOutput
+        ControlOutput or FilterOutput
             With NumPy arrays as leaves.
 
         Raises
@@ -393,7 +417,11 @@ class NativeController:
             check_finite("x", x)
         leaves = [leaf.reshape(batch + leaf.shape[1:]) for leaf in leaves]
         out = self.exported.treedef.unflatten(leaves)
-        if strict:
+        if strict and self._is_filter:
+            from ..filters import raise_where_failed
+
+            raise_where_failed(out)
+        elif strict:
             named = dict(zip(self._names, leaves, strict=True))
             region, cbf_ok = named["region"], named["cbf_satisfied"]
             bad = (region == Region.INCOMPATIBLE) | ~cbf_ok

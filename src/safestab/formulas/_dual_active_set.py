@@ -281,9 +281,12 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
 
     # the point from the final active set alone: projection, then one refinement step
     used = idx < q
-    rows = Gn[jnp.where(used, act, 0)]
-    rows = jnp.where(used[:, None], rows, 0.0)
-    rhs = jnp.where(used, rn[jnp.where(used, act, 0)], 0.0)
+    # the active rows by a one-hot product (exact: one term per entry), not by a gather whose
+    # indices differ between problems (and which the C export cannot write as a table)
+    onehot = (act[:, None] == rows_idx[None, :]) & used[:, None]
+    pick = onehot.astype(G.dtype)
+    rows = pick @ Gn
+    rhs = pick @ rn
     Q1 = jnp.where(used[None, :], Q, 0.0)
     y = _upper_t_solve(R, jnp.where(used, rhs - rows @ w0, 0.0))
     w_star = w0 + Q1 @ y
@@ -323,6 +326,5 @@ def solve_dual(G: Any, r: Any, w0: Any, use: Any, max_iter: int) -> DualSolution
     )
     certified = optimal & primal_ok & dual_ok & stat_ok & tight_ok
     lam_act = jnp.maximum(lam_act, 0.0)
-    onehot = (act[:, None] == jnp.arange(n_rows)[None, :]) & used[:, None]
     mult = jnp.sum(jnp.where(onehot, lam_act[:, None], 0.0), axis=0) / safe
     return DualSolution(w, mult, in_set, status.astype(jnp.int32), it, cond_est, certified)

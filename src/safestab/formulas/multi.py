@@ -220,12 +220,30 @@ RELAXED_CHUNK = 256
 RELAXED_CHUNK_NUMBERS = 2**22
 
 
+def _map(fn, flat: int):
+    """``jax.vmap(fn)`` over ``flat`` problems; for one problem, ``fn`` itself.
+
+    One problem is the common case of a control step: without ``vmap``, the solver's
+    ``lax.cond`` steps (add a row or drop one) stay branches and only one of them runs
+    (under ``vmap`` both run and one is selected), and the C export writes them as ``if``.
+    """
+    if flat != 1:
+        return jax.vmap(fn)
+    tree_map = jax.tree_util.tree_map
+
+    def one(*args):
+        out = fn(*tree_map(lambda v: v[0], args))
+        return tree_map(lambda v: v[None], out)
+
+    return one
+
+
 def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     """Phase 3 for the problems with ``need``, in chunks; ``out`` holds the other answers."""
     flat, (k, m) = need.shape[0], d.shape[-2:]
     if flat == 1:  # one problem: no gathering (and no index that depends on the data)
-        sol, u, ok = jax.vmap(
-            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
+        sol, u, ok = _map(
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter), 1
         )(pr, b, d, lo, hi, need)
         return sol._replace(w=sol.w[:, :m]), u, ok
     per_problem = (pr.r.shape[-1] + m + k) * (m + k)
@@ -279,16 +297,16 @@ def multi_kernel(
     a, b, c, d = bc(a, (p,)), bc(b, (p, m)), bc(c, (k,)), bc(d, (k, m))
     params = [bc(v, ()) for v in (kappa, rho, phi, varphi)]
     sw, lo, hi = bc(inv_sqrt_slack, (p,)), bc(lo, (m,)), bc(hi, (m,))
-    pr = jax.vmap(_setup)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
-    full, u1, chi1, ok1 = jax.vmap(
-        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter)
+    pr = _map(_setup, flat)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
+    full, u1, chi1, ok1 = _map(
+        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter), flat
     )(pr, b, d, sw, lo, hi)
     infeasible = full.status == INFEASIBLE
     need2 = infeasible & (p > 0) & (inv_sqrt_slack is None)
 
     def phase2(_):
-        return jax.vmap(
-            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter)
+        return _map(
+            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter), flat
         )(pr, b, d, lo, hi, need2)
 
     skipped2 = (full, u1, jnp.zeros(flat, bool))

@@ -314,6 +314,39 @@ for _name in _DATA_OPERANDS:
     RULES[_name] = _movement
 
 
+@_register("dynamic_slice")
+def _dynamic_slice(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """A slice at start indices computed at run time (clamped into range, as in XLA)."""
+    x, starts = ins[0], ins[1:]
+    if all(v.const is not None for v in starts):
+        return _movement(p, eqn, ins)
+    sizes = tuple(int(s) for s in eqn.params["slice_sizes"])
+    out = p.new(eqn.outvars[0].aval)
+
+    def gen(e: Emitter) -> list[str]:
+        xs, os_ = _strides(x.shape), _strides(sizes)
+        lines = [e.declare(out), "{"]
+        terms = []
+        for d, (dim, size) in enumerate(zip(x.shape, sizes, strict=True)):
+            start = e.ref(starts[d], 0)
+            hi = dim - size
+            lines.append(
+                f"    const long long dsl_{d} = ({start}) < 0 ? 0 : (({start}) > {hi} ? {hi} : "
+                f"({start}));"
+            )
+            if size > 1:
+                terms.append(f"(dsl_{d} + i{d}) * {xs[d]}" if xs[d] != 1 else f"dsl_{d} + i{d}")
+            else:
+                terms.append(f"dsl_{d} * {xs[d]}" if xs[d] != 1 else f"dsl_{d}")
+        loops = [(f"i{d}", size) for d, size in enumerate(sizes)]
+        tgt = e.target(out, _index([(f"i{d}", os_[d]) for d, s in enumerate(sizes) if s > 1]))
+        body = [f"{tgt} = {e.ref(x, ' + '.join(terms) or '0')};"]
+        return lines + _indent(_nest(loops, body)) + ["}"]
+
+    p.stmt([out], ins, gen)
+    return [out]
+
+
 def _copy_from(p: Program, aval: Any, lab: np.ndarray, starts: np.ndarray, owners) -> Val:
     n = lab.size
     if n == 0:

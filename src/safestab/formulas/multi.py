@@ -168,25 +168,25 @@ def _conditions_hold(pr: _Problem, b, d, u, chi, with_clf: bool) -> Any:
     return ok
 
 
-def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter):
+def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter, batched=True):
     """Phase 1: the whole problem. Returns (solution, u, chi, certified)."""
     p, m = b.shape
-    sol = solve_dual(pr.Gw, pr.r, pr.w0, jnp.ones(pr.r.shape[0], bool), max_iter)
+    sol = solve_dual(pr.Gw, pr.r, pr.w0, jnp.ones(pr.r.shape[0], bool), max_iter, batched)
     u = _input(pr, sol.w, m, lo, hi)
     chi = sol.w[m:] * inv_sqrt_slack if inv_sqrt_slack is not None else jnp.zeros(p)
     return sol, u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
 
 
-def _phase_no_clf(pr: _Problem, b, d, lo, hi, run, max_iter):
+def _phase_no_clf(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
     """Phase 2: hard CLFs dropped (safety first)."""
     p, m = b.shape
     use = jnp.arange(pr.r.shape[0]) >= p
-    sol = solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0))
+    sol = solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0), batched)
     u = _input(pr, sol.w, m, lo, hi)
     return sol, u, sol.certified & _conditions_hold(pr, b, d, u, jnp.zeros(p), False)
 
 
-def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter):
+def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
     """Phase 3: limits kept, CBF rows relaxed by slacks, CLF rows dropped.
 
     The slack of CBF ``i`` enters its normalised whitened row with weight
@@ -207,7 +207,7 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter):
     G3 = jnp.concatenate([Gu, relax], axis=1)
     w03 = jnp.concatenate([pr.w0[:m], jnp.zeros(k)])
     use = jnp.arange(n_rows) >= p
-    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0))
+    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0), batched)
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 
@@ -243,7 +243,8 @@ def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     flat, (k, m) = need.shape[0], d.shape[-2:]
     if flat == 1:  # one problem: no gathering (and no index that depends on the data)
         sol, u, ok = _map(
-            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter), 1
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter, False),
+            1,
         )(pr, b, d, lo, hi, need)
         return sol._replace(w=sol.w[:, :m]), u, ok
     per_problem = (pr.r.shape[-1] + m + k) * (m + k)
@@ -299,14 +300,16 @@ def multi_kernel(
     sw, lo, hi = bc(inv_sqrt_slack, (p,)), bc(lo, (m,)), bc(hi, (m,))
     pr = _map(_setup, flat)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
     full, u1, chi1, ok1 = _map(
-        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter), flat
+        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter, flat != 1),
+        flat,
     )(pr, b, d, sw, lo, hi)
     infeasible = full.status == INFEASIBLE
     need2 = infeasible & (p > 0) & (inv_sqrt_slack is None)
 
     def phase2(_):
         return _map(
-            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter), flat
+            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter, flat != 1),
+            flat,
         )(pr, b, d, lo, hi, need2)
 
     skipped2 = (full, u1, jnp.zeros(flat, bool))

@@ -54,11 +54,15 @@ _SIZEOF = {"double": 8, "float": 4, "int": 4, "long long": 8, "unsigned char": 1
 
 
 def stack_bytes(e: Emitter, stmts: Sequence[Stmt]) -> int:
-    """Bytes of the run-time values the statements declare, nested blocks included."""
+    """Bytes of the run-time values the statements declare, nested blocks and scratch included.
+
+    An upper bound on the temporaries: every value of every block counted as if all were live
+    at once (the compiler overlaps them).
+    """
     total = 0
     for st in stmts:
         outs_rt = [v for v in st.outs if v.const is None and v.base is None]
-        total += sum(v.size * _SIZEOF.get(e.ctype(v.dtype), 8) for v in outs_rt)
+        total += sum(v.size * _SIZEOF.get(e.ctype(v.dtype), 8) for v in outs_rt + list(st.scratch))
         total += sum(stack_bytes(e, block) for block in st.blocks)
     return total
 

@@ -89,9 +89,9 @@ class Val:
 class Stmt:
     """Run-time code for one equation: ``gen(emitter)`` returns its C lines."""
 
-    __slots__ = ("prim", "where", "outs", "ins", "gen", "blocks")
+    __slots__ = ("prim", "where", "outs", "ins", "gen", "blocks", "scratch")
 
-    def __init__(self, prim: str, where: str, outs, ins, gen, blocks=()) -> None:
+    def __init__(self, prim: str, where: str, outs, ins, gen, blocks=(), scratch=()) -> None:
         self.prim = prim
         self.where = where
         self.outs: list[Val] = list(outs)
@@ -99,6 +99,9 @@ class Stmt:
         self.gen: Callable[[Any], list[str]] = gen
         #: Nested statement lists (a loop's body, a branch), written by ``gen`` itself.
         self.blocks: tuple[list[Stmt], ...] = tuple(blocks)
+        #: Values the C code may hold besides the outputs (staged copies, work arrays), at
+        #: most these sizes: counted in the stack bound.
+        self.scratch: tuple[Val, ...] = tuple(scratch)
 
 
 def where_from(eqn: Any) -> str:
@@ -148,9 +151,14 @@ class Program:
         return Val(shape, dtype, base=src)
 
     def stmt(
-        self, outs: Sequence[Val], ins: Sequence[Val], gen: Callable, blocks: Sequence = ()
+        self,
+        outs: Sequence[Val],
+        ins: Sequence[Val],
+        gen: Callable,
+        blocks: Sequence = (),
+        scratch: Sequence[Val] = (),
     ) -> None:
-        st = Stmt(self._prim, self._where, outs, ins, gen, blocks)
+        st = Stmt(self._prim, self._where, outs, ins, gen, blocks, scratch)
         for v in outs:
             v.producer = st
         self.stmts.append(st)
@@ -253,6 +261,10 @@ def _cse_key(eqn: Any, ins: list[Val]) -> Any:
             parts.append(id(v))
         else:
             parts.append((v.dtype.str, v.shape, v.const.tobytes()))
+    for p in eqn.params.values():  # a nested jaxpr's closed-over constants are not in repr
+        for sub in p if isinstance(p, tuple | list) else (p,):
+            if getattr(sub, "consts", None):
+                return None
     try:
         params = tuple(sorted((k, repr(p)) for k, p in eqn.params.items()))
     except Exception:  # pragma: no cover - an unprintable parameter

@@ -328,7 +328,7 @@ def _dynamic_slice(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         lines = [e.declare(out), "{"]
         terms = []
         for d, (dim, size) in enumerate(zip(x.shape, sizes, strict=True)):
-            start = e.ref(starts[d], 0)
+            start = f"(long long){e.ref(starts[d], 0)}"  # signed, whatever its type
             hi = dim - size
             lines.append(
                 f"    const long long dsl_{d} = ({start}) < 0 ? 0 : (({start}) > {hi} ? {hi} : "
@@ -623,7 +623,7 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         k = int(np.clip(int(index.const), 0, len(branches) - 1))
         return p.run(branches[k].jaxpr, branches[k].consts, args)
     # only the branch taken runs: if / else if / else (an index out of range is clamped, as
-    # in lax.cond)
+    # lax.switch does before it binds cond, and as the constant index above)
     outs = [p.new(var.aval) for var in eqn.outvars]
     blocks = [p.block(b.jaxpr, b.consts, args) for b in branches]
 
@@ -633,6 +633,9 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         c = e.ref(index, 0)
         lines = _declare_mutable(e, outs)
         last = len(blocks) - 1
+        if last == 0:  # one branch: it always runs
+            stmts, res = blocks[0]
+            return lines + ["{"] + _indent(render(e, stmts) + _assign_all(e, outs, res)) + ["}"]
         for k, (stmts, res) in enumerate(blocks):
             head = (
                 f"if ({c} <= 0) {{" if k == 0
@@ -641,7 +644,7 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             lines += [head] + _indent(render(e, stmts) + _assign_all(e, outs, res))
         return lines + ["}"]
 
-    p.stmt(outs, ins, gen, blocks=[b[0] for b in blocks])
+    p.stmt(outs, ins, gen, blocks=[b[0] for b in blocks], scratch=outs)
     return outs
 
 
@@ -669,7 +672,7 @@ def _while(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         inner += render(e, body_stmts) + _assign_all(e, carried, res)
         return lines + ["for (;;) {"] + _indent(inner) + ["}"]
 
-    p.stmt(carried, ins, gen, blocks=[cond_stmts, body_stmts])
+    p.stmt(carried, ins, gen, blocks=[cond_stmts, body_stmts], scratch=carried)
     return carried
 
 
@@ -762,7 +765,7 @@ def _qr(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
 
     if q.size == 1 or r.size == 1:
         raise p.unsupported("a 1 x 1 QR")
-    p.stmt([q, r], [a], gen)
+    p.stmt([q, r], [a], gen, scratch=[work, tau])
     return [q, r]
 
 
@@ -792,5 +795,5 @@ def _scan(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         head = f"for (int scan_s = 0; scan_s < {int(prm['length'])}; ++scan_s) {{"
         return lines + [head] + _indent(inner) + ["}"]
 
-    p.stmt(carried, ins, gen, blocks=[body_stmts])
+    p.stmt(carried, ins, gen, blocks=[body_stmts], scratch=carried)
     return carried

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import check_finite
-from ..errors import CompilationError, DimensionError, InfeasibleError
+from ..errors import CompilationError, DimensionError, InfeasibleError, ModelError
 from .exporter import C_FLAGS, ExportedC, export_c
 
 __all__ = ["NativeController", "NativeFunction", "compile_native", "find_compiler", "native_flags"]
@@ -417,10 +417,14 @@ class NativeController:
             check_finite("x", x)
         leaves = [leaf.reshape(batch + leaf.shape[1:]) for leaf in leaves]
         out = self.exported.treedef.unflatten(leaves)
-        if strict and self._is_filter:
+        if self._is_filter:
+            from ..controllers import StepStatus
             from ..filters import raise_where_failed
 
-            raise_where_failed(out)
+            if np.any(np.asarray(out.status) == StepStatus.NEGATIVE_STD):  # as the JAX step
+                raise ModelError("the uncertainty model returned a negative standard deviation")
+            if strict:
+                raise_where_failed(out)
         elif strict:
             named = dict(zip(self._names, leaves, strict=True))
             region, cbf_ok = named["region"], named["cbf_satisfied"]

@@ -276,3 +276,48 @@ def test_tiny_slack_weight_and_huge_rho_stay_finite_or_are_rejected():
     res = clf_cbf(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], **params)
     u_ref, _, _, _ = mpref.solve(2.0, [1.0, 0.5], 0.5, [0.3, 1.0], **params)
     assert mpref.rel_error(np.asarray(res.u), u_ref) <= 1e-12
+
+
+# ------------------------------------------------------------------------------------------
+# issue 27, section 4: bad inputs named before any work
+
+
+def test_controller_without_a_clf_is_a_named_error():
+    system = ControlAffineSystem(lambda x: jnp.zeros(1), lambda x: jnp.ones((1, 1)), 1)
+    cbf = CBF(lambda x: 1.0 - x[0], beta=1.0)
+    kw = dict(kappa=0.1, rho=0.1, phi=0.0, varphi=0.0)
+    with pytest.raises(InputTypeError, match="clf must be a CLF, got NoneType.*SafetyFilter"):
+        UniversalController(system, None, cbf, **kw)
+    with pytest.raises(InputTypeError, match="cbf must be a CBF, got list"):
+        UniversalController(system, CLF(lambda x: x[0] ** 2, lam=1.0), [cbf], **kw)
+
+
+def test_a_preset_of_another_kind_is_named_as_such():
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    res = CliRunner().invoke(app, ["mc", "--scenario", "obstacle", "--trials", "1"])
+    assert res.exit_code == 2
+    assert "'obstacle' is a preset of another kind" in res.output
+    assert "neither a preset" not in res.output
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (dict(precision="quad"), "precision must be 'double' or 'float', got 'quad'"),
+        (dict(name="bad name;"), "name must be a C identifier"),
+        (dict(n_inducing=0), "n_inducing must be an integer >= 1, got 0"),
+    ],
+)
+def test_export_options_are_checked_before_the_data(option, message, tmp_path, monkeypatch):
+    import safestab.scenarios.acc_study as acc_study
+    from safestab.export.scenario_export import export_scenario
+
+    def no_data(*args, **kwargs):  # the check must come first: fail if data are collected
+        raise AssertionError("data collected before the options were checked")
+
+    monkeypatch.setattr(acc_study, "collect_study_data", no_data)
+    with pytest.raises(ParameterError, match=re.escape(message)):
+        export_scenario("stress", tmp_path / "out", controller="gp", **option)

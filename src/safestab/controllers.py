@@ -18,7 +18,14 @@ from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
-from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
+from .errors import (
+    DimensionError,
+    InfeasibleError,
+    InputTypeError,
+    ModelError,
+    NonFiniteError,
+    ParameterError,
+)
 from .formulas import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL, Region
 from .formulas._checks import check_box, check_params
 from .formulas._kernels import (
@@ -207,6 +214,15 @@ class UniversalController:
     ) -> None:
         if formula not in ("combined", "sontag", "cbf"):
             raise ParameterError(f"formula must be 'combined', 'sontag' or 'cbf', got {formula!r}")
+        if not isinstance(clf, CLF):
+            raise InputTypeError(
+                f"clf must be a CLF, got {type(clf).__name__}; for a controller with barriers "
+                "only, use SafetyFilter(system, cbfs) (no CLF, any number of CBFs)"
+            )
+        if not isinstance(cbf, CBF):
+            raise InputTypeError(
+                f"cbf must be a CBF, got {type(cbf).__name__} (several: SafetyFilter)"
+            )
         if formula != "combined" and slack_weight is not None:
             raise ParameterError(f"slack_weight applies to the combined formula, not {formula!r}")
         check_params((), kappa=kappa, rho=rho, parallel_rtol=parallel_rtol)

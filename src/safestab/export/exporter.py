@@ -124,7 +124,8 @@ class ExportedC:
         return paths
 
 
-def _check_name(name: str) -> str:
+def check_name(name: str) -> str:
+    """``name`` if it is a C identifier of at most 41 characters; else ParameterError."""
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,40}", name):
         raise ParameterError(
             f"name must be a C identifier (letters, digits, underscores; at most 41 "
@@ -133,7 +134,8 @@ def _check_name(name: str) -> str:
     return name
 
 
-def _check_precision(precision: str) -> str:
+def check_precision(precision: str) -> str:
+    """``precision`` if it is ``'double'`` or ``'float'``; else ParameterError."""
     if precision not in ("double", "float"):
         raise ParameterError(f"precision must be 'double' or 'float', got {precision!r}")
     return precision
@@ -239,8 +241,8 @@ def export_function(
     DimensionError
         If ``n_states`` is not a positive integer.
     """
-    _check_name(name)
-    _check_precision(precision)
+    check_name(name)
+    check_precision(precision)
     if not isinstance(n_states, int | np.integer) or int(n_states) < 1:
         raise DimensionError(f"n_states must be a positive integer, got {n_states!r}")
     n = int(n_states)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CompilationError, ParameterError
-from .exporter import export_c
+from .exporter import check_name, check_precision, export_c
 from .harness import comparison_scales, write_harness
 from .native import find_compiler
 
@@ -120,6 +120,15 @@ def export_scenario(
         raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
     if int(cases) < 1:
         raise ParameterError(f"cases must be >= 1, got {cases!r}")
+    # every option checked before the data collection and the GP fit (minutes)
+    check_name(name)
+    check_precision(precision)
+    if (
+        isinstance(n_inducing, bool)
+        or not isinstance(n_inducing, int | np.integer)
+        or n_inducing < 1
+    ):
+        raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
     out = Path(out)
     _check_writable(out)
     sc = load_scenario(scenario)

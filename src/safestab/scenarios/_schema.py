@@ -337,6 +337,12 @@ def read_document(
     else:
         path = Path(name_or_path)
         if not path.is_file():
+            other = resources.files(package).joinpath(f"{name_or_path}.toml")
+            if str(name_or_path).isidentifier() and other.is_file():
+                raise ScenarioError(
+                    f"scenario {str(name_or_path)!r} is a preset of another kind; this command "
+                    f"takes the presets {presets} or a TOML file of its kind"
+                )
             raise ScenarioError(
                 f"scenario {str(name_or_path)!r} is neither a preset {presets} nor a file"
             )

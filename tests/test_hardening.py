@@ -321,3 +321,30 @@ def test_export_options_are_checked_before_the_data(option, message, tmp_path, m
     monkeypatch.setattr(acc_study, "collect_study_data", no_data)
     with pytest.raises(ParameterError, match=re.escape(message)):
         export_scenario("stress", tmp_path / "out", controller="gp", **option)
+
+
+def test_collect_data_refuses_a_diverging_system_and_a_short_box():
+    from safestab import NonFiniteError
+    from safestab.learning import collect_data
+
+    blowup = ControlAffineSystem(lambda x: x**3, lambda x: jnp.eye(2), 2)  # finite escape time
+    kw = dict(u_low=-1.0, u_high=1.0, n_samples=40, horizon=4.0, rate=5.0)
+    with pytest.raises(NonFiniteError, match=r"of 40 samples are not finite .*diverged"):
+        collect_data(blowup, blowup, x0=([2.0, 2.0], [3.0, 3.0]), **kw)
+    stable = ControlAffineSystem(lambda x: -x, lambda x: jnp.eye(2), 2)
+    with pytest.raises(DimensionError, match=r"x0 must be .*shape \(2,\), got \[\(1,\), \(1,\)\]"):
+        collect_data(stable, stable, x0=([0.0], [1.0]), **kw)
+    with pytest.raises(DimensionError, match=r"u_low must be a scalar or have shape \(2,\)"):
+        collect_data(stable, stable, x0=(0.0, 1.0), **{**kw, "u_low": [-1.0, -1.0, -1.0]})
+    with pytest.raises(NonFiniteError, match="x0 high"):
+        collect_data(stable, stable, x0=(0.0, np.inf), **kw)
+
+
+def test_gp_fit_names_huge_and_non_real_data():
+    from safestab.learning import GaussianProcessModel
+
+    x = np.random.default_rng(0).normal(size=(30, 1))
+    with pytest.raises(ParameterError, match=r"y has entries up to 1e\+300 .*rescale"):
+        GaussianProcessModel().fit(x, np.full((30, 1), 1e300))
+    with pytest.raises(InputTypeError, match="x must be a real number or array, got dtype string"):
+        GaussianProcessModel().fit(x.astype(str), x)

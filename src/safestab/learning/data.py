@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validation import check_finite, check_scalar_range
-from ..errors import DimensionError, ParameterError
+from ..errors import DimensionError, NonFiniteError, ParameterError
 from ..simulation import rk4_step
 from ..systems import ControlAffineSystem
 from ._checks import check_seed
@@ -82,12 +82,18 @@ def _x0_sampler(x0: Any, n_states: int) -> Callable[[jax.Array, int], jax.Array]
     if callable(x0):
         return x0
     try:
-        low, high = (np.broadcast_to(np.asarray(v, float), (n_states,)) for v in x0)
+        pair = [np.asarray(v, float) for v in x0]
     except (TypeError, ValueError):
+        pair = []
+    if len(pair) != 2 or any(v.shape not in ((), (n_states,)) for v in pair):
+        got = [v.shape for v in pair] if len(pair) == 2 else repr(x0)
         raise DimensionError(
             f"x0 must be a sampler (key, count) -> (count, {n_states}) or a pair (low, high) "
-            f"of arrays broadcastable to ({n_states},)"
-        ) from None
+            f"of scalars or arrays of shape ({n_states},), got {got}"
+        )
+    low, high = (np.broadcast_to(v, (n_states,)) for v in pair)
+    check_finite("x0 low", low)
+    check_finite("x0 high", high)
     if np.any(low > high):
         raise ParameterError(
             f"x0 low must be <= high, got low={low.tolist()}, high={high.tolist()}"
@@ -169,7 +175,11 @@ def collect_data(
         an unknown excitation, ``"controller"`` without a controller, or a ``seed`` that is not
         an integer in ``[0, 2**32 - 1]``.
     DimensionError
-        If the two systems' dimensions differ.
+        If the two systems' dimensions differ, or ``x0``'s bounds or ``u_low``/``u_high`` are
+        neither scalars nor of the state's (input's) shape.
+    NonFiniteError
+        If a bound is not finite, or the true system diverged (a recorded state or
+        derivative is NaN or inf): no data set with non-finite entries is returned.
     """
     seed = check_seed("seed", seed)
     n, m = nominal.n_states, nominal.n_inputs
@@ -197,6 +207,9 @@ def collect_data(
         raise ParameterError(
             f"derivative must be 'exact' or 'finite_difference', got {derivative!r}"
         )
+    for name, v in (("u_low", u_low), ("u_high", u_high)):
+        if np.shape(v) not in ((), (m,)):
+            raise DimensionError(f"{name} must be a scalar or have shape ({m},), got {np.shape(v)}")
     low = np.broadcast_to(np.asarray(u_low, float), (m,))
     high = np.broadcast_to(np.asarray(u_high, float), (m,))
     check_finite("u_low", low)
@@ -259,6 +272,15 @@ def collect_data(
         for a in (xs, us, xdots, ts)
     ]
     x, u, xdot, t = flat
+    traj = np.repeat(np.arange(n_traj), per_traj)[:n_samples]
+    bad = ~(np.isfinite(x).all(1) & np.isfinite(xdot).all(1))
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise NonFiniteError(
+            f"collect_data: {int(bad.sum())} of {len(x)} samples are not finite (the first in "
+            f"trajectory {int(traj[first])} at t = {float(t[first]):g} s): the true system "
+            "diverged under the excitation; shorten horizon, narrow x0 or the input range"
+        )
     f_nom = np.asarray(nominal.drift(jnp.asarray(x)))
     g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
     e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
@@ -266,5 +288,4 @@ def collect_data(
     noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
         np.asarray(noise_std, float), (n,)
     )
-    traj = np.repeat(np.arange(n_traj), per_traj)[:n_samples]
     return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t, trajectory=traj)

@@ -22,7 +22,7 @@ import scipy.optimize
 from jax.scipy.linalg import cho_solve, solve_triangular
 from tinygp import GaussianProcess
 
-from .._validation import check_finite, check_scalar_range, is_concrete
+from .._validation import check_finite, check_real, check_scalar_range, is_concrete
 from ..errors import (
     ConvergenceWarning,
     DataWarning,
@@ -53,6 +53,9 @@ DEFAULT_JITTER = 1e-10
 #: rule of thumb, not a theorem (with 5 rows for 5 hyperparameters the ACC fit covered 21 %
 #: of held-out states at beta = 2).
 MIN_ROWS_PER_HYPERPARAMETER = 5
+#: Largest data magnitude :meth:`GaussianProcessModel.fit` accepts: the fit squares the data
+#: (variances, squared distances), which overflow float64 beyond about 1e154.
+MAX_DATA_MAGNITUDE = 1e150
 #: Rows (at most) of the leave-one-out check run after every fit.
 LOO_ROWS = 64
 #: A leave-one-out coverage at 2 predictive standard deviations below this raises a
@@ -317,8 +320,10 @@ class GaussianProcessModel:
         NonFiniteError
             If ``x`` or a learned column of ``y`` contains NaN or inf.
         ParameterError
-            If there are too few samples for the hyperparameters, or ``seed`` or
-            ``hyper_subset`` is invalid.
+            If there are too few samples for the hyperparameters, ``seed`` or
+            ``hyper_subset`` is invalid, or the data exceed :data:`MAX_DATA_MAGNITUDE`.
+        InputTypeError
+            If ``x`` or ``y`` is not real (strings, complex, objects).
         NumericalError
             If every start fails or the Cholesky factorisation fails.
 
@@ -342,6 +347,8 @@ class GaussianProcessModel:
         zero-mean prior must explain the offset with its amplitude).
         """
         seed = check_seed("seed", seed)
+        check_real("x", x)
+        check_real("y", y)
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         if x.ndim != 2:
@@ -354,6 +361,15 @@ class GaussianProcessModel:
         comps = _components(components, n)
         check_finite("x", x)
         check_finite("y", y[:, list(comps)])  # skipped columns are never read
+        for name, arr in (("x", x), ("y", y[:, list(comps)])):
+            # the fit squares the data (variances, kernel distances): beyond 1e150 they overflow
+            big = float(np.max(np.abs(arr))) if arr.size else 0.0
+            if big > MAX_DATA_MAGNITUDE:
+                raise ParameterError(
+                    f"{name} has entries up to {big:.3g} in magnitude; their squares overflow "
+                    f"float64 (the fit needs |{name}| <= {MAX_DATA_MAGNITUDE:g}): rescale the "
+                    "data, e.g. to units in which the values are of order one"
+                )
         if hyper_subset is not None and (
             isinstance(hyper_subset, bool)
             or not isinstance(hyper_subset, int | np.integer)

@@ -348,3 +348,12 @@ def test_gp_fit_names_huge_and_non_real_data():
         GaussianProcessModel().fit(x, np.full((30, 1), 1e300))
     with pytest.raises(InputTypeError, match="x must be a real number or array, got dtype string"):
         GaussianProcessModel().fit(x.astype(str), x)
+
+
+def test_simulate_names_a_safety_filter():
+    from safestab import SafetyFilter
+
+    system = ControlAffineSystem(lambda x: jnp.zeros(1), lambda x: jnp.ones((1, 1)), 1)
+    filt = SafetyFilter(system, CBF(lambda x: 1.0 - x[0], beta=1.0))
+    with pytest.raises(InputTypeError, match="simulate takes a UniversalController, got Safety"):
+        simulate(filt, np.zeros(1), t_final=1.0, dt=0.1)

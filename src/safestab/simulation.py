@@ -257,6 +257,9 @@ def simulate(
         shape (n,).
     ModelError
         If the uncertainty model returned a negative standard deviation during the run.
+    InputTypeError
+        If ``controller`` is not a :class:`~safestab.UniversalController` (a
+        :class:`~safestab.SafetyFilter` is stepped in the caller's own loop for now).
     NonFiniteError, InfeasibleError
         With ``strict=True``, as above.
 
@@ -266,6 +269,12 @@ def simulate(
     records status ``NONFINITE_STATE`` from that step on, and :meth:`Trajectory.failure_summary`
     names the first one.
     """
+    if not isinstance(controller, UniversalController):
+        raise InputTypeError(
+            f"simulate takes a UniversalController, got {type(controller).__name__}; a "
+            "SafetyFilter's trajectory has a value per barrier, which this Trajectory does not "
+            "hold yet: run its step_fn in your own loop (jax.lax.scan), as simulate_swarm does"
+        )
     for name, value in (("t_final", t_final), ("dt", dt)):
         check_real(name, value)
         if np.ndim(value) != 0:

@@ -357,3 +357,13 @@ def test_simulate_names_a_safety_filter():
     filt = SafetyFilter(system, CBF(lambda x: 1.0 - x[0], beta=1.0))
     with pytest.raises(InputTypeError, match="simulate takes a UniversalController, got Safety"):
         simulate(filt, np.zeros(1), t_final=1.0, dt=0.1)
+
+
+def test_mc_help_keeps_its_bracketed_words():
+    from typer.testing import CliRunner
+
+    from safestab.cli import app
+
+    res = CliRunner().invoke(app, ["mc", "--help"], env={"COLUMNS": "120"})
+    assert res.exit_code == 0
+    assert "TOML file with a [montecarlo] table" in res.output  # rich markup ate "[montecarlo]"

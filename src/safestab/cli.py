@@ -398,7 +398,9 @@ def export_cmd(
 
 @app.command("mc")
 def mc(
-    scenario: str = typer.Option("stress", help="A preset or a TOML file with [montecarlo]."),
+    scenario: str = typer.Option(
+        "stress", help="A preset or a TOML file with a \\[montecarlo] table."
+    ),
     trials: int | None = typer.Option(None, help="Number of trials N (default: the file's)."),
     datasets: int | None = typer.Option(None, help="Independent data sets K (default: file's)."),
     backend: str = typer.Option("local", help="'local' or 'ray'."),

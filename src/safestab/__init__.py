@@ -1,12 +1,23 @@
 """safestab: safe stabilization of control-affine systems under model uncertainty.
 
 Importing safestab switches JAX to 64-bit floats (``jax_enable_x64``): every numerical routine
-here is written for float64.
+here is written for float64. It also turns on JAX's persistent compilation cache in a user
+cache folder (``SAFESTAB_COMPILATION_CACHE=off`` before the import keeps it off; see
+:mod:`safestab._cache`).
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+from ._cache import (  # noqa: E402
+    compilation_cache_dir,
+    disable_compilation_cache,
+    enable_compilation_cache,
+)
+from ._cache import configure_from_environment as _configure_cache  # noqa: E402
+
+_configure_cache()  # JAX's persistent compilation cache (safestab/_cache.py)
 
 from .certificates import CBF, CLF, LieTerms, high_order_cbf, lie_terms  # noqa: E402
 from .controllers import (  # noqa: E402
@@ -128,4 +139,7 @@ __all__ = [
     "simulate",
     "NativeController",
     "export_c",
+    "compilation_cache_dir",
+    "disable_compilation_cache",
+    "enable_compilation_cache",
 ]

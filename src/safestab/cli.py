@@ -31,8 +31,19 @@ _MAX_MESSAGE = 400  # characters of an error message on the one line
 
 
 @app.callback()
-def _main() -> None:
+def _main(
+    no_compilation_cache: bool = typer.Option(
+        False,
+        "--no-compilation-cache",
+        help="Do not read or write JAX's persistent compilation cache (on by default in "
+        "~/.cache/safestab/jax, or $SAFESTAB_COMPILATION_CACHE; safe to delete).",
+    ),
+) -> None:
     """Safe stabilization with closed-form CLF-CBF formulas and GP learning."""
+    if no_compilation_cache:
+        from ._cache import disable_compilation_cache
+
+        disable_compilation_cache()
 
 
 def _one_line(exc: BaseException) -> str:

@@ -1,0 +1,67 @@
+"""JAX's persistent compilation cache: on by default, where it is told, off when told.
+
+Each case runs in a fresh interpreter (the setting is made at import, for the whole process).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+PROBE = (
+    "import jax, safestab as ss; "
+    "print('DIR', ss.compilation_cache_dir()); "
+    "print('ON', jax.config.jax_enable_compilation_cache)"
+)
+
+
+def _run(code: str, **env: str) -> str:
+    full = {k: v for k, v in os.environ.items() if k != "SAFESTAB_COMPILATION_CACHE"}
+    full.update(env)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=full, capture_output=True, text=True, check=True
+    )
+    return proc.stdout
+
+
+def test_on_by_default_in_the_user_cache_folder(tmp_path):
+    out = _run(PROBE, XDG_CACHE_HOME=str(tmp_path))
+    assert f"DIR {tmp_path / 'safestab' / 'jax'}" in out
+    assert (tmp_path / "safestab" / "jax").is_dir()
+
+
+def test_a_second_process_reuses_the_first_ones_programs(tmp_path):
+    code = (
+        "import jax, jax.numpy as jnp, safestab; "
+        "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0); "
+        "f = jax.jit(lambda x: jnp.linalg.solve(x @ x.T + jnp.eye(40), x).sum()); "
+        "print(f(jnp.ones((40, 40))))"
+    )
+    cache = tmp_path / "cache"
+    first = _run(code, SAFESTAB_COMPILATION_CACHE=str(cache))
+    stored = sorted(p.name for p in cache.iterdir())
+    assert stored  # the compiled program was written
+    second = _run(code, SAFESTAB_COMPILATION_CACHE=str(cache))
+    assert second == first and sorted(p.name for p in cache.iterdir()) == stored
+
+
+def test_off_by_environment_variable_and_by_option(tmp_path):
+    out = _run(PROBE, SAFESTAB_COMPILATION_CACHE="off", XDG_CACHE_HOME=str(tmp_path))
+    assert "DIR None" in out and "ON False" in out
+    assert not (tmp_path / "safestab").exists()
+    cli = (
+        "import sys, jax; from safestab.cli import app; "
+        "sys.argv = ['safestab', '--no-compilation-cache', 'run', '--help']\n"
+        "try:\n    app()\nexcept SystemExit:\n    pass\n"
+        "print('ON', jax.config.jax_enable_compilation_cache)"
+    )
+    assert "ON False" in _run(cli, XDG_CACHE_HOME=str(tmp_path))
+
+
+def test_a_folder_given_to_jax_is_kept(tmp_path):
+    code = (
+        f"import jax; jax.config.update('jax_compilation_cache_dir', {str(tmp_path / 'mine')!r})\n"
+        + PROBE
+    )
+    assert f"DIR {tmp_path / 'mine'}" in _run(code, XDG_CACHE_HOME=str(tmp_path))

@@ -14,8 +14,9 @@ first.
   Python (before the first compilation);
 * a folder the user already gave JAX (``jax_compilation_cache_dir``) is left alone.
 
-The folder only holds compiled code keyed by the program, JAX's version and the machine: it is
-safe to delete at any time (the next run compiles again), and nothing else reads it.
+The folder only holds compiled code keyed by the program, JAX's version and the machine, at
+most :data:`MAX_BYTES` (the least recently used programs go first): it is safe to delete at any
+time (the next run compiles again), and nothing else reads it.
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ __all__ = [
 ENV_VAR = "SAFESTAB_COMPILATION_CACHE"
 #: Compilations shorter than this are not stored (they cost less than reading a file).
 MIN_COMPILE_SECONDS = 0.1
+#: Size limit of the folder: beyond it JAX removes the least recently used programs.
+MAX_BYTES = 2 * 2**30
 _OFF = frozenset({"0", "off", "no", "false", "none"})
 
 
@@ -62,6 +65,7 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_enable_compilation_cache", True)
     return folder
 

@@ -1,5 +1,6 @@
 """Issue 8, points 4 and 5: named statuses for non-finite values, and validation gaps."""
 
+import io
 import re
 
 import jax.numpy as jnp
@@ -367,3 +368,27 @@ def test_mc_help_keeps_its_bracketed_words():
     res = CliRunner().invoke(app, ["mc", "--help"], env={"COLUMNS": "120"})
     assert res.exit_code == 0
     assert "TOML file with a [montecarlo] table" in res.output  # rich markup ate "[montecarlo]"
+
+
+def test_mc_table_fits_an_80_column_terminal():
+    from rich.console import Console
+
+    from safestab.cli import mc_table
+
+    entry = {"rate": 0.99987, "ci95": [0.99961, 1.0]}
+    names = ("true model", "mismatched model", "GP mean", "GP-robust", "GP-robust Lemma 2")
+    summary = {
+        "trials": 10000, "datasets": 1, "claimed_probability": 0.98,
+        "controllers": {
+            n: {"safe": entry, "cbf_true_every_step": entry, "lemma2_every_state": None,
+                "min_h_quantiles_m": {"0.01": 12.345}}
+            for n in names
+        },
+    }  # fmt: skip
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(mc_table("stress", summary))
+    text = console.export_text()
+    assert "…" not in text  # nothing cut
+    assert max(len(line) for line in text.splitlines()) <= 80
+    assert text.count("[0.9996, 1.0000]") == 10  # every interval whole (names may wrap)
+    assert "mismatched" in text and "Lemma 2" in text

@@ -443,7 +443,6 @@ def mc(
         TimeElapsedColumn,
         TimeRemainingColumn,
     )
-    from rich.table import Table
 
     from . import montecarlo
     from ._io import bytes_writer, ensure_writable_dir, figure_writer, json_writer, write_all
@@ -503,27 +502,44 @@ def mc(
         return written, doc
 
     written, doc = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-    summary = doc["summary"]
-    table = Table(title=f"Monte Carlo '{sc.name}': {summary['trials']} trials, "
-                  f"{summary['datasets']} data sets, claimed (1-delta)^n = "
-                  f"{summary['claimed_probability']:.4f}")  # fmt: skip
-    for col in ("controller", "safe [95% CI]", "CBF true every step", "Lemma-2 per trial",
-                "min h 1%-q [m]"):  # fmt: skip
-        table.add_column(col, justify="right", no_wrap=True)
+    Console().print(mc_table(sc.name, doc["summary"]))  # the terminal's own width
+    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+
+
+def mc_table(name: str, summary: dict):
+    """The Monte Carlo summary as a rich Table that fits an 80-column terminal.
+
+    Each rate is on one line and its 95 % interval on the next; cells wrap (never cut with an
+    ellipsis) where the terminal is narrower still.
+    """
+    from rich import box
+    from rich.table import Table
+
+    table = Table(
+        title=f"Monte Carlo '{name}': {summary['trials']} trials, {summary['datasets']} data sets",
+        caption=f"claimed (1-delta)^n = {summary['claimed_probability']:.4f}",
+        # no vertical rules and no padding (the rules' places separate the columns): the
+        # width goes to the numbers
+        box=box.SIMPLE_HEAD,
+        padding=(0, 0),
+    )
+    table.add_column("controller", justify="left", overflow="fold", max_width=12)
+    for col in ("safe", "CBF true every step", "Lemma-2 per trial"):
+        table.add_column(col + "\n\\[95% CI]", justify="right", overflow="fold", min_width=16)
+    table.add_column("min h 1%-q \\[m]", justify="right", overflow="fold", max_width=10)
 
     def rate(entry):
         if entry is None:
             return "-"
         lo, hi = entry["ci95"]
-        return f"{entry['rate']:.4f} [{lo:.4f}, {hi:.4f}]"
+        return f"{entry['rate']:.4f}\n[{lo:.4f}, {hi:.4f}]"
 
-    for name, e in summary["controllers"].items():
+    for controller, e in summary["controllers"].items():
         q = e["min_h_quantiles_m"]["0.01"]
         q_text = "-" if q is None else f"{q:.3f}"
         l2 = rate(e.get("lemma2_every_state"))
-        table.add_row(name, rate(e["safe"]), rate(e["cbf_true_every_step"]), l2, q_text)
-    console.print(table)
-    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+        table.add_row(controller, rate(e["safe"]), rate(e["cbf_true_every_step"]), l2, q_text)
+    return table
 
 
 if __name__ == "__main__":

@@ -392,3 +392,14 @@ def test_mc_table_fits_an_80_column_terminal():
     assert max(len(line) for line in text.splitlines()) <= 80
     assert text.count("[0.9996, 1.0000]") == 10  # every interval whole (names may wrap)
     assert "mismatched" in text and "Lemma 2" in text
+
+
+def test_ecdf_axis_is_linear_only_near_zero():
+    from safestab.montecarlo.report import symlog_threshold
+
+    rng = np.random.default_rng(0)
+    tight = rng.uniform(0.5e-3, 1.5e-3, 200)  # a controller that grazes h = 0 (about 1 mm)
+    wide = rng.uniform(5.0, 50.0, 200)  # the Lemma-2 controller's tens of metres
+    lin = symlog_threshold(np.stack([wide, tight, np.full(200, np.nan)], 1))
+    assert np.isclose(lin, np.median(tight) / 10)  # the millimetre curve gets its own decades
+    assert symlog_threshold(np.zeros((5, 2))) == 1.0

@@ -398,7 +398,8 @@ def markdown(results: dict) -> str:
     k8, k100 = by.get("point robot, k = 8"), by.get("point robot, k = 100")
     n20 = by.get("swarm, N = 20 (centralized)")
     c8, c20 = nby.get("point robot, k = 8"), nby.get("swarm, N = 20 (centralized)")
-    if k8 and k100 and n20 and c8 and c20:
+    c100 = nby.get("point robot, k = 100")
+    if k8 and k100 and n20 and c8 and c20 and c100:
 
         def verdict(ok):
             return "met" if ok else "**missed**"
@@ -421,7 +422,8 @@ def markdown(results: dict) -> str:
             f"{c8['native_per_s']:.3g}/s; JAX vmap {k8['ours_per_s']:.3g}/s, "
             f"{k8['ours_per_s'] / k8['qpax_per_s']:.1f}x qpax under vmap);",
             f"- batched at k = 100 at least 5e4 states/s: "
-            f"{verdict(k100['ours_per_s'] >= 5e4)} ({k100['ours_per_s']:.3g}/s);",
+            f"{verdict(max(k100['ours_per_s'], c100['native_per_s']) >= 5e4)} (C loop "
+            f"{c100['native_per_s']:.3g}/s; JAX vmap {k100['ours_per_s']:.3g}/s);",
             f"- swarm N = 20 centralized, one exact solve at most 0.3 ms from Python: "
             f"{verdict(min(n20['ours_us'], c20['native_us']) <= 300)} (C step "
             f"{c20['native_us'] / 1e3:.2f} ms, JAX kernel {n20['ours_us'] / 1e3:.2f} ms; quadprog "

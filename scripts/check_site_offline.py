@@ -16,8 +16,16 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 REMOTE = re.compile(r"^\s*(https?:)?//", re.IGNORECASE)
-LOADED_LINKS = {"stylesheet", "preload", "preconnect", "dns-prefetch", "icon", "manifest",
-                "modulepreload", "prefetch"}
+LOADED_LINKS = {
+    "stylesheet",
+    "preload",
+    "preconnect",
+    "dns-prefetch",
+    "icon",
+    "manifest",
+    "modulepreload",
+    "prefetch",
+}
 FONT_HOSTS = re.compile(r"fonts\.(googleapis|gstatic)\.com|use\.typekit|fonts\.bunny")
 CSS_URL = re.compile(r"(@import\s+(url\()?|url\()\s*['\"]?\s*((https?:)?//[^'\")\s]+)", re.I)
 

@@ -88,12 +88,16 @@ def formulas(out: Path) -> dict:
     for kappa, colour in ((0.2, "tab:blue"), (1.0, "tab:orange"), (2.0, "tab:green")):
         u = ss.clf_sontag(s, one, kappa=kappa, phi=1.0)[:, 0]
         # The CLF-only QP: a CBF condition that every input meets (c = 10 >= rho Gamma, d = 0).
-        qp = ss.clf_cbf(s, one, np.full(s.size, 10.0), 0 * one, kappa=kappa, rho=0.0, phi=1.0,
-                        varphi=1.0).u[:, 0]
+        qp = ss.clf_cbf(
+            s, one, np.full(s.size, 10.0), 0 * one, kappa=kappa, rho=0.0, phi=1.0, varphi=1.0
+        ).u[:, 0]
         ax_v.plot(s, u, color=colour, label=f"Sontag, kappa = {kappa}")
         ax_v.plot(s, qp, color=colour, ls="--", lw=1, label=f"QP optimum, kappa = {kappa}")
-    ax_v.set(xlabel="a = L_f V + lambda V", ylabel="u  (b = 1)",
-             title="CLF: eq. (3) and the least-norm input")
+    ax_v.set(
+        xlabel="a = L_f V + lambda V",
+        ylabel="u  (b = 1)",
+        title="CLF: eq. (3) and the least-norm input",
+    )
     ax_v.legend(fontsize=7)
     for rho, colour in ((0.0, "tab:blue"), (0.5, "tab:orange"), (1.0, "tab:green")):
         u = ss.cbf_universal(s, one, rho=rho, varphi=1.0)[:, 0]
@@ -124,21 +128,24 @@ def qp_geometry(out: Path) -> dict:
         gamma = np.sqrt(c**2 + params["varphi"] * (d @ d) ** 2)
         clf_ok = a + b[0] * u1 + b[1] * u2 <= -params["kappa"] * zeta
         cbf_ok = c + d[0] * u1 + d[1] * u2 >= params["rho"] * gamma
-        ax.contourf(u1, u2, clf_ok.astype(float), levels=[0.5, 1.5], colors=["tab:blue"],
-                    alpha=0.2)
-        ax.contourf(u1, u2, cbf_ok.astype(float), levels=[0.5, 1.5], colors=["tab:orange"],
-                    alpha=0.2)
-        ax.contour(u1, u2, (clf_ok & cbf_ok).astype(float), levels=[0.5], colors="k",
-                   linewidths=0.8)
+        ax.contourf(u1, u2, clf_ok.astype(float), levels=[0.5, 1.5], colors=["tab:blue"], alpha=0.2)
+        ax.contourf(
+            u1, u2, cbf_ok.astype(float), levels=[0.5, 1.5], colors=["tab:orange"], alpha=0.2
+        )
+        ax.contour(
+            u1, u2, (clf_ok & cbf_ok).astype(float), levels=[0.5], colors="k", linewidths=0.8
+        )
         u = np.asarray(res.u)
         ax.plot(*u, "ko", ms=5)
         ax.plot(0, 0, "k+", ms=8)
-        ax.set_title(f"{ss.Region(int(res.region)).name}: u = ({u[0]:.2f}, {u[1]:.2f})",
-                     fontsize=9)
+        ax.set_title(f"{ss.Region(int(res.region)).name}: u = ({u[0]:.2f}, {u[1]:.2f})", fontsize=9)
         ax.set(xlabel="$u_1$", aspect="equal", xlim=(-3, 3), ylim=(-3, 3))
     axes[0].set_ylabel("$u_2$")
-    fig.suptitle("clf_cbf: least-norm input (dot) in CLF half-plane (blue) and CBF half-plane "
-                 "(orange); black outline: both", fontsize=9)
+    fig.suptitle(
+        "clf_cbf: least-norm input (dot) in CLF half-plane (blue) and CBF half-plane "
+        "(orange); black outline: both",
+        fontsize=9,
+    )
     _save(fig, out / "qp_geometry.png")
     return {"command": "ss.clf_cbf on four hand-picked (a, b, c, d)"}
 
@@ -175,12 +182,17 @@ def regions(out: Path) -> dict:
     fig, axes = plt.subplots(1, 2, figsize=(9.5, 4.4), constrained_layout=True)
     cmap = ListedColormap([REGION_COLOURS[r] for r in ss.Region])
     norm = BoundaryNorm(np.arange(len(ss.Region) + 1) - 0.5, len(ss.Region))
-    for ax, reg, title in ((axes[0], hard, "clf_cbf (Theorem 1)"),
-                           (axes[1], relaxed, "clf_cbf_relaxed, m = 10 (Theorem 3)")):
+    for ax, reg, title in (
+        (axes[0], hard, "clf_cbf (Theorem 1)"),
+        (axes[1], relaxed, "clf_cbf_relaxed, m = 10 (Theorem 3)"),
+    ):
         ax.pcolormesh(x0, x1, reg, cmap=cmap, norm=norm, shading="auto")
         ax.set_title(title, fontsize=10)
-    axes[1].legend(handles=[Patch(color=REGION_COLOURS[r], label=r.name) for r in ss.Region],
-                   fontsize=7, loc="lower right")
+    axes[1].legend(
+        handles=[Patch(color=REGION_COLOURS[r], label=r.name) for r in ss.Region],
+        fontsize=7,
+        loc="lower right",
+    )
     for ax in axes:
         ax.contour(x0, x1, h, levels=[0.0], colors="k", linewidths=1.2)
         ax.set(xlabel="angle x_0 (rad)", aspect="equal")
@@ -188,8 +200,10 @@ def regions(out: Path) -> dict:
     fig.suptitle("Pendulum, V = |x|^2, h = 1 - x_0^2 - x_1^2/2 (black: h = 0)", fontsize=10)
     _save(fig, out / "regions.png")
     fractions = {r.name: round(float(np.mean(hard == r)), 4) for r in ss.Region}
-    return {"command": "ss.lie_terms, ss.clf_cbf, ss.clf_cbf_relaxed on a 241 x 241 grid",
-            "hard_region_fractions": fractions}
+    return {
+        "command": "ss.lie_terms, ss.clf_cbf, ss.clf_cbf_relaxed on a 241 x 241 grid",
+        "hard_region_fractions": fractions,
+    }
 
 
 def compatibility_acc(out: Path) -> dict:
@@ -204,39 +218,64 @@ def compatibility_acc(out: Path) -> dict:
     vf, gap = np.meshgrid(np.linspace(5.0, 35.0, 301), np.linspace(0.0, 80.0, 321))
     x = np.stack([vf, np.full_like(vf, sc.v_l0), gap], -1)  # lead speed fixed at v_l0
     terms = ss.lie_terms(system, clf, cbf, x)
-    case = np.asarray(ss.compatibility(*terms, kappa=sc.kappa, rho=sc.rho, phi=sc.phi,
-                                       varphi=sc.varphi).case)
+    case = np.asarray(
+        ss.compatibility(*terms, kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi).case
+    )
     cases = sorted(set(case.ravel().tolist()))
-    colours = {-1: "#d62728", 1: "#bdbdbd", 2: "#9ecae1", 3: "#fdae6b", 4: "#a1d99b",
-               5: "#c7e9c0", -2: "#67000d", -3: "#7f2704"}
+    colours = {
+        -1: "#d62728",
+        1: "#bdbdbd",
+        2: "#9ecae1",
+        3: "#fdae6b",
+        4: "#a1d99b",
+        5: "#c7e9c0",
+        -2: "#67000d",
+        -3: "#7f2704",
+    }
     index = np.searchsorted(cases, case)
     from matplotlib.colors import ListedColormap
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
-    ax.pcolormesh(vf, gap, index, cmap=ListedColormap([colours[c] for c in cases]),
-                  vmin=-0.5, vmax=len(cases) - 0.5, shading="auto")
+    ax.pcolormesh(
+        vf,
+        gap,
+        index,
+        cmap=ListedColormap([colours[c] for c in cases]),
+        vmin=-0.5,
+        vmax=len(cases) - 0.5,
+        shading="auto",
+    )
     ax.plot(vf[0], sc.tau * vf[0], "k-", lw=1.2, label="h = 0 (D = tau v_f)")
     ax.axvline(sc.v_d, color="k", ls=":", lw=1, label="v_f = v_d")
     handles = [Patch(color=colours[c], label=ss.CompatibilityCase(c).name) for c in cases]
     ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=7, loc="upper left")
-    ax.set(xlabel="follower speed v_f (m/s)", ylabel="gap D (m)", ylim=(0, 80),
-           title=f"ACC stress preset: compatibility of the hard conditions (v_l = {sc.v_l0} m/s)")
+    ax.set(
+        xlabel="follower speed v_f (m/s)",
+        ylabel="gap D (m)",
+        ylim=(0, 80),
+        title=f"ACC stress preset: compatibility of the hard conditions (v_l = {sc.v_l0} m/s)",
+    )
     ax.title.set_fontsize(9)
     _save(fig, out / "compatibility_acc.png")
     incompatible = float(np.mean(case < 0))
-    return {"command": "ss.lie_terms, ss.compatibility on a 301 x 321 grid of the stress "
-                       "preset's nominal model", "incompatible_fraction": round(incompatible, 4)}
+    return {
+        "command": "ss.lie_terms, ss.compatibility on a 301 x 321 grid of the stress "
+        "preset's nominal model",
+        "incompatible_fraction": round(incompatible, 4),
+    }
 
 
 def robot(out: Path) -> dict:
     """Closed loops of the getting-started robot from a fan of initial states (one vmap)."""
-    robot_sys = ss.ControlAffineSystem(f=lambda x: jnp.zeros(2), g=lambda x: jnp.eye(2),
-                                       n_states=2, name="robot")
+    robot_sys = ss.ControlAffineSystem(
+        f=lambda x: jnp.zeros(2), g=lambda x: jnp.eye(2), n_states=2, name="robot"
+    )
     centre, radius = np.array([-1.5, 0.0]), 0.5
     clf = ss.CLF(lambda x: x @ x, lam=1.0)
     cbf = ss.CBF(lambda x: (x - centre) @ (x - centre) - radius**2, beta=1.0)
-    ctrl = ss.UniversalController(robot_sys, clf, cbf, kappa=0.2, rho=0.1, phi=0.01,
-                                  varphi=0.01, slack_weight=10.0)
+    ctrl = ss.UniversalController(
+        robot_sys, clf, cbf, kappa=0.2, rho=0.1, phi=0.01, varphi=0.01, slack_weight=10.0
+    )
     angles = np.linspace(-0.6, 0.6, 13)
     x0 = np.stack([-3.0 * np.cos(angles), 3.0 * np.sin(angles)], -1)  # (13, 2)
     traj = ss.simulate(ctrl, x0, t_final=10.0, dt=0.01)
@@ -251,8 +290,10 @@ def robot(out: Path) -> dict:
     ax_h.axhline(0, color="0.5", lw=0.8)
     ax_h.set(xlabel="time (s)", ylabel="h = |x - c|^2 - r^2", title="barrier value")
     _save(fig, out / "robot.png")
-    return {"command": "ss.simulate(ctrl, x0) with x0 of shape (13, 2)",
-            "min_h": round(float(h.min()), 4)}
+    return {
+        "command": "ss.simulate(ctrl, x0) with x0 of shape (13, 2)",
+        "min_h": round(float(h.min()), 4),
+    }
 
 
 def gp_band(out: Path) -> dict:
@@ -264,31 +305,48 @@ def gp_band(out: Path) -> dict:
     def omega(x):
         return jnp.array([0.0, (k_model - k_true) * x[1] - 0.2 * jnp.sin(2.0 * x[0])])
 
-    model = ss.ControlAffineSystem(lambda x: jnp.array([x[1], -k_model * x[1]]),
-                                   lambda x: jnp.array([[0.0], [1.0]]), n_states=2)
+    model = ss.ControlAffineSystem(
+        lambda x: jnp.array([x[1], -k_model * x[1]]),
+        lambda x: jnp.array([[0.0], [1.0]]),
+        n_states=2,
+    )
     true_cart = model.with_disturbance(omega)
-    data = collect_data(true_cart, model, x0=([-3.0, -1.0], [0.5, 3.0]), u_low=-1.0,
-                        u_high=1.0, n_samples=240, horizon=3.0, noise_std=0.01, seed=0)
+    data = collect_data(
+        true_cart,
+        model,
+        x0=([-3.0, -1.0], [0.5, 3.0]),
+        u_low=-1.0,
+        u_high=1.0,
+        n_samples=240,
+        horizon=3.0,
+        noise_std=0.01,
+        seed=0,
+    )
     gp = GaussianProcessModel(kernel="se").fit(data.x, data.y, components=[1])
     lo, hi = data.x.min(0), data.x.max(0)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), constrained_layout=True)
-    slices = ((0, np.linspace(lo[0] - 3, hi[0] + 3, 400), 1.0, "position p (m)", "v = 1 m/s"),
-              (1, np.linspace(lo[1] - 3, hi[1] + 3, 400), -1.0, "velocity v (m/s)", "p = -1 m"))
+    slices = (
+        (0, np.linspace(lo[0] - 3, hi[0] + 3, 400), 1.0, "position p (m)", "v = 1 m/s"),
+        (1, np.linspace(lo[1] - 3, hi[1] + 3, 400), -1.0, "velocity v (m/s)", "p = -1 m"),
+    )
     for ax, (axis, s, fixed, label, where) in zip(axes, slices, strict=True):
         xs = np.stack([s, np.full_like(s, fixed)] if axis == 0 else [np.full_like(s, fixed), s], -1)
         mean, var = (np.asarray(a)[:, 1] for a in gp.predict(xs))
         sd = np.sqrt(var)
         truth = np.asarray(jax.vmap(omega)(jnp.asarray(xs)))[:, 1]
-        ax.fill_between(s, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.25,
-                        label="mean +- 2 sigma")
+        ax.fill_between(
+            s, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.25, label="mean +- 2 sigma"
+        )
         ax.plot(s, mean, color="tab:blue", label="GP mean")
         ax.plot(s, truth, "k--", lw=1, label="true omega_1")
         ax.axvspan(lo[axis], hi[axis], color="0.92", zorder=0, label="range of the data")
         ax.set(xlabel=label, ylabel="omega_1 (m/s^2)", title=f"slice at {where}")
         ax.legend(fontsize=7)
     _save(fig, out / "gp_band.png")
-    return {"command": "collect_data(..., n_samples=240, horizon=3.0), GaussianProcessModel().fit, "
-                       "gp.predict on two slices"}
+    return {
+        "command": "collect_data(..., n_samples=240, horizon=3.0), GaussianProcessModel().fit, "
+        "gp.predict on two slices"
+    }
 
 
 FIGURES: dict[str, tuple[str, Callable[[Path], dict]]] = {
@@ -319,8 +377,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         info = make(out)
         seconds = round(time.perf_counter() - t0, 1)
-        manifest[name] = {"file": filename, **info, "seconds": seconds,
-                          "safestab": ss.__version__}
+        manifest[name] = {"file": filename, **info, "seconds": seconds, "safestab": ss.__version__}
         print(f"{filename}: {seconds} s")
         # written after each figure (atomically), so a failure later keeps what was made
         tmp = manifest_path.with_suffix(".json.tmp")

@@ -103,6 +103,7 @@ def test_cli_smoke(tmp_path):
 
     img = matplotlib.image.imread(png)
     assert img.std() > 0.05  # not a blank canvas
+
     def refuse(token):
         raise AssertionError(f"JSON must not contain {token}")
 
@@ -110,7 +111,9 @@ def test_cli_smoke(tmp_path):
     assert doc["status"] == "ok" and doc["non_finite"] == {}
     assert doc["settings"] == {"seed": 1, "n_samples": 120, "t_final_s": 5.0, "dt_s": 0.01}
     assert sorted(p.name for p in out.iterdir()) == [
-        "acc_stress.pdf", "acc_stress.png", "acc_stress_metrics.json",
+        "acc_stress.pdf",
+        "acc_stress.png",
+        "acc_stress_metrics.json",
     ]  # fmt: skip  (no temporaries or probe files left behind)
     assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-corrected"}
     for m in doc["controllers"].values():

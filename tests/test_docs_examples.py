@@ -114,8 +114,9 @@ FILES_WITH_CODE = [p for p in markdown_files() if python_blocks(p)]
 def _param(path: Path):
     # Pages that collect data and fit a GP take 5-20 s each (mostly JAX compilation): slow.
     slow = any("collect_data(" in b.code for b in python_blocks(path) if b.skip is None)
-    return pytest.param(path, marks=[pytest.mark.slow] if slow else [],
-                        id=str(path.relative_to(ROOT)))
+    return pytest.param(
+        path, marks=[pytest.mark.slow] if slow else [], id=str(path.relative_to(ROOT))
+    )
 
 
 @pytest.mark.parametrize("path", [_param(p) for p in FILES_WITH_CODE])

@@ -139,8 +139,13 @@ def test_batched_uncertainty_rule_equals_the_batch(fitted):
     ],
 )  # fmt: skip
 def test_from_hyperparameters_rejects_bad_input(change, error, match):
-    args = dict(x=np.random.default_rng(0).normal(size=(10, 3)), y=np.zeros((10, 3)),
-                amplitude=[1.0, 1.0, 1.0], noise=[0.1, 0.1, 0.1], lengthscale=np.ones((3, 3)))
+    args = dict(
+        x=np.random.default_rng(0).normal(size=(10, 3)),
+        y=np.zeros((10, 3)),
+        amplitude=[1.0, 1.0, 1.0],
+        noise=[0.1, 0.1, 0.1],
+        lengthscale=np.ones((3, 3)),
+    )
     args.update(change)  # fmt: skip
     x, y = args.pop("x"), args.pop("y")
     with pytest.raises(error, match=match):

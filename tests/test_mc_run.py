@@ -269,21 +269,42 @@ def test_cli_mc_writes_all_outputs(tmp_path):
 
     from safestab.cli import app
 
-    text = (tmp_path / "tiny.toml")
+    text = tmp_path / "tiny.toml"
     from importlib import resources
 
     base = resources.files("safestab.scenarios").joinpath("stress.toml").read_text()
     # outputs are named after the scenario's name, not the file's
     base = base.replace('name = "stress"', 'name = "tiny"')
-    base = base.replace("n_samples = 2000", "n_samples = 60").replace(
-        "hyper_subset = 500", "hyper_subset = 30").replace("t_final = 60.0", "t_final = 0.3")
-    base = base.replace('controllers = ["true model", "mismatched model", "GP mean", '
-                        '"GP-robust", "GP-robust Lemma 2"]',
-                        'controllers = ["mismatched model", "GP-robust"]')
+    base = (
+        base.replace("n_samples = 2000", "n_samples = 60")
+        .replace("hyper_subset = 500", "hyper_subset = 30")
+        .replace("t_final = 60.0", "t_final = 0.3")
+    )
+    base = base.replace(
+        'controllers = ["true model", "mismatched model", "GP mean", '
+        '"GP-robust", "GP-robust Lemma 2"]',
+        'controllers = ["mismatched model", "GP-robust"]',
+    )
     text.write_text(base)
     out = tmp_path / "out"
-    res = CliRunner().invoke(app, ["mc", "--scenario", str(text), "--trials", "6", "--datasets",
-                                   "1", "--out", str(out), "--seed", "2", "--chunk-size", "3"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "mc",
+            "--scenario",
+            str(text),
+            "--trials",
+            "6",
+            "--datasets",
+            "1",
+            "--out",
+            str(out),
+            "--seed",
+            "2",
+            "--chunk-size",
+            "3",
+        ],
+    )
     assert res.exit_code == 0, res.output
     doc = json.loads((out / "mc_tiny_metrics.json").read_text())
     assert doc["settings"]["trials"] == 6 and doc["status"] in ("ok", "non-finite")

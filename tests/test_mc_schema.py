@@ -29,7 +29,10 @@ def test_absent_table_is_none_and_empty_table_takes_defaults(tmp_path):
 
 
 def test_values_are_read(tmp_path):
-    spec = load_scenario(_write(tmp_path, """
+    spec = load_scenario(
+        _write(
+            tmp_path,
+            """
 [montecarlo]
 trials = 12
 controllers = ["GP mean", "true model"]
@@ -40,7 +43,9 @@ std = [1.0, 0.0, 5.0]
 [montecarlo.lead]
 kind = "random"
 segments = 3
-""")).montecarlo
+""",
+        )
+    ).montecarlo
     assert spec.trials == 12 and spec.controllers == ("GP mean", "true model")
     assert spec.initial_mean == (18.0, 14.0, 60.0) and spec.lead_segments == 3
 

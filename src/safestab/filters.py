@@ -71,6 +71,26 @@ jax.tree_util.register_dataclass(
 )
 
 
+def check_output(out: Any, strict: bool) -> None:
+    """The checks of a filter step's outputs (the JAX step's and the native one's).
+
+    Raises
+    ------
+    ModelError
+        Where the uncertainty model returned a negative standard deviation (always).
+    NonFiniteError
+        With ``strict``, where a step failed (a non-finite state, model or input).
+    InfeasibleError
+        With ``strict``, where a fallback was used, the solver stopped uncertified or a CBF
+        condition is violated; the message names the first such state.
+    """
+    status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
+    if np.any(status == StepStatus.NEGATIVE_STD):
+        raise ModelError("the uncertainty model returned a negative standard deviation")
+    if strict:
+        raise_where_failed(out)
+
+
 def raise_where_failed(out: Any) -> None:
     """The ``strict=True`` check of a filter step (JAX or native) on its outputs.
 
@@ -345,11 +365,7 @@ class SafetyFilter:
         x = self.system.check_state(x)
         p = resolve(self.params_spec, params, "the filter")
         out = self.step_fn(x) if p is None else self.step_fn(x, p)
-        status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
-        if np.any(status == StepStatus.NEGATIVE_STD):
-            raise ModelError("the uncertainty model returned a negative standard deviation")
-        if strict:
-            raise_where_failed(out)
+        check_output(out, strict)
         return out
 
     def __call__(self, x: Any, params: Any = None) -> jax.Array:

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import check_finite
-from ..errors import CompilationError, DimensionError, InfeasibleError, ModelError
+from ..errors import CompilationError, DimensionError, InfeasibleError
 from .exporter import C_FLAGS, ExportedC, export_c
 
 __all__ = ["NativeController", "NativeFunction", "compile_native", "find_compiler", "native_flags"]
@@ -418,13 +418,9 @@ class NativeController:
         leaves = [leaf.reshape(batch + leaf.shape[1:]) for leaf in leaves]
         out = self.exported.treedef.unflatten(leaves)
         if self._is_filter:
-            from ..controllers import StepStatus
-            from ..filters import raise_where_failed
+            from ..filters import check_output
 
-            if np.any(np.asarray(out.status) == StepStatus.NEGATIVE_STD):  # as the JAX step
-                raise ModelError("the uncertainty model returned a negative standard deviation")
-            if strict:
-                raise_where_failed(out)
+            check_output(out, strict)  # as the filter's own step
         elif strict:
             named = dict(zip(self._names, leaves, strict=True))
             region, cbf_ok = named["region"], named["cbf_satisfied"]

@@ -20,6 +20,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ._assemble import render
 from ._cgen import Emitter
 from ._ir import Program, Val
 
@@ -628,8 +629,6 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     blocks = [p.block(b.jaxpr, b.consts, args) for b in branches]
 
     def gen(e: Emitter) -> list[str]:
-        from ._assemble import render
-
         c = e.ref(index, 0)
         lines = _declare_mutable(e, outs)
         last = len(blocks) - 1
@@ -665,8 +664,6 @@ def _while(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     body_stmts, res = p.block(bj.jaxpr, bj.consts, bconsts + carried)
 
     def gen(e: Emitter) -> list[str]:
-        from ._assemble import render
-
         lines = _declare_mutable(e, carried) + _assign_all(e, carried, init)
         inner = render(e, cond_stmts) + [f"if (!({e.ref(pred, 0)})) break;"]
         inner += render(e, body_stmts) + _assign_all(e, carried, res)
@@ -747,6 +744,8 @@ def _qr(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     M, N = a.shape[-2:]
     K = min(M, N)
     batch = math.prod(a.shape[:-2])
+    if q.size == 1 or r.size == 1:
+        raise p.unsupported("a 1 x 1 QR")
     work = Val((M * N,), a.dtype)
     tau = Val((K,), a.dtype)
 
@@ -763,8 +762,6 @@ def _qr(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             "}",
         ]  # fmt: skip
 
-    if q.size == 1 or r.size == 1:
-        raise p.unsupported("a 1 x 1 QR")
     p.stmt([q, r], [a], gen, scratch=[work, tau])
     return [q, r]
 
@@ -788,8 +785,6 @@ def _scan(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     body_stmts, res = p.block(prm["jaxpr"].jaxpr, prm["jaxpr"].consts, consts + carried)
 
     def gen(e: Emitter) -> list[str]:
-        from ._assemble import render
-
         lines = _declare_mutable(e, carried) + _assign_all(e, carried, init)
         inner = render(e, body_stmts) + _assign_all(e, carried, res)
         head = f"for (int scan_s = 0; scan_s < {int(prm['length'])}; ++scan_s) {{"

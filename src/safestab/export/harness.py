@@ -142,19 +142,20 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
         elif name in _INPUT_LEAVES:
             scales.append(u_scale)
         else:
-            finite = np.abs(leaf[np.isfinite(leaf)])
-            scales.append(np.asarray(finite.max() if finite.size else 0.0))
+            scales.append(_largest_magnitude(leaf))
     return scales
+
+
+def _largest_magnitude(leaf: np.ndarray) -> np.ndarray:
+    """The largest finite magnitude of a real leaf over the states (zero if none)."""
+    finite = np.abs(leaf[np.isfinite(leaf)])
+    return np.asarray(finite.max() if finite.size else 0.0)
 
 
 def _largest_magnitudes(out: Any) -> list[np.ndarray]:
-    """Per leaf, its largest finite magnitude over the states (zero for integer leaves)."""
-    scales = []
-    for leaf in jax.tree_util.tree_leaves(out):
-        leaf = np.asarray(leaf)
-        finite = np.abs(leaf[np.isfinite(leaf)]) if leaf.dtype.kind == "f" else np.zeros(0)
-        scales.append(np.asarray(finite.max() if finite.size else 0.0))
-    return scales
+    """Per leaf, :func:`_largest_magnitude` (zero for integer leaves)."""
+    leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(out)]
+    return [_largest_magnitude(x) if x.dtype.kind == "f" else np.zeros(()) for x in leaves]
 
 
 def compare(

@@ -50,8 +50,8 @@ def point_robot(rng, n, k):
     return np.sum(diff**2, -1) - RADIUS**2, 2 * diff, -x
 
 
-def swarm(rng, n, robots):
-    """``(c, d, u_nom)`` of n swarm states: robots at least 2R apart, going to -position."""
+def swarm_positions(rng, n, robots):
+    """Positions (n, robots, 2) of n swarm states, robots at least 2R apart."""
     pos = np.empty((n, robots, 2))
     for s in range(n):
         placed: list[np.ndarray] = []
@@ -60,6 +60,12 @@ def swarm(rng, n, robots):
             if all(np.sum((cand - q) ** 2) > (2 * RADIUS) ** 2 for q in placed):
                 placed.append(cand)
         pos[s] = placed
+    return pos
+
+
+def swarm(rng, n, robots):
+    """``(c, d, u_nom)`` of n swarm states: robots at least 2R apart, going to -position."""
+    pos = swarm_positions(rng, n, robots)
     i, j = np.triu_indices(robots, 1)
     diff = pos[:, i] - pos[:, j]  # (n, pairs, 2)
     d = np.zeros((n, len(i), 2 * robots))
@@ -304,17 +310,10 @@ def run_native(repeat: int = 2000, seed: int = 0) -> list[dict]:
         states = x[np.all(h > 0.1, -1)][:64]  # outside every disc
         rows.append(native_row(f"point robot, k = {k}", robot_filter(obstacles), states, repeat))
     for robots in (10, 20):
-        pos = []  # positions as in swarm(): at least 2R apart
-        for _ in range(16):
-            placed: list[np.ndarray] = []
-            while len(placed) < robots:
-                cand = rng.uniform(-robots / 2, robots / 2, 2)
-                if all(np.sum((cand - q) ** 2) > (2 * RADIUS) ** 2 for q in placed):
-                    placed.append(cand)
-            pos.append(np.concatenate(placed))
+        pos = swarm_positions(rng, 16, robots).reshape(16, 2 * robots)  # states (x1, y1, ...)
         rows.append(
             native_row(
-                f"swarm, N = {robots} (centralized)", swarm_filter(robots), np.array(pos),
+                f"swarm, N = {robots} (centralized)", swarm_filter(robots), pos,
                 max(50, repeat // 20),
             )
         )  # fmt: skip

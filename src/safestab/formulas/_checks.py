@@ -139,7 +139,12 @@ def check_output_finite(function: str, **outputs: Any) -> None:
     ------
     NumericalError
         Naming the output and the remedy (rescale the problem).
+
+    Under a JAX transformation (``jit``, ``vmap``, ``grad``) the values are unknown and
+    nothing is checked: the outputs are returned as computed (see docs/jax.md).
     """
+    if not is_concrete(*outputs.values()):
+        return
     for name, value in outputs.items():
         arr = np.asarray(value, dtype=float)
         if not np.all(np.isfinite(arr)):

@@ -28,6 +28,7 @@ solve and QR (one call instead of a loop of small steps).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -140,6 +141,58 @@ def solve_dual(
             jnp.asarray(w0, G.dtype), jnp.zeros(0, G.dtype), jnp.zeros(0, bool),
             jnp.int32(OPTIMAL), jnp.int32(0), jnp.asarray(1.0, G.dtype), jnp.asarray(True),
         )  # fmt: skip
+    return _solve_dual_diff(batched, G, r, jnp.asarray(w0, G.dtype), use, max_iter)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _solve_dual_diff(batched, G, r, w0, use, max_iter):
+    """:func:`solve_dual` with the derivative of its optimum (see :func:`_solve_dual_jvp`)."""
+    return _solve_dual(G, r, w0, use, max_iter, batched)
+
+
+@_solve_dual_diff.defjvp
+def _solve_dual_jvp(batched, primals, tangents):
+    """Derivative of the optimum on its active set (the loop itself is not differentiated).
+
+    At an optimum with active rows ``G_A`` (linearly independent: the solver adds only rows
+    independent of the active ones) and multipliers ``mu``, the KKT system
+    ``w = w0 - G^T mu``, ``G_A w = r_A`` is differentiated with the active set held fixed:
+    ``dw = g + G_A^+ (e - G_A g)`` and ``dmu_A = -(G_A G_A^T)^{-1} (e - G_A g)`` with
+    ``g = dw0 - dG^T mu`` and ``e = dr_A - dG_A w``. Inside an active set's region this is
+    the derivative of the optimum; on a boundary between regions it is the one-sided
+    derivative of the active set found there. Where the solver did not reach an optimum
+    (infeasible rows, iteration bound) the tangents are zero. The pseudo-inverse comes from
+    an SVD of the active rows normalised to unit length, keeping exactly as many singular
+    values as there are active rows.
+    """
+    G, r, w0, use, max_iter = primals
+    dG, dr, dw0 = tangents[:3]
+    sol = _solve_dual_diff(batched, G, r, w0, use, max_iter)
+    act = sol.active
+    norms = scaled_norm(G)
+    safe = jnp.where(act & (norms > 0), norms, 1.0)
+    Gn = jnp.where(act[:, None], G / safe[:, None], 0.0)
+    g = dw0 - dG.T @ sol.multipliers
+    en = jnp.where(act, (dr - dG @ sol.w) / safe, 0.0)
+    U, S, Vt = jnp.linalg.svd(Gn, full_matrices=False)
+    keep = jnp.arange(S.shape[0]) < jnp.sum(act)
+    s_inv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
+    resid = en - Gn @ g
+    coeff = s_inv * (U.T @ resid)
+    optimal = sol.status == OPTIMAL
+    dw = jnp.where(optimal, g + Vt.T @ coeff, 0.0)
+    dmu = jnp.where(optimal & act, -(U @ (s_inv * coeff)) / safe, 0.0)
+    zero_of = lambda x: np.zeros(np.shape(x), dtype=jax.dtypes.float0)  # noqa: E731
+    tangent = DualSolution(
+        dw, dmu, zero_of(sol.active), zero_of(sol.status), zero_of(sol.iterations),
+        jnp.zeros_like(sol.cond), zero_of(sol.certified),
+    )  # fmt: skip
+    return sol, tangent
+
+
+def _solve_dual(G, r, w0, use, max_iter, batched):
+    """The solver itself (see :func:`solve_dual`)."""
+    n_rows, dim = G.shape
     norms = scaled_norm(G)
     zero = norms == 0
     infeasible0 = jnp.any(use & zero & (r < 0))

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -39,6 +40,8 @@ __all__ = [
     "ANTIPARALLEL_DET",
     "scaled_norm",
     "plus_scaled_hypot",
+    "safe_hypot",
+    "margin",
     "margins",
     "TwoConstraintSolution",
     "solve_two",
@@ -107,10 +110,36 @@ def wedge(x: Any, y: Any) -> Any:
     return t - jnp.swapaxes(t, -1, -2)
 
 
+@jax.custom_jvp
 def scaled_norm(v: Any) -> Any:
-    """Euclidean norm over the last axis without overflow or underflow (scaled by max |v_i|)."""
+    """Euclidean norm over the last axis without overflow or underflow (scaled by max |v_i|).
+
+    Its derivative is ``(v/|v|).dv``, and 0 at ``v = 0`` (where the norm has a kink: 0 is
+    the smallest of its one-sided derivatives' sub-gradients), never NaN.
+    """
     mx = jnp.max(jnp.abs(v), axis=-1)
     return mx * jnp.sqrt(jnp.sum(jnp.square(v / _safe(mx)[..., None]), axis=-1))
+
+
+@scaled_norm.defjvp
+def _scaled_norm_jvp(primals, tangents):
+    (v,), (dv,) = primals, tangents
+    n = scaled_norm(v)
+    return n, jnp.where(n > 0, jnp.sum(v / _safe(n)[..., None] * dv, axis=-1), 0.0)
+
+
+@jax.custom_jvp
+def safe_hypot(x: Any, y: Any) -> Any:
+    """``jnp.hypot(x, y)`` whose derivative at ``(0, 0)`` is 0 instead of NaN."""
+    return jnp.hypot(x, y)
+
+
+@safe_hypot.defjvp
+def _safe_hypot_jvp(primals, tangents):
+    (x, y), (dx, dy) = primals, tangents
+    r = jnp.hypot(x, y)
+    rs = _safe(r)
+    return r, jnp.where(r > 0, (x / rs) * dx + (y / rs) * dy, 0.0)
 
 
 def plus_scaled_hypot(x: Any, p: Any, k: Any) -> Any:
@@ -146,15 +175,48 @@ class Margins(NamedTuple):
     nd: Any
 
 
+@jax.custom_jvp
+def margin(x: Any, n: Any, w: Any, k: Any) -> tuple[Any, Any]:
+    """``(x + k r, r)`` with ``r = sqrt(x^2 + w n^4)``.
+
+    ``(A, zeta)`` from ``(a, |b|, phi, kappa)``, ``(B, Gamma)`` from ``(-c, |d|, varphi,
+    rho)``. The value is cancellation-free (``w n^4`` is formed as the square ``(w^(1/4) n)^2`` and
+    the sum by :func:`plus_scaled_hypot`). The derivative is that of ``r^2 = x^2 + w n^4``,
+    ``dr = (x dx + n^4 dw / 2 + 2 w n^3 dn) / r``, written with ``x/r`` and ``p/r`` (``p =
+    sqrt(w) n^2``) so that it is finite at ``w = 0`` where ``r > 0`` (the chain rule through
+    ``w^(1/4)`` would give NaN there). Where ``r = 0`` (``x = 0`` and ``w n^4 = 0``, a kink
+    of ``r = |x|``) ``dr`` is taken as 0, the midpoint of its one-sided derivatives in ``x``.
+    """
+    p = jnp.square(jnp.sqrt(jnp.sqrt(w)) * n)  # sqrt(w) n^2
+    return plus_scaled_hypot(x, p, k), jnp.hypot(x, p)
+
+
+@margin.defjvp
+def _margin_jvp(primals, tangents):
+    x, n, w, k = primals
+    dx, dn, dw, dk = tangents
+    A, r = margin(x, n, w, k)
+    rs = _safe(r)
+    on = r > 0
+    xr = x / rs
+    nr = n / rs  # n^4 / (2 r) = (n^2 / r) n^2 / 2, and 2 w n^3 / r = 2 (p / r) sqrt(w) n
+    sw = jnp.sqrt(w)
+    dr = jnp.where(
+        on, xr * dx + 0.5 * (n * nr) * (n * n) * dw + 2.0 * (sw * n * nr) * sw * n * dn, 0.0
+    )
+    return (A, r), (dx + dk * r + k * dr, dr)
+
+
 def margins(a: Any, b: Any, c: Any, d: Any, kappa: Any, rho: Any, phi: Any, varphi: Any) -> Margins:
     """The CLF and CBF margins, cancellation-free (``phi |b|^4`` is formed as a square)."""
     nb = scaled_norm(b)
     nd = scaled_norm(d)
-    p = jnp.square(jnp.sqrt(jnp.sqrt(phi)) * nb)  # sqrt(phi) |b|^2
-    q = jnp.square(jnp.sqrt(jnp.sqrt(varphi)) * nd)
-    A = plus_scaled_hypot(a, p, kappa)
-    B = plus_scaled_hypot(-c, q, rho)
-    return Margins(A, B, jnp.hypot(a, p), jnp.hypot(c, q), nb, nd)
+    shape = jnp.broadcast_shapes(jnp.shape(a), jnp.shape(nb), jnp.shape(kappa), jnp.shape(phi))
+    bc = lambda v, sh: jnp.broadcast_to(jnp.asarray(v, float), sh)  # noqa: E731
+    A, zeta = margin(*(bc(v, shape) for v in (a, nb, phi, kappa)))
+    shape = jnp.broadcast_shapes(jnp.shape(c), jnp.shape(nd), jnp.shape(rho), jnp.shape(varphi))
+    B, Gamma = margin(*(bc(v, shape) for v in (-jnp.asarray(c, float), nd, varphi, rho)))
+    return Margins(A, B, zeta, Gamma, nb, nd)
 
 
 class TwoConstraintSolution(NamedTuple):
@@ -189,7 +251,7 @@ def solve_two(
     """
     hard = inv_sqrt_slack is None
     s = jnp.asarray(0.0 if hard else inv_sqrt_slack, dtype=float)
-    np_ = jnp.hypot(nb, s)  # |(b, -s)|
+    np_ = safe_hypot(nb, s)  # |(b, -s)|
     p_nz = np_ > 0
     d_nz = nd > 0
     bh = b / _safe(np_)[..., None]

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._validation import check_finite, check_real
+from .._validation import check_finite, check_real, is_concrete
 from ..errors import DimensionError, ParameterError
 from ._checks import as_float, check_box, check_max_iter, check_output_finite, check_params
 from ._dual_active_set import INFEASIBLE, ITERATION_LIMIT, default_max_iter, solve_dual
@@ -270,8 +270,14 @@ def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
 
         return jax.tree_util.tree_map(put, acc, new)
 
+    # a loop of a fixed count (reverse-mode differentiable), each chunk run only if needed
     n_chunks = (count + size - 1) // size
-    return jax.lax.fori_loop(0, n_chunks, chunk, out)
+    return jax.lax.fori_loop(
+        0,
+        -(-flat // size),
+        lambda i, acc: jax.lax.cond(i < n_chunks, chunk, lambda _, acc: acc, i, acc),
+        out,
+    )
 
 
 def multi_kernel(
@@ -483,12 +489,15 @@ def clf_cbf_multi(
     inv_sqrt = None
     if slack_weight is not None:
         check_params(slack_weight=slack_weight)
-        sw = np.asarray(slack_weight, dtype=float)
-        if sw.ndim not in (0, 1) or (sw.ndim == 1 and sw.shape != (p,)):
+        sw_shape = tuple(np.shape(slack_weight))
+        if len(sw_shape) not in (0, 1) or (len(sw_shape) == 1 and sw_shape != (p,)):
             raise DimensionError(
-                f"slack_weight must be a scalar or have shape ({p},), got {sw.shape}"
+                f"slack_weight must be a scalar or have shape ({p},), got {sw_shape}"
             )
-        inv_sqrt = 1.0 / np.sqrt(sw)
+        if is_concrete(slack_weight):
+            inv_sqrt = 1.0 / np.sqrt(np.asarray(slack_weight, dtype=float))
+        else:  # traced: the same correctly rounded operations, in JAX
+            inv_sqrt = 1.0 / jnp.sqrt(jnp.asarray(slack_weight, dtype=float))
         if p == 0:
             inv_sqrt = None  # no CLF row carries a slack
     if (u_min is None) != (u_max is None):
@@ -510,16 +519,16 @@ def clf_cbf_multi(
     if H is not None:
         check_real("H", H)
         check_finite("H", H)
-        Hn = np.asarray(H, dtype=float)
-        if Hn.shape[-2:] != (m, m) or Hn.shape[:-2] not in ((), batch):
-            raise DimensionError(
-                f"H must have shape ({m}, {m}) or {batch + (m, m)}, got {Hn.shape}"
-            )
-        if not np.allclose(Hn, np.swapaxes(Hn, -1, -2), rtol=1e-12, atol=0.0):
-            raise ParameterError("H must be symmetric")
-        if np.any(np.linalg.eigvalsh(Hn) <= 0):
-            raise ParameterError("H must be positive definite (all eigenvalues > 0)")
-        H = jnp.broadcast_to(jnp.asarray(Hn), batch + (m, m))
+        h_shape = tuple(np.shape(H))
+        if h_shape[-2:] != (m, m) or h_shape[:-2] not in ((), batch):
+            raise DimensionError(f"H must have shape ({m}, {m}) or {batch + (m, m)}, got {h_shape}")
+        if is_concrete(H):  # traced, its values are unknown: a non-PD H gives NaN (see docs)
+            Hn = np.asarray(H, dtype=float)
+            if not np.allclose(Hn, np.swapaxes(Hn, -1, -2), rtol=1e-12, atol=0.0):
+                raise ParameterError("H must be symmetric")
+            if np.any(np.linalg.eigvalsh(Hn) <= 0):
+                raise ParameterError("H must be positive definite (all eigenvalues > 0)")
+        H = jnp.broadcast_to(jnp.asarray(H, float), batch + (m, m))
     a, b, c, d = as_float(a, b, c, d)
     if p == 1 and k == 1 and lo is None:
         res = _single_jit(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, u_nom, H)

@@ -5,10 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 from ._checks import as_float, check_lie_terms, check_output_finite, check_params
-from ._kernels import cbf_only, margins, scaled_norm, sontag
+from ._kernels import cbf_only, margins, sontag
 
 __all__ = ["zeta", "clf_sontag", "cbf_universal"]
 
@@ -39,8 +38,7 @@ def zeta(a: Any, b: Any, phi: Any) -> Array:
     batch = check_lie_terms(a, b)
     check_params(batch, phi=phi)
     a, b = as_float(a, b)
-    nb = scaled_norm(b)
-    return jnp.hypot(a, jnp.square(jnp.sqrt(jnp.sqrt(phi)) * nb))
+    return margins(a, b, a, b, 0.0, 0.0, phi, 0.0).zeta
 
 
 @jax.jit

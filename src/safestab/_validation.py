@@ -20,6 +20,27 @@ def is_concrete(*values: Any) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in values)
 
 
+def traced_results(values: tuple, strict: bool, what: str) -> bool:
+    """Whether any of ``values`` (a result's fields) is traced, so its checks cannot run.
+
+    Under ``jit``, ``vmap`` or ``grad`` the statuses are the record of what happened: nothing
+    can be raised on them, so ``strict=True`` is refused rather than silently ignored.
+
+    Raises
+    ------
+    ParameterError
+        If the value is traced and ``strict`` is True.
+    """
+    if is_concrete(*values):
+        return False
+    if strict:
+        raise ParameterError(
+            f"strict=True needs concrete results, but {what} runs under a JAX transformation "
+            "(jit, vmap, grad): leave strict off and check the status field yourself"
+        )
+    return True
+
+
 def _describe(value: np.ndarray) -> str:
     if value.size == 1:
         return repr(float(value.reshape(())))

@@ -8,8 +8,9 @@ For a system ``xdot = f(x) + g(x) u``:
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
-from typing import Any, NamedTuple, cast
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +19,7 @@ import numpy as np
 from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, check_scalar_range
+from ._values import Template, as_scalar
 from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
 
@@ -124,7 +126,8 @@ class _Certificate:
         else:
             _check_class_k(self._class_k_name, class_k)
         self.fn = fn
-        self.rate = float(rate) if rate is not None else None
+        self.rate = as_scalar(rate) if rate is not None else None
+        self._template = Template(self)
         self.class_k = class_k
         self.grad = grad if grad is not None else jax.grad(fn)
         self.hand_gradient = grad is not None
@@ -139,11 +142,64 @@ class _Certificate:
         #: gradient of ``base`` as a function of ``(x, p)`` (high-order CBFs only)
         self.base_grad: Callable | None = None
 
+    def replace(self, **changes: Any) -> Any:
+        """A copy with a new linear rate (``lam`` of a CLF, ``beta`` of a CBF), checked.
+
+        The rate may be a value that JAX traces: ``jax.grad`` of a closed-loop cost with
+        respect to a CBF's ``beta`` goes through ``ctrl.replace(cbf=cbf.replace(beta=b))``.
+        A certificate is a pytree whose one leaf is its linear rate (none for a class-K
+        function).
+
+        Raises
+        ------
+        ParameterError
+            If another argument is named, or the certificate has a class-K function instead
+            of a linear rate, or the rate is negative.
+        """
+        unknown = set(changes) - {self._rate_name}
+        if unknown:
+            raise ParameterError(
+                f"{type(self).__name__}.replace changes only {self._rate_name}, "
+                f"got {sorted(unknown)}"
+            )
+        if self.rate is None:
+            raise ParameterError(
+                f"this {type(self).__name__} has a class-K function {self._class_k_name}, "
+                f"not a linear {self._rate_name}: build a new one instead"
+            )
+        rate = changes[self._rate_name]
+        check_real(self._rate_name, rate)
+        if np.ndim(rate) != 0:
+            raise DimensionError(
+                f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
+            )
+        check_scalar_range(self._rate_name, rate, lower=0.0)
+        new = copy.copy(self)
+        new.rate = as_scalar(rate)
+        return new
+
+    def _flatten(self) -> tuple[tuple[Any, ...], tuple[Template, bool]]:
+        has_rate = self.rate is not None
+        return ((self.rate,) if has_rate else ()), (self._template, has_rate)
+
+    @classmethod
+    def _unflatten(cls, aux: tuple[Template, bool], leaves: Any) -> Any:
+        template, has_rate = aux
+        new = object.__new__(cls)
+        new.__dict__.update(template.obj.__dict__)
+        if has_rate:
+            (new.rate,) = leaves
+        return new
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
+
     def rate_term(self, value: jax.Array) -> jax.Array:
         """``rate * value`` (the paper's linear choice) or ``class_k(value)``."""
         if self.class_k is not None:
             return self.class_k(value)
-        return cast(float, self.rate) * value
+        return self.rate * value
 
     def check(self, n_states: int) -> None:
         """Check shapes against a state dimension by tracing once.

@@ -16,7 +16,8 @@ import numpy as np
 
 from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
-from ._validation import check_real
+from ._validation import check_real, is_concrete, traced_results
+from ._values import ControllerValue, as_scalar, inv_sqrt
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import (
     DimensionError,
@@ -120,8 +121,12 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
     return ok
 
 
-class UniversalController:
+class UniversalController(ControllerValue):
     """The universal formula bound to a system, a CLF, a CBF and parameters.
+
+    A controller is a JAX value (a pytree whose leaves are its numeric parameters, see
+    :meth:`tunables`): it can be passed to a jitted function, vmapped over its parameters
+    and differentiated with respect to them; :meth:`replace` changes an argument.
 
     Parameters
     ----------
@@ -267,15 +272,15 @@ class UniversalController:
         self.clf = clf
         self.cbf = cbf
         self.params = {
-            "kappa": float(kappa),
-            "rho": float(rho),
-            "phi": phi if callable(phi) else float(phi),
-            "varphi": varphi if callable(varphi) else float(varphi),
+            "kappa": as_scalar(kappa),
+            "rho": as_scalar(rho),
+            "phi": phi if callable(phi) else as_scalar(phi),
+            "varphi": varphi if callable(varphi) else as_scalar(varphi),
         }
         takes = own_spec is not None
         self._phi_of = bind(phi, takes) if callable(phi) else None
         self._varphi_of = bind(varphi, takes) if callable(varphi) else None
-        self.slack_weight = None if slack_weight is None else float(slack_weight)
+        self.slack_weight = None if slack_weight is None else as_scalar(slack_weight)
         self.u_min = u_min
         self.u_max = u_max
         self.saturation = saturation
@@ -283,6 +288,18 @@ class UniversalController:
         self.gp_beta = gp_beta if uncertainty is not None else None
         self.parallel_rtol = float(parallel_rtol)
         self.formula = formula
+        self._remember(
+            UniversalController,
+            (),
+            dict(
+                system=system, clf=clf, cbf=cbf, kappa=kappa, rho=rho, phi=phi, varphi=varphi, slack_weight=slack_weight,
+                u_min=u_min, u_max=u_max, saturation=saturation, uncertainty=uncertainty,
+                gp_beta=gp_beta, parallel_rtol=parallel_rtol, formula=formula, params=params,
+            ),
+        )  # fmt: skip
+        self._rebuild()
+
+    def _rebuild(self) -> None:
         #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
         #: for one state (n,) or a batch (..., n); for loops and benchmarks. With run-time
         #: parameters: ``step_fn(x, p)`` (``p`` shared by the batch).
@@ -290,9 +307,35 @@ class UniversalController:
         #: Like ``step_fn`` but returning only ``u``, so XLA drops the diagnostics.
         self.input_fn = jax.jit(lambda x, p=None: self._step(x, p).u)
 
+    _CHILDREN = ("clf", "cbf")
+
+    def _leaf_names(self) -> tuple[str, ...]:
+        names = ["kappa", "rho"]
+        names += [w for w in ("phi", "varphi") if not callable(self.params[w])]
+        names += ["slack_weight"] if self.slack_weight is not None else []
+        names += ["u_min", "u_max"] if self.u_min is not None else []
+        names += ["gp_beta"] if self.uncertainty is not None else []
+        return tuple(names)
+
+    def _get_leaf(self, name: str) -> Any:
+        return self.params[name] if name in self.params else getattr(self, name)
+
+    def _set_leaf(self, name: str, value: Any) -> None:
+        if name in self.params:
+            self.params[name] = value
+        else:
+            setattr(self, name, value)
+
     @staticmethod
-    def _limit(name: str, value: Any, m: int) -> np.ndarray:
+    def _limit(name: str, value: Any, m: int) -> Any:
         check_real(name, value)
+        if not is_concrete(value):
+            if np.ndim(value) not in (0, 1) or np.shape(value) not in ((), (m,)):
+                raise DimensionError(
+                    f"{name} must be a scalar or have shape (n_inputs,) = ({m},), "
+                    f"got shape {np.shape(value)}"
+                )
+            return jnp.broadcast_to(jnp.asarray(value, dtype=float), (m,))
         arr = np.asarray(value, dtype=float)
         if arr.ndim == 0:
             return np.full((m,), float(arr))
@@ -377,7 +420,7 @@ class UniversalController:
         elif self.slack_weight is None:
             res = hard
         else:
-            s = 1.0 / np.sqrt(self.slack_weight)
+            s = inv_sqrt(self.slack_weight)
             res = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, inv_sqrt_slack=s)
         u = res.u
         if self.u_min is not None:
@@ -440,6 +483,8 @@ class UniversalController:
     def _raise_for_status(
         self, x: jax.Array, out: ControlOutput, strict: bool, p: Any = None
     ) -> None:
+        if traced_results((out.u, out.status, x), strict, "the controller's step"):
+            return
         status = np.atleast_1d(np.asarray(out.status))
         xs = np.asarray(x).reshape((-1, self.system.n_states))
         flat = status.reshape(-1)

@@ -19,7 +19,8 @@ import numpy as np
 
 from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
-from ._validation import check_finite, check_real
+from ._validation import check_finite, check_real, is_concrete, traced_results
+from ._values import ControllerValue, inv_sqrt
 from .certificates import CBF, CLF
 from .controllers import StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
@@ -84,6 +85,8 @@ def check_output(out: Any, strict: bool) -> None:
         With ``strict``, where a fallback was used, the solver stopped uncertified or a CBF
         condition is violated; the message names the first such state.
     """
+    if traced_results((out.u, out.status), strict, "the filter's step"):
+        return
     status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
     if np.any(status == StepStatus.NEGATIVE_STD):
         raise ModelError("the uncertainty model returned a negative standard deviation")
@@ -129,8 +132,11 @@ def _as_tuple(value: Any, kind: type, name: str) -> tuple:
     return items
 
 
-class SafetyFilter:
+class SafetyFilter(ControllerValue):
     """Minimally modify a nominal input so that every CBF (and CLF) condition holds.
+
+    Like :class:`~safestab.UniversalController`, a filter is a JAX value whose leaves are its
+    numeric parameters (:meth:`tunables`, :meth:`replace`).
 
     Solves, at each state, ``min 1/2 (u - u_nom)^T H (u - u_nom) + 1/2 m sum chi_j^2`` subject
     to every CBF condition, every CLF condition (with slack ``chi_j`` when ``slack_weight`` is
@@ -193,6 +199,7 @@ class SafetyFilter:
         params: Any = None,
         max_iter: int | None = None,
     ) -> None:
+        u_nom_arg, H_arg, u_min_arg, u_max_arg, gp_beta_arg = u_nom, H, u_min, u_max, gp_beta
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
         if not self.cbfs:
@@ -209,9 +216,13 @@ class SafetyFilter:
         if u_min is not None:
             check_real("u_min", u_min)
             check_real("u_max", u_max)
-            u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
-            u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
-            check_box(u_min, u_max)
+            check_box(u_min, u_max, (m,))
+            if is_concrete(u_min, u_max):
+                u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
+                u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
+            else:
+                u_min = jnp.broadcast_to(jnp.asarray(u_min, float), (m,))
+                u_max = jnp.broadcast_to(jnp.asarray(u_max, float), (m,))
         own_spec = make_spec(params, "the filter")
         u_nom_of: Callable | None = None
         if u_nom is not None and callable(u_nom):
@@ -230,14 +241,17 @@ class SafetyFilter:
         if H is not None:
             check_real("H", H)
             check_finite("H", H)
-            Hn = np.asarray(H, dtype=float)
-            if Hn.shape != (m, m):
-                raise DimensionError(f"H must have shape ({m}, {m}), got {Hn.shape}")
-            if not np.allclose(Hn, Hn.T, rtol=1e-12, atol=0.0) or np.any(
-                np.linalg.eigvalsh(Hn) <= 0
-            ):
-                raise ParameterError("H must be symmetric positive definite")
-            H = Hn
+            if np.shape(H) != (m, m):
+                raise DimensionError(f"H must have shape ({m}, {m}), got {np.shape(H)}")
+            if is_concrete(H):  # a traced H is checked on its shape only
+                Hn = np.asarray(H, dtype=float)
+                if not np.allclose(Hn, Hn.T, rtol=1e-12, atol=0.0) or np.any(
+                    np.linalg.eigvalsh(Hn) <= 0
+                ):
+                    raise ParameterError("H must be symmetric positive definite")
+                H = Hn
+            else:
+                H = jnp.asarray(H, dtype=float)
         if uncertainty is not None:
             check_uncertainty_model(uncertainty, n)
             gp_beta = check_beta(gp_beta, n)
@@ -254,9 +268,40 @@ class SafetyFilter:
         self.u_min, self.u_max = u_min, u_max
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
+        self._remember(
+            SafetyFilter,
+            (),
+            dict(
+                system=system, cbfs=cbfs, clfs=clfs, u_nom=u_nom_arg, H=H_arg, kappa=kappa, rho=rho, phi=phi,
+                varphi=varphi, slack_weight=slack_weight, u_min=u_min_arg, u_max=u_max_arg,
+                uncertainty=uncertainty, gp_beta=gp_beta_arg, params=params, max_iter=max_iter,
+            ),
+        )  # fmt: skip
+        self._rebuild()
+
+    def _rebuild(self) -> None:
         #: The fused, jitted step without argument checks, for one state or a batch;
         #: ``step_fn(x, p)`` with run-time parameters (``p`` shared by the batch).
         self.step_fn = jax.jit(self._step)
+
+    _CHILDREN = ("clfs", "cbfs")
+
+    def _leaf_names(self) -> tuple[str, ...]:
+        names = ["kappa", "rho", "phi", "varphi"]
+        names += ["slack_weight"] if self.slack_weight is not None else []
+        names += ["u_min", "u_max"] if self.u_min is not None else []
+        names += ["H"] if self.H is not None else []
+        names += ["gp_beta"] if self.uncertainty is not None else []
+        return tuple(names)
+
+    def _get_leaf(self, name: str) -> Any:
+        return self.params[name] if name in self.params else getattr(self, name)
+
+    def _set_leaf(self, name: str, value: Any) -> None:
+        if name in self.params:
+            self.params[name] = value
+        else:
+            setattr(self, name, value)
 
     def _point(self, x: jax.Array, p: Any = None):
         f, g = self.system.f_of(x, p), self.system.g_of(x, p)
@@ -300,7 +345,7 @@ class SafetyFilter:
         (a, b, c, d, u_nom), status = over_batch(lambda s: self._point(s, p), x)
         p = self.params
         batch = x.shape[:-1]
-        inv = None if self.slack_weight is None else np.asarray(1.0 / np.sqrt(self.slack_weight))
+        inv = None if self.slack_weight is None else inv_sqrt(self.slack_weight)
         lo = hi = None
         if self.u_min is not None:
             m = self.system.n_inputs

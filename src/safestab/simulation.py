@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._params import ParamSpec, merge_specs, resolve
-from ._validation import check_real, check_scalar_range
+from ._validation import check_real, check_scalar_range, traced_results
 from .controllers import StepStatus, UniversalController
 from .errors import (
     DimensionError,
@@ -333,6 +333,8 @@ def simulate(
         cbf_satisfied=sats,
         status=stats,
     )
+    if traced_results((xs, us, stats), strict, "simulate"):  # the statuses are the record
+        return traj
     if np.any(np.asarray(stats) == StepStatus.NEGATIVE_STD):
         raise ModelError(
             "the uncertainty model returned a negative standard deviation during the run: "

@@ -1,0 +1,129 @@
+"""Controllers as JAX values: their numeric parameters are pytree leaves.
+
+A controller (:class:`~safestab.UniversalController`, :class:`~safestab.SafetyFilter`) is a
+pytree whose leaves are its numeric parameters (``kappa``, ``rho``, constant ``phi`` and
+``varphi``, ``slack_weight``, the limits, ``gp_beta``, ``H``) and whose static part is
+everything else (the system, the certificates, the formula, the uncertainty model). So a
+controller can be an argument of a user's ``jax.jit``, be ``vmap``-ped over its parameters,
+and be differentiated with respect to them (``jax.grad`` of a closed-loop cost through
+:func:`~safestab.simulate`).
+
+``replace(**changes)`` builds a new controller with some arguments changed, with every check
+of the constructor (checks that need numbers are skipped for traced values, as in the
+formulas). Unflattening a pytree (what JAX does inside its transformations) sets the leaves
+without checks, as JAX requires.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._validation import is_concrete
+
+__all__ = ["ControllerValue", "Template", "as_scalar", "inv_sqrt"]
+
+
+def as_scalar(value: Any) -> Any:
+    """A concrete parameter as a Python float; a traced one as a float64 JAX scalar."""
+    if is_concrete(value):
+        return float(np.asarray(value, dtype=float))
+    return jnp.asarray(value, dtype=float)
+
+
+def inv_sqrt(value: Any) -> Any:
+    """``1/sqrt(value)``: in NumPy for a concrete value (bit for bit as before), else in JAX."""
+    if is_concrete(value):
+        return np.asarray(1.0 / np.sqrt(np.asarray(value, dtype=float)))
+    return 1.0 / jnp.sqrt(jnp.asarray(value, dtype=float))
+
+
+class Template:
+    """The static part of a value's pytree: the object it was built as (compared by identity,
+    so every copy of one controller or certificate shares one tree structure)."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj: Any) -> None:
+        self.obj = obj
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Template) and other.obj is self.obj
+
+
+class ControllerValue:
+    """Mixin: a controller whose numeric parameters are pytree leaves.
+
+    Subclasses call :meth:`_remember` at the end of ``__init__`` with the constructor's
+    arguments, list their parameters in :meth:`_leaf_names` (those present), and read and
+    write them through :meth:`_get_leaf` / :meth:`_set_leaf`; :meth:`_rebuild` makes the
+    jitted functions of a new value.
+    """
+
+    _init: type
+    _args: tuple
+    _kwargs: dict
+    _template: Template
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
+
+    def _remember(self, init: type, args: tuple, kwargs: dict) -> None:
+        self._init, self._args, self._kwargs = init, args, dict(kwargs)
+        self._template = Template(self)
+
+    # -- to be provided by subclasses ---------------------------------------------------
+    def _leaf_names(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    def _get_leaf(self, name: str) -> Any:
+        raise NotImplementedError
+
+    def _set_leaf(self, name: str, value: Any) -> None:
+        raise NotImplementedError
+
+    def _rebuild(self) -> None:
+        raise NotImplementedError
+
+    # -- public -------------------------------------------------------------------------
+    def tunables(self) -> dict[str, Any]:
+        """The numeric parameters that are pytree leaves, by name (see :meth:`replace`)."""
+        return {name: self._get_leaf(name) for name in self._leaf_names()}
+
+    def replace(self, **changes: Any) -> Any:
+        """A new controller with some constructor arguments changed.
+
+        The arguments are checked as by the constructor (values that JAX traces on their
+        shapes and dtypes only). Any constructor argument can be changed (a new uncertainty
+        model, say); the numeric ones may be traced, so
+        ``jax.grad(lambda k: cost(ctrl.replace(kappa=k)))`` and ``jax.vmap`` over them work.
+        """
+        new = object.__new__(type(self))
+        self._init.__init__(new, *self._args, **{**self._kwargs, **changes})
+        return new
+
+    # -- pytree -------------------------------------------------------------------------
+    #: Attributes holding certificates (pytrees themselves: their rates are leaves too).
+    _CHILDREN: tuple[str, ...] = ()
+
+    def _flatten(self) -> tuple[tuple[Any, ...], tuple[Template, tuple[str, ...]]]:
+        names = self._leaf_names() + self._CHILDREN
+        return tuple(self._get_leaf(n) for n in names), (self._template, names)
+
+    @classmethod
+    def _unflatten(cls, aux: tuple[Template, tuple[str, ...]], leaves: Any) -> Any:
+        template, names = aux
+        new = object.__new__(cls)
+        new.__dict__.update(template.obj.__dict__)
+        new.params = dict(template.obj.params)
+        for name, value in zip(names, leaves, strict=True):
+            new._set_leaf(name, value)
+        new._rebuild()
+        return new

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from .._numerics import safe_sqrt
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
 from ._kernels import kernel as _kernel
@@ -124,9 +125,9 @@ def _parts(p, x, kind):
         all3 = maps @ k
         v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
         r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
-        r = jnp.sqrt(r2)
-        var = r2 + gv @ gv + 2.0 * jnp.sqrt(cv @ cv) * rho * r  # >= exact variance
-        return k @ wk, jnp.sqrt(var), err * r
+        r = safe_sqrt(r2)  # safe_sqrt: derivative 0, not NaN, at 0
+        var = r2 + gv @ gv + 2.0 * safe_sqrt(cv @ cv) * rho * r  # >= exact variance
+        return k @ wk, safe_sqrt(var), err * r
 
     return jax.vmap(per_comp)(
         p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]

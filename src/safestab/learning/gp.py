@@ -22,6 +22,7 @@ import scipy.optimize
 from jax.scipy.linalg import cho_solve, solve_triangular
 from tinygp import GaussianProcess
 
+from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
 from ..errors import (
     ConvergenceWarning,
@@ -809,7 +810,7 @@ class GaussianProcessModel:
         if is_concrete(x):
             check_finite("x", x)
         mean, var = _posterior_one(self._posterior, x, self.kernel, self.n_states_)
-        return mean, jnp.sqrt(var)
+        return mean, safe_sqrt(var)  # derivative 0, not NaN, where the std is 0
 
     @property
     def n_states(self) -> int:

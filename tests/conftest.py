@@ -19,3 +19,20 @@ settings.register_profile(
 )
 settings.register_profile("explore", deadline=None, max_examples=5000)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_functions():
+    """Drop JAX's in-memory compiled functions after each test module.
+
+    Every compiled XLA function keeps its own memory mappings; over the whole suite they
+    exceed the kernel's limit on mappings per process (``vm.max_map_count``, 65,530 here),
+    after which the next compilation crashes the process. Recompiling in a later module is
+    cheap: the persistent compilation cache (safestab/_cache.py) serves it from disk.
+    """
+    yield
+    jax.clear_caches()

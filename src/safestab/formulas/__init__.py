@@ -20,6 +20,13 @@ The package has one idea per module: ``single`` (Sontag's CLF formula and the CB
 CLFs and CBFs, limits inside the problem, weighted objectives) and ``results`` (the result
 types). The public functions check their arguments and call the unchecked kernels of
 the internal modules ``_kernels`` and ``_dual_active_set``, which the controllers call as well.
+
+Every function composes with ``jax.jit``, ``jax.vmap``, ``jax.grad`` and ``jax.jacfwd``.
+Under a transformation the checks that need values are skipped (shapes and dtypes are still
+checked) and the outputs are returned as computed. Derivatives are exact inside each region
+(and inside each active set of the several-row solver, which is differentiated on its final
+active set); on a boundary between regions they are those of the region picked there, and
+they are never NaN where the value is finite (docs/jax.md).
 """
 
 from ._kernels import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL

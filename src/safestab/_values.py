@@ -42,8 +42,11 @@ def inv_sqrt(value: Any) -> Any:
 
 
 class Template:
-    """The static part of a value's pytree: the object it was built as (compared by identity,
-    so every copy of one controller or certificate shares one tree structure)."""
+    """The static part of a value's pytree: the object it was built as.
+
+    Compared by identity, so every copy of one controller or certificate shares one tree
+    structure (and one compiled function in a user's ``jit``).
+    """
 
     __slots__ = ("obj",)
 
@@ -61,9 +64,9 @@ class ControllerValue:
     """Mixin: a controller whose numeric parameters are pytree leaves.
 
     Subclasses call :meth:`_remember` at the end of ``__init__`` with the constructor's
-    arguments, list their parameters in :meth:`_leaf_names` (those present), and read and
-    write them through :meth:`_get_leaf` / :meth:`_set_leaf`; :meth:`_rebuild` makes the
-    jitted functions of a new value.
+    arguments, list their parameters in :meth:`_leaf_names` (those present; read and written
+    in their ``params`` dict or as attributes) and their certificates in ``_CHILDREN``;
+    :meth:`_rebuild` makes the jitted functions of a new value.
     """
 
     _init: type
@@ -84,10 +87,14 @@ class ControllerValue:
         raise NotImplementedError
 
     def _get_leaf(self, name: str) -> Any:
-        raise NotImplementedError
+        """A parameter of the ``params`` dict, else the attribute of that name."""
+        return self.params[name] if name in self.params else getattr(self, name)
 
     def _set_leaf(self, name: str, value: Any) -> None:
-        raise NotImplementedError
+        if name in self.params:
+            self.params[name] = value
+        else:
+            setattr(self, name, value)
 
     def _rebuild(self) -> None:
         raise NotImplementedError

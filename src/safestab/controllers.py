@@ -292,11 +292,24 @@ class UniversalController(ControllerValue):
             UniversalController,
             (),
             dict(
-                system=system, clf=clf, cbf=cbf, kappa=kappa, rho=rho, phi=phi, varphi=varphi, slack_weight=slack_weight,
-                u_min=u_min, u_max=u_max, saturation=saturation, uncertainty=uncertainty,
-                gp_beta=gp_beta, parallel_rtol=parallel_rtol, formula=formula, params=params,
+                system=system,
+                clf=clf,
+                cbf=cbf,
+                kappa=kappa,
+                rho=rho,
+                phi=phi,
+                varphi=varphi,
+                slack_weight=slack_weight,
+                u_min=u_min,
+                u_max=u_max,
+                saturation=saturation,
+                uncertainty=uncertainty,
+                gp_beta=gp_beta,
+                parallel_rtol=parallel_rtol,
+                formula=formula,
+                params=params,
             ),
-        )  # fmt: skip
+        )
         self._rebuild()
 
     def _rebuild(self) -> None:
@@ -316,15 +329,6 @@ class UniversalController(ControllerValue):
         names += ["u_min", "u_max"] if self.u_min is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
         return tuple(names)
-
-    def _get_leaf(self, name: str) -> Any:
-        return self.params[name] if name in self.params else getattr(self, name)
-
-    def _set_leaf(self, name: str, value: Any) -> None:
-        if name in self.params:
-            self.params[name] = value
-        else:
-            setattr(self, name, value)
 
     @staticmethod
     def _limit(name: str, value: Any, m: int) -> Any:

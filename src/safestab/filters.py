@@ -272,11 +272,24 @@ class SafetyFilter(ControllerValue):
             SafetyFilter,
             (),
             dict(
-                system=system, cbfs=cbfs, clfs=clfs, u_nom=u_nom_arg, H=H_arg, kappa=kappa, rho=rho, phi=phi,
-                varphi=varphi, slack_weight=slack_weight, u_min=u_min_arg, u_max=u_max_arg,
-                uncertainty=uncertainty, gp_beta=gp_beta_arg, params=params, max_iter=max_iter,
+                system=system,
+                cbfs=cbfs,
+                clfs=clfs,
+                u_nom=u_nom_arg,
+                H=H_arg,
+                kappa=kappa,
+                rho=rho,
+                phi=phi,
+                varphi=varphi,
+                slack_weight=slack_weight,
+                u_min=u_min_arg,
+                u_max=u_max_arg,
+                uncertainty=uncertainty,
+                gp_beta=gp_beta_arg,
+                params=params,
+                max_iter=max_iter,
             ),
-        )  # fmt: skip
+        )
         self._rebuild()
 
     def _rebuild(self) -> None:
@@ -293,15 +306,6 @@ class SafetyFilter(ControllerValue):
         names += ["H"] if self.H is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
         return tuple(names)
-
-    def _get_leaf(self, name: str) -> Any:
-        return self.params[name] if name in self.params else getattr(self, name)
-
-    def _set_leaf(self, name: str, value: Any) -> None:
-        if name in self.params:
-            self.params[name] = value
-        else:
-            setattr(self, name, value)
 
     def _point(self, x: jax.Array, p: Any = None):
         f, g = self.system.f_of(x, p), self.system.g_of(x, p)

@@ -328,12 +328,14 @@ def main():
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument(
-        "--only", choices=("all", "gp", "export", "multi", "filter"), default="all",
+        "--only", choices=("all", "gp", "export", "multi", "filter", "jax"), default="all",
         help="'gp': rerun only the GP fit-scaling and fast-cache sections; 'export': only the "
         "native controller rows; each merged into the existing performance.json; 'multi': only "
         "the several-CBF rows (benchmarks/multi.py, saved to performance_multi.json); 'filter': "
         "only the safety filter's solver against daqp, quadprog, Clarabel and qpax "
-        "(benchmarks/filter.py, saved to performance_filter.json)",
+        "(benchmarks/filter.py, saved to performance_filter.json); 'jax': the formulas in a "
+        "user's jit and their gradients against qpax (benchmarks/jax_native.py, saved to "
+        "performance_jax.json)",
     )  # fmt: skip
     parser.add_argument("--gp-scaling-worker", type=int, help=argparse.SUPPRESS)
     # Monte Carlo rows (issue 13): benchmarks/mc_rows.py, also runnable on their own
@@ -361,6 +363,11 @@ def main():
         import filter as filter_rows
 
         filter_rows.main(args.out)
+        return
+    if args.only == "jax":
+        import jax_native
+
+        jax_native.main(args.out)
         return
     rng = np.random.default_rng(0)
     results: dict = {"machine": machine()}

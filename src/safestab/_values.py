@@ -70,7 +70,6 @@ class ControllerValue:
     """
 
     _init: type
-    _args: tuple
     _kwargs: dict
     _template: Template
 
@@ -78,8 +77,9 @@ class ControllerValue:
         super().__init_subclass__(**kwargs)
         jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
 
-    def _remember(self, init: type, args: tuple, kwargs: dict) -> None:
-        self._init, self._args, self._kwargs = init, args, dict(kwargs)
+    def _remember(self, init: type, kwargs: dict) -> None:
+        """Keep the constructor (``init``) and its arguments, for :meth:`replace`."""
+        self._init, self._kwargs = init, dict(kwargs)
         self._template = Template(self)
 
     # -- to be provided by subclasses ---------------------------------------------------
@@ -113,7 +113,7 @@ class ControllerValue:
         ``jax.grad(lambda k: cost(ctrl.replace(kappa=k)))`` and ``jax.vmap`` over them work.
         """
         new = object.__new__(type(self))
-        self._init.__init__(new, *self._args, **{**self._kwargs, **changes})
+        self._init.__init__(new, **{**self._kwargs, **changes})
         return new
 
     # -- pytree -------------------------------------------------------------------------

@@ -217,6 +217,7 @@ class UniversalController(ControllerValue):
         formula: Literal["combined", "sontag", "cbf"] = "combined",
         params: Any = None,
     ) -> None:
+        init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         if formula not in ("combined", "sontag", "cbf"):
             raise ParameterError(f"formula must be 'combined', 'sontag' or 'cbf', got {formula!r}")
         if not isinstance(clf, CLF):
@@ -288,28 +289,7 @@ class UniversalController(ControllerValue):
         self.gp_beta = gp_beta if uncertainty is not None else None
         self.parallel_rtol = float(parallel_rtol)
         self.formula = formula
-        self._remember(
-            UniversalController,
-            (),
-            dict(
-                system=system,
-                clf=clf,
-                cbf=cbf,
-                kappa=kappa,
-                rho=rho,
-                phi=phi,
-                varphi=varphi,
-                slack_weight=slack_weight,
-                u_min=u_min,
-                u_max=u_max,
-                saturation=saturation,
-                uncertainty=uncertainty,
-                gp_beta=gp_beta,
-                parallel_rtol=parallel_rtol,
-                formula=formula,
-                params=params,
-            ),
-        )
+        self._remember(UniversalController, init_args)
         self._rebuild()
 
     def _rebuild(self) -> None:

@@ -199,7 +199,7 @@ class SafetyFilter(ControllerValue):
         params: Any = None,
         max_iter: int | None = None,
     ) -> None:
-        u_nom_arg, H_arg, u_min_arg, u_max_arg, gp_beta_arg = u_nom, H, u_min, u_max, gp_beta
+        init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
         if not self.cbfs:
@@ -268,28 +268,7 @@ class SafetyFilter(ControllerValue):
         self.u_min, self.u_max = u_min, u_max
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
-        self._remember(
-            SafetyFilter,
-            (),
-            dict(
-                system=system,
-                cbfs=cbfs,
-                clfs=clfs,
-                u_nom=u_nom_arg,
-                H=H_arg,
-                kappa=kappa,
-                rho=rho,
-                phi=phi,
-                varphi=varphi,
-                slack_weight=slack_weight,
-                u_min=u_min_arg,
-                u_max=u_max_arg,
-                uncertainty=uncertainty,
-                gp_beta=gp_beta_arg,
-                params=params,
-                max_iter=max_iter,
-            ),
-        )
+        self._remember(SafetyFilter, init_args)
         self._rebuild()
 
     def _rebuild(self) -> None:

@@ -628,3 +628,27 @@ def test_every_public_object_composes(name):
         -1,
     )
     np.testing.assert_allclose(fwd, fd, rtol=1e-6, atol=1e-7)
+
+
+def test_class_k_gain_built_inside_the_traced_function_differentiates():
+    """A class-K function whose gain is traced (built inside the differentiated function):
+    its probe checks give way to shape checks, and d u / d gain matches differences."""
+    system, clf, cbf = _plant()
+    h = cbf.fn
+    ctrl = ss.UniversalController(system, clf, cbf, **K)
+
+    def u(gain, x):
+        alpha = lambda s: gain * s**3 + s  # noqa: E731
+        return ctrl.replace(cbf=ss.CBF(h, alpha=alpha)).input_fn(x)
+
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    states = [jnp.array([1 + 0.97 * np.cos(t), 0.97 * np.sin(t)]) for t in angles]
+    active = [x for x in states if int(ctrl.step(x).region) in (ss.Region.P2, ss.Region.P3)]
+    assert active  # the CBF binds somewhere on this circle
+    for x in active[:3]:
+        g = np.asarray(jax.jacfwd(u)(2.0, x))
+        fd = (np.asarray(u(2.0 + 1e-6, x)) - np.asarray(u(2.0 - 1e-6, x))) / 2e-6
+        assert np.max(np.abs(g)) > 0
+        np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+    with pytest.raises(ParameterError):  # concrete class-K functions are still checked
+        ss.CBF(h, alpha=lambda s: -s)

@@ -18,7 +18,7 @@ import numpy as np
 
 from ._batching import over_batch
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
-from ._validation import check_real, check_scalar_range
+from ._validation import check_real, check_scalar_range, is_concrete
 from ._values import Template, as_scalar
 from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
@@ -68,9 +68,12 @@ def _check_class_k(name: str, fn: Any) -> None:
     """
     if not callable(fn):
         raise TypeError(f"{name} must be a callable from a scalar to a scalar")
-    values = np.asarray(jax.vmap(fn)(jnp.asarray(_CLASS_K_PROBE)), dtype=float)
-    if values.shape != _CLASS_K_PROBE.shape:
-        raise DimensionError(f"{name} must map a scalar to a scalar, got shape {values.shape[1:]}")
+    out = jax.vmap(fn)(jnp.asarray(_CLASS_K_PROBE))
+    if np.shape(out) != _CLASS_K_PROBE.shape:
+        raise DimensionError(f"{name} must map a scalar to a scalar, got shape {np.shape(out)[1:]}")
+    if not is_concrete(out):  # built under jit or grad (a traced gain): shapes only
+        return
+    values = np.asarray(out, dtype=float)
     zero = float(values[_CLASS_K_PROBE.size // 2])
     if zero != 0.0:
         raise ParameterError(

@@ -44,11 +44,11 @@ def _problems(rng, n, k):
 
 
 def _qp_rows(a, b, c, d, limits):
-    """Rows of the QP in (u, chi) for qpsolvers (margins as in the closed form)."""
-    from safestab.formulas._kernels import margins
+    """Rows of the QP in (u, chi) for qpsolvers (the margins through the public zeta)."""
+    import safestab as ss
 
-    A = float(margins(a, b, a, b, P["kappa"], 0.0, P["phi"], 0.0).A[0])
-    B = np.asarray(margins(c, d, c, d, 0.0, P["rho"], 0.0, P["varphi"]).B)
+    A = float(a[0] + P["kappa"] * ss.zeta(a[0], b[0], P["phi"]))
+    B = np.asarray(P["rho"] * ss.zeta(c, d, P["varphi"]) - c)
     G = [np.append(b[0], -1.0)]
     h = [-A]
     for i in range(d.shape[0]):

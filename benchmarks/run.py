@@ -472,13 +472,12 @@ def main():
     n_batch = 1_000_000
     xb = jnp.asarray(rng.uniform(sc.x0_low, sc.x0_high, size=(n_batch, 3)))
     terms = ss.lie_terms(nominal, clf, cbf, xb)
-    formula = jax.jit(
-        lambda t: (
-            ss.formulas._clf_cbf_relaxed(
-                *t, sc.kappa, sc.rho, sc.phi, sc.varphi, sc.slack_weight, 1e-12
-            ).u
-        )
-    )
+    formula = jax.jit(  # the public formula inside the user's jit (JAX-native, issue 24)
+        lambda t: ss.clf_cbf_relaxed(
+            *t, kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
+            slack_weight=sc.slack_weight,
+        ).u
+    )  # fmt: skip
     thr = {}
     for name, fn, arg in [
         ("closed form on precomputed nominal Lie terms", formula, terms),

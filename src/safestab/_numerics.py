@@ -1,4 +1,4 @@
-"""Small numerical helpers shared by the formulas and the learning code."""
+"""Small numerical helpers shared by the formulas, the controllers and the learning code."""
 
 from __future__ import annotations
 
@@ -6,8 +6,11 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["safe_sqrt"]
+from ._validation import is_concrete
+
+__all__ = ["safe_sqrt", "as_scalar", "inv_sqrt"]
 
 
 @jax.custom_jvp
@@ -26,3 +29,17 @@ def _safe_sqrt_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
     s = jnp.sqrt(x)
     return s, jnp.where(s > 0, dx / (2.0 * jnp.where(s > 0, s, 1.0)), 0.0)
+
+
+def as_scalar(value: Any) -> Any:
+    """A concrete parameter as a Python float; a traced one as a float64 JAX scalar."""
+    if is_concrete(value):
+        return float(np.asarray(value, dtype=float))
+    return jnp.asarray(value, dtype=float)
+
+
+def inv_sqrt(value: Any) -> Any:
+    """``1/sqrt(value)``: in NumPy for a concrete value (bit for bit as before), else in JAX."""
+    if is_concrete(value):
+        return np.asarray(1.0 / np.sqrt(np.asarray(value, dtype=float)))
+    return 1.0 / jnp.sqrt(jnp.asarray(value, dtype=float))

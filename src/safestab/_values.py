@@ -16,29 +16,12 @@ without checks, as JAX requires.
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 
-from ._validation import is_concrete
-
-__all__ = ["ControllerValue", "Template", "as_scalar", "inv_sqrt"]
-
-
-def as_scalar(value: Any) -> Any:
-    """A concrete parameter as a Python float; a traced one as a float64 JAX scalar."""
-    if is_concrete(value):
-        return float(np.asarray(value, dtype=float))
-    return jnp.asarray(value, dtype=float)
-
-
-def inv_sqrt(value: Any) -> Any:
-    """``1/sqrt(value)``: in NumPy for a concrete value (bit for bit as before), else in JAX."""
-    if is_concrete(value):
-        return np.asarray(1.0 / np.sqrt(np.asarray(value, dtype=float)))
-    return 1.0 / jnp.sqrt(jnp.asarray(value, dtype=float))
+__all__ = ["PytreeValue", "ControllerValue", "Template"]
 
 
 class Template:
@@ -60,7 +43,18 @@ class Template:
         return isinstance(other, Template) and other.obj is self.obj
 
 
-class ControllerValue:
+class PytreeValue:
+    """Base of the values that are pytrees (controllers, filters and certificates).
+
+    Each subclass is registered with JAX by its ``_flatten`` and ``_unflatten``.
+    """
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
+
+
+class ControllerValue(PytreeValue):
     """Mixin: a controller whose numeric parameters are pytree leaves.
 
     Subclasses call :meth:`_remember` at the end of ``__init__`` with the constructor's
@@ -72,10 +66,6 @@ class ControllerValue:
     _init: type
     _kwargs: dict
     _template: Template
-
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
 
     def _remember(self, init: type, kwargs: dict) -> None:
         """Keep the constructor (``init``) and its arguments, for :meth:`replace`."""
@@ -127,8 +117,7 @@ class ControllerValue:
     @classmethod
     def _unflatten(cls, aux: tuple[Template, tuple[str, ...]], leaves: Any) -> Any:
         template, names = aux
-        new = object.__new__(cls)
-        new.__dict__.update(template.obj.__dict__)
+        new = copy.copy(template.obj)  # no constructor: JAX may pass placeholders as leaves
         new.params = dict(template.obj.params)
         for name, value in zip(names, leaves, strict=True):
             new._set_leaf(name, value)

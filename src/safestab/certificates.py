@@ -17,9 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, check_scalar_range, is_concrete
-from ._values import Template, as_scalar
+from ._values import PytreeValue, Template
 from .errors import DimensionError, ParameterError
 from .systems import ControlAffineSystem
 
@@ -93,7 +94,7 @@ def _check_class_k(name: str, fn: Any) -> None:
         )
 
 
-class _Certificate:
+class _Certificate(PytreeValue):
     """A scalar function of the state with a gradient (autodiff unless given)."""
 
     _kind = "certificate"
@@ -120,12 +121,7 @@ class _Certificate:
                 f"{self._class_k_name} (a class-K function)"
             )
         if rate is not None:
-            check_real(self._rate_name, rate)
-            if np.ndim(rate) != 0:
-                raise DimensionError(
-                    f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
-                )
-            check_scalar_range(self._rate_name, rate, lower=0.0)
+            self._check_rate(rate)
         else:
             _check_class_k(self._class_k_name, class_k)
         self.fn = fn
@@ -144,6 +140,15 @@ class _Certificate:
         self.base: Callable | None = None
         #: gradient of ``base`` as a function of ``(x, p)`` (high-order CBFs only)
         self.base_grad: Callable | None = None
+
+    def _check_rate(self, rate: Any) -> None:
+        """A linear rate: a real, finite scalar >= 0 (traced: its dtype and shape only)."""
+        check_real(self._rate_name, rate)
+        if np.ndim(rate) != 0:
+            raise DimensionError(
+                f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
+            )
+        check_scalar_range(self._rate_name, rate, lower=0.0)
 
     def replace(self, **changes: Any) -> Any:
         """A copy with a new linear rate (``lam`` of a CLF, ``beta`` of a CBF), checked.
@@ -171,12 +176,7 @@ class _Certificate:
                 f"not a linear {self._rate_name}: build a new one instead"
             )
         rate = changes[self._rate_name]
-        check_real(self._rate_name, rate)
-        if np.ndim(rate) != 0:
-            raise DimensionError(
-                f"{self._rate_name} must be a scalar, got an array of shape {np.shape(rate)}"
-            )
-        check_scalar_range(self._rate_name, rate, lower=0.0)
+        self._check_rate(rate)
         new = copy.copy(self)
         new.rate = as_scalar(rate)
         return new
@@ -188,15 +188,10 @@ class _Certificate:
     @classmethod
     def _unflatten(cls, aux: tuple[Template, bool], leaves: Any) -> Any:
         template, has_rate = aux
-        new = object.__new__(cls)
-        new.__dict__.update(template.obj.__dict__)
+        new = copy.copy(template.obj)  # no constructor: JAX may pass placeholders as leaves
         if has_rate:
             (new.rate,) = leaves
         return new
-
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        jax.tree_util.register_pytree_node(cls, cls._flatten, cls._unflatten)
 
     def rate_term(self, value: jax.Array) -> jax.Array:
         """``rate * value`` (the paper's linear choice) or ``class_k(value)``."""

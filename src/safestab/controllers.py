@@ -15,9 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._numerics import as_scalar, inv_sqrt
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, is_concrete, traced_results
-from ._values import ControllerValue, as_scalar, inv_sqrt
+from ._values import ControllerValue
 from .certificates import CBF, CLF, LieTerms, lie_terms_point
 from .errors import (
     DimensionError,

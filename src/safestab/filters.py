@@ -18,9 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._numerics import inv_sqrt
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
-from ._values import ControllerValue, inv_sqrt
+from ._values import ControllerValue
 from .certificates import CBF, CLF
 from .controllers import StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError

@@ -167,7 +167,7 @@ def _solve_dual_jvp(batched, primals, tangents):
     """
     G, r, w0, use, max_iter = primals
     dG, dr, dw0 = tangents[:3]
-    sol = _solve_dual_diff(batched, G, r, w0, use, max_iter)
+    sol = _solve_dual(G, r, w0, use, max_iter, batched)
     act = sol.active
     norms = scaled_norm(G)
     safe = jnp.where(act & (norms > 0), norms, 1.0)

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numerics import inv_sqrt
 from .._validation import check_finite, check_real, is_concrete
 from ..errors import DimensionError, ParameterError
 from ._checks import as_float, check_box, check_max_iter, check_output_finite, check_params
@@ -486,7 +487,7 @@ def clf_cbf_multi(
         )
     batch = batch_a
     check_params(batch, kappa=kappa, rho=rho, phi=phi, varphi=varphi)
-    inv_sqrt = None
+    inv_s = None  # 1 / sqrt(slack_weight)
     if slack_weight is not None:
         check_params(slack_weight=slack_weight)
         sw_shape = tuple(np.shape(slack_weight))
@@ -494,12 +495,7 @@ def clf_cbf_multi(
             raise DimensionError(
                 f"slack_weight must be a scalar or have shape ({p},), got {sw_shape}"
             )
-        if is_concrete(slack_weight):
-            inv_sqrt = 1.0 / np.sqrt(np.asarray(slack_weight, dtype=float))
-        else:  # traced: the same correctly rounded operations, in JAX
-            inv_sqrt = 1.0 / jnp.sqrt(jnp.asarray(slack_weight, dtype=float))
-        if p == 0:
-            inv_sqrt = None  # no CLF row carries a slack
+        inv_s = inv_sqrt(slack_weight) if p > 0 else None  # no CLF row carries a slack
     if (u_min is None) != (u_max is None):
         raise ParameterError("give both u_min and u_max, or neither")
     lo = hi = None
@@ -531,10 +527,10 @@ def clf_cbf_multi(
         H = jnp.broadcast_to(jnp.asarray(H, float), batch + (m, m))
     a, b, c, d = as_float(a, b, c, d)
     if p == 1 and k == 1 and lo is None:
-        res = _single_jit(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, u_nom, H)
+        res = _single_jit(a, b, c, d, kappa, rho, phi, varphi, inv_s, u_nom, H)
     else:
         res = _multi_jit(
-            a, b, c, d, kappa, rho, phi, varphi, inv_sqrt, lo, hi, u_nom, H, max_iter=max_iter
+            a, b, c, d, kappa, rho, phi, varphi, inv_s, lo, hi, u_nom, H, max_iter=max_iter
         )
     check_output_finite("clf_cbf_multi", u=res.u, slack=res.slack, multipliers=res.multipliers)
     return res

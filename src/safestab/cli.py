@@ -360,12 +360,16 @@ def run(
 
 @app.command("export")
 def export_cmd(
-    scenario: str = typer.Option("stress", help="A preset ('paper', 'stress') or a TOML file."),
+    scenario: str = typer.Option(
+        "stress", help="A preset ('paper', 'stress', 'obstacle') or a TOML file."
+    ),
     out: Path = typer.Option(Path("build"), help="Output folder (created if needed)."),
     controller: str = typer.Option(
         "gp", help="'gp' (GP-corrected, fast cache), 'nominal' or 'true' model."
     ),
-    name: str = typer.Option("acc", help="Prefix of the C names and files."),
+    name: str | None = typer.Option(
+        None, help="Prefix of the C names and files (default 'acc' or 'obstacle')."
+    ),
     precision: str = typer.Option("double", help="'double' or 'float'."),
     cases: int = typer.Option(256, help="Recorded states in the C test harness."),
     n_samples: int | None = typer.Option(None, help="Override the number of GP samples Q."),
@@ -373,7 +377,7 @@ def export_cmd(
     seed: int | None = typer.Option(None, help="Seed for data, GP fit and recorded states."),
     check: bool = typer.Option(True, help="Compile and run the harness (needs a C compiler)."),
 ) -> None:
-    """Export an ACC controller step as C99 (name.c, name.h) with a C test harness."""
+    """Export an ACC or obstacle controller step as C99 (name.c, name.h) with a C harness."""
     from rich.console import Console
 
     from .errors import SafeStabError

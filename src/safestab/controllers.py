@@ -171,6 +171,14 @@ class UniversalController(ControllerValue):
         declare their own (``params=`` on each); all declared examples must agree, and one
         ``p`` reaches every function: ``step(x, params=p)``, ``step_fn(x, p)``,
         ``simulate(..., params=p)``. New values of ``p`` never recompile.
+    cbf_margin : float, optional
+        A tightening of the CBF condition, in the units of ``dh/dt``: the formula enforces
+        ``c + d.u >= rho Gamma + cbf_margin`` instead of ``>= rho Gamma``, and
+        ``cbf_satisfied`` reports ``c + d.u - rho Gamma >= cbf_margin / 2`` (up to the
+        rounding of the condition). With a margin of twice a bound on the error of evaluating
+        the condition (a lower precision, a model error), a step whose flag says satisfied
+        keeps the exact condition: :func:`~safestab.export.export_scenario` uses it for the
+        float export (docs/export.md, "Float that stays safe"). Default: none (0).
 
     Attributes
     ----------
@@ -217,6 +225,7 @@ class UniversalController(ControllerValue):
         parallel_rtol: float = DEFAULT_PARALLEL_RTOL,
         formula: Literal["combined", "sontag", "cbf"] = "combined",
         params: Any = None,
+        cbf_margin: float | None = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         if formula not in ("combined", "sontag", "cbf"):
@@ -247,6 +256,18 @@ class UniversalController(ControllerValue):
                 check_params((), **{name: weight})
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
+        if cbf_margin is not None:
+            check_real("cbf_margin", cbf_margin)
+            if np.ndim(cbf_margin) != 0:
+                raise DimensionError(
+                    f"cbf_margin must be a scalar, got shape {np.shape(cbf_margin)}"
+                )
+            if is_concrete(cbf_margin) and not (
+                np.isfinite(float(cbf_margin)) and float(cbf_margin) >= 0
+            ):
+                raise ParameterError(
+                    f"cbf_margin must be a finite number >= 0, got {float(cbf_margin)!r}"
+                )
         clf.check(system.n_states)
         cbf.check(system.n_states)
         self.params_spec: ParamSpec | None = merge_specs(
@@ -290,6 +311,7 @@ class UniversalController(ControllerValue):
         self.gp_beta = gp_beta if uncertainty is not None else None
         self.parallel_rtol = float(parallel_rtol)
         self.formula = formula
+        self.cbf_margin = None if cbf_margin is None else as_scalar(cbf_margin)
         self._remember(UniversalController, init_args)
         self._rebuild()
 
@@ -309,6 +331,7 @@ class UniversalController(ControllerValue):
         names += ["slack_weight"] if self.slack_weight is not None else []
         names += ["u_min", "u_max"] if self.u_min is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
+        names += ["cbf_margin"] if self.cbf_margin is not None else []
         return tuple(names)
 
     @staticmethod
@@ -393,6 +416,11 @@ class UniversalController(ControllerValue):
         # a negative weight is reported by the status; the formula runs on 0 meanwhile
         phi, varphi = jnp.maximum(phi, 0.0), jnp.maximum(varphi, 0.0)
         mg = margins(a, b, c, d, p["kappa"], p["rho"], phi, varphi)
+        mg_flags = mg
+        if self.cbf_margin is not None:
+            # enforce c + d.u >= rho Gamma + margin; report the condition with half of it
+            mg_flags = mg._replace(B=mg.B + 0.5 * self.cbf_margin)
+            mg = mg._replace(B=mg.B + self.cbf_margin)
         hard = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, parallel_rtol=self.parallel_rtol)
         if self.formula == "sontag":
             u0 = sontag(mg.A, b, mg.nb)
@@ -414,7 +442,9 @@ class UniversalController(ControllerValue):
                 u, _ = saturate_single(u, mg.B, d, lo, hi)
             else:
                 u = jnp.clip(u, lo, hi)
-        clf_ok, cbf_ok = condition_flags(a, b, c, d, u, mg, p["kappa"], p["rho"], SATISFIED_RTOL)
+        clf_ok, cbf_ok = condition_flags(
+            a, b, c, d, u, mg_flags, p["kappa"], p["rho"], SATISFIED_RTOL
+        )
         finite_out = jnp.all(jnp.isfinite(res.u), -1) & jnp.isfinite(res.slack)
         status = jnp.where(
             (status == StepStatus.OK) & ~finite_out, StepStatus.NONFINITE_INPUT, status

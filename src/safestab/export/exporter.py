@@ -298,6 +298,11 @@ def _describe_controller(controller: Any) -> str:
         f"varphi = {p['varphi']!r}, parallel_rtol = {controller.parallel_rtol!r}.",
         f"CLF rate lambda = {controller.clf.rate!r}; CBF rate beta = {controller.cbf.rate!r}.",
     ]
+    if getattr(controller, "cbf_margin", None) is not None:
+        lines.append(
+            f"CBF margin {float(controller.cbf_margin)!r}: the formula enforces c + d.u >= "
+            "rho Gamma + margin; cbf_satisfied reports c + d.u - rho Gamma >= margin / 2."
+        )
     if controller.u_min is not None:
         lines.append(
             f"Input limits u_min = {np.asarray(controller.u_min).tolist()}, "

@@ -21,7 +21,13 @@ import numpy as np
 from ..errors import DimensionError
 from .exporter import ExportedC
 
-__all__ = ["DEFAULT_RTOL", "compare", "comparison_scales", "write_harness"]
+__all__ = [
+    "DEFAULT_RTOL",
+    "cbf_condition_scale",
+    "compare",
+    "comparison_scales",
+    "write_harness",
+]
 
 #: Default relative tolerances: double agrees with XLA's float64 to rounding (measured
 #: differences are below 1e-14 of the scales, docs/export.md); float has a unit roundoff of
@@ -69,7 +75,6 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     included as well.
     """
     from .. import Region, SafetyFilter, clf_cbf, clf_cbf_relaxed
-    from ..certificates import lie_terms_point
 
     if isinstance(controller, SafetyFilter):
         return _largest_magnitudes(out)
@@ -90,26 +95,7 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     dn = np.linalg.norm(d, axis=-1)
     u_scale = lam[..., 0] * bn + lam[..., 1] * dn
 
-    # magnitudes of the summands of a and c
-    sys_, clf, cbf = controller.system, controller.clf, controller.cbf
-    dv = np.asarray(jax.vmap(clf.grad)(xj))
-    dh = np.asarray(jax.vmap(cbf.grad)(xj))
-    grad_v, grad_h = np.abs(dv), np.abs(dh)
-    f = np.asarray(jax.vmap(sys_.f)(xj))
-    nominal = jax.vmap(lambda s: lie_terms_point(sys_, clf, cbf, s))(xj)
-    a_class_k = np.abs(np.asarray(nominal.a) - np.sum(dv * f, -1))
-    c_class_k = np.abs(np.asarray(nominal.c) - np.sum(dh * f, -1))
-    a_sum = np.sum(grad_v * np.abs(f), -1) + a_class_k
-    c_sum = np.sum(grad_h * np.abs(f), -1) + c_class_k
-    if controller.uncertainty is not None:
-        unc = controller.uncertainty
-        mean, std = (np.asarray(t) for t in jax.vmap(unc.mean_std)(xj))
-        beta = np.broadcast_to(np.asarray(controller.gp_beta, float), (x.shape[1],))
-        spread = np.abs(mean) + beta * std
-        if hasattr(unc, "std_rounding_scale"):
-            spread = spread + beta * np.asarray(unc.std_rounding_scale(x))
-        a_sum = a_sum + np.sum(grad_v * spread, -1)
-        c_sum = c_sum + np.sum(grad_h * spread, -1)
+    a_sum, c_sum, b_mag, d_mag = _summand_magnitudes(controller, x)
 
     # The margins A = a + kappa zeta and B = rho Gamma - c: their rounding is relative to the
     # summands' magnitudes. In region P3 the multipliers are (w, v) / det with
@@ -132,6 +118,22 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
         [clf_part, cbf_part, gram],
         clf_part + cbf_part,
     )
+    # the relaxed formula's slack chi = lambda1 / slack_weight: rounded like the CLF
+    # multiplier, A / (|b|^2 + 1/slack_weight) in P1 and the Gram numerator over det in P3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam1_scale = np.select(
+            [region == Region.P1, (region == Region.P3) & (det > 0)],
+            [np.where(bb > 0, a_mag / bb, 0.0), (a_mag * dd + b_mag * bd) / det],
+            0.0,
+        )
+    slack_scale = inv_slack * lam1_scale
+    per_state = {
+        "terms.a": np.abs(a) + a_sum,
+        "terms.c": np.abs(c) + c_sum,
+        "slack": slack_scale,
+        "terms.b": b_mag,
+        "terms.d": d_mag,
+    }
     u_scale = u_scale[..., None]
     scales = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(out)[0]:
@@ -141,9 +143,79 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
             scales.append(np.zeros(()))
         elif name in _INPUT_LEAVES:
             scales.append(u_scale)
+        elif name in per_state:
+            # the terms a, c are sums whose parts can cancel (module docstring): rounded
+            # relative to their summands, at least the leaf's largest magnitude as before
+            scale = np.maximum(per_state[name], _largest_magnitude(leaf))
+            scales.append(scale.reshape(scale.shape + (1,) * (leaf.ndim - scale.ndim)))
         else:
             scales.append(_largest_magnitude(leaf))
     return scales
+
+
+def _summand_magnitudes(controller: Any, x: np.ndarray) -> tuple[Any, Any, Any, Any]:
+    """Per state, the magnitudes of the summands of ``a``, ``c`` and of ``b``, ``d`` (N, m).
+
+    ``a = dV/dx . f + class-K term`` and ``c`` likewise (summed term by term), with a GP
+    ``+ dV/dx . m -+ sum_i |dV/dx_i| beta_i sigma_i``, including the GP cache's own rounding
+    scales (:meth:`~safestab.learning.FastGP.rounding_scales`); ``d = dh/dx g`` term by term.
+    """
+    from ..certificates import lie_terms_point
+
+    xj = jax.numpy.asarray(x)
+    sys_, clf, cbf = controller.system, controller.clf, controller.cbf
+    dv = np.asarray(jax.vmap(clf.grad)(xj))
+    dh = np.asarray(jax.vmap(cbf.grad)(xj))
+    grad_v, grad_h = np.abs(dv), np.abs(dh)
+    f = np.asarray(jax.vmap(sys_.f)(xj))
+    g = np.asarray(jax.vmap(sys_.g)(xj))
+    nominal = jax.vmap(lambda s: lie_terms_point(sys_, clf, cbf, s))(xj)
+    a_class_k = np.abs(np.asarray(nominal.a) - np.sum(dv * f, -1))
+    c_class_k = np.abs(np.asarray(nominal.c) - np.sum(dh * f, -1))
+    a_sum = np.sum(grad_v * np.abs(f), -1) + a_class_k
+    c_sum = np.sum(grad_h * np.abs(f), -1) + c_class_k
+    if controller.uncertainty is not None:
+        unc = controller.uncertainty
+        mean, std = (np.asarray(t) for t in jax.vmap(unc.mean_std)(xj))
+        beta = np.broadcast_to(np.asarray(controller.gp_beta, float), (x.shape[1],))
+        spread = np.abs(mean) + beta * std
+        if hasattr(unc, "rounding_scales"):
+            mean_scale, std_scale = unc.rounding_scales(x)
+            spread = spread + mean_scale + beta * std_scale
+        a_sum = a_sum + np.sum(grad_v * spread, -1)
+        c_sum = c_sum + np.sum(grad_h * spread, -1)
+    b_mag = np.einsum("ki,kij->kj", grad_v, np.abs(g))
+    d_mag = np.einsum("ki,kij->kj", grad_h, np.abs(g))
+    return a_sum, c_sum, b_mag, d_mag
+
+
+def cbf_condition_scale(controller: Any, out: Any, states: Any) -> np.ndarray:
+    """Per state, the magnitude the CBF condition ``c + d.u - rho Gamma`` is rounded relative to.
+
+    ``|c| + (summands of c) + rho Gamma + sum_i (|d_i| + |dh/dx| |g_i|) |u_i|`` at the step's
+    own ``u``: an evaluation with relative precision ``eps`` errs by a small multiple of
+    ``eps`` times this (the harness certifies ``rtol`` times it for each term).
+
+    Parameters
+    ----------
+    controller : UniversalController
+    out : ControlOutput
+        The step at ``states`` (leading axis N).
+    states : array of shape (N, n)
+
+    Returns
+    -------
+    array of shape (N,)
+    """
+    x = np.asarray(states, float)
+    _, c_sum, _, d_mag = _summand_magnitudes(controller, x)
+    c, d = np.asarray(out.terms.c), np.asarray(out.terms.d)
+    u = np.abs(np.nan_to_num(np.asarray(out.u)))
+    phi, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(jax.numpy.asarray(x)))
+    del phi
+    gamma = np.sqrt(c * c + varphi * np.sum(d * d, -1) ** 2)
+    rho = float(controller.params["rho"])
+    return np.abs(c) + c_sum + rho * gamma + np.sum((np.abs(d) + d_mag) * u, -1)
 
 
 def _largest_magnitude(leaf: np.ndarray) -> np.ndarray:

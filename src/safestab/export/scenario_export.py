@@ -6,15 +6,16 @@ import dataclasses
 import subprocess
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import CompilationError, ParameterError
 from .exporter import check_name, check_precision, export_c
-from .harness import comparison_scales, write_harness
+from .harness import DEFAULT_RTOL, cbf_condition_scale, comparison_scales, write_harness
 from .native import find_compiler
 
-__all__ = ["HARNESS_FLAGS", "ExportReport", "export_scenario"]
+__all__ = ["HARNESS_FLAGS", "ExportReport", "export_scenario", "float_safe_controller"]
 
 #: Flags the harness (and the exported code) must compile with, warning-free.
 HARNESS_FLAGS = (
@@ -55,7 +56,7 @@ def export_scenario(
     out: str | Path,
     *,
     controller: str = "gp",
-    name: str = "acc",
+    name: str | None = None,
     precision: str = "double",
     cases: int = 256,
     n_samples: int | None = None,
@@ -64,7 +65,7 @@ def export_scenario(
     check: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> ExportReport:
-    """Export an ACC controller of a scenario to ``out`` with a C test harness.
+    """Export an ACC or obstacle controller of a scenario to ``out`` with a C test harness.
 
     Writes ``<name>.c``, ``<name>.h`` and ``<name>_harness.c`` (states drawn uniformly from
     the scenario's learning box ``x0_low .. x0_high``, outputs of the JAX step). With
@@ -78,10 +79,11 @@ def export_scenario(
         Output folder, created if needed.
     controller : {"gp", "nominal", "true"}
         The GP-corrected controller (GP fitted as in the study, exported through a
-        :class:`~safestab.learning.FastGP` cache calibrated on held-out data), or the
-        controller built on the nominal or the true model.
-    name : str
-        Prefix of the C names and files.
+        :class:`~safestab.learning.FastGP` cache whose band contains the exact GP's), or the
+        controller built on the nominal or the true model. For the obstacle scenario, the
+        study's relaxed controller without input limits.
+    name : str, optional
+        Prefix of the C names and files (default ``"acc"`` or ``"obstacle"``).
     precision : {"double", "float"}
     cases : int
         Number of recorded states, >= 1.
@@ -111,9 +113,7 @@ def export_scenario(
     CompilationError
         With ``check``, if no compiler is found or the harness does not compile.
     """
-    from ..learning import FastGP
-    from ..scenarios import load_scenario
-    from ..scenarios.acc_study import collect_study_data, fit_study_gp, study_controllers
+    from ..scenarios.loading import load as load_any_scenario
 
     say = progress or (lambda msg: None)
     if controller not in CONTROLLERS:
@@ -121,7 +121,8 @@ def export_scenario(
     if int(cases) < 1:
         raise ParameterError(f"cases must be >= 1, got {cases!r}")
     # every option checked before the data collection and the GP fit (minutes)
-    check_name(name)
+    if name is not None:
+        check_name(name)
     check_precision(precision)
     if (
         isinstance(n_inducing, bool)
@@ -131,30 +132,34 @@ def export_scenario(
         raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
     out = Path(out)
     _check_writable(out)
-    sc = load_scenario(scenario)
+    sc = load_any_scenario(scenario)
     seed = sc.seed if seed is None else int(seed)
-    uncertainty = None
-    if controller == "gp":
-        say(f"collecting data and fitting the GP (Q = {n_samples or sc.n_samples})")
-        train, _ = collect_study_data(sc, seed=seed, n_samples=n_samples)
-        gp = fit_study_gp(sc, train, seed=seed)
-        uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
-    ctrl = study_controllers(sc, uncertainty)[CONTROLLERS[controller]]
-    units = (
-        "wheel force divided by M g (normalised input)"
-        if sc.input_units == "normalized"
-        else "wheel force in N"
-    )
-    description = (
-        f"Scenario '{sc.name}' (adaptive cruise control, docs/acc.md), controller "
-        f"'{CONTROLLERS[controller]}'. State x = (v_f follower speed, m/s; v_l lead speed, m/s; "
-        f"D gap, m). Input u: {units}. CLF V = (v_f - v_d)^2 with v_d = {sc.v_d} m/s; CBF "
-        f"h = D - tau v_f with tau = {sc.tau} s."
-    )
-    say("translating the controller step to C")
-    exported = export_c(ctrl, name, out, precision=precision, description=description)
+    from ..scenarios import ACCScenario, ObstacleScenario
+
+    if isinstance(sc, ACCScenario):
+        builder = _acc_controller
+    elif isinstance(sc, ObstacleScenario):
+        builder = _obstacle_controller
+    else:
+        raise ParameterError(
+            f"export takes an ACC or obstacle scenario, got {type(sc).__name__} "
+            f"({sc.name!r}); export a safety filter with safestab.export_c"
+        )
+    ctrl, description, default_name = builder(sc, controller, seed, n_samples, n_inducing, say)
+    name = default_name if name is None else name
     rng = np.random.default_rng(seed)
     states = rng.uniform(sc.x0_low, sc.x0_high, size=(int(cases), len(sc.x0_low)))
+    if precision == "float":
+        # the float step sees float states: record those, so that the comparison is of
+        # the step's arithmetic, not of the rounding of its input
+        states = states.astype(np.float32).astype(np.float64)
+        ctrl, margin = float_safe_controller(ctrl, sc.x0_low, sc.x0_high, extra_states=states)
+        description += (
+            f" Float variant: GP band widened for float rounding, CBF margin {margin:.3g} "
+            "(docs/export.md, 'Float that stays safe')."
+        )
+    say("translating the controller step to C")
+    exported = export_c(ctrl, name, out, precision=precision, description=description)
     expected = ctrl.step_fn(states)
     harness = write_harness(
         exported, states, expected, out, scales=comparison_scales(ctrl, expected, states)
@@ -178,3 +183,132 @@ def export_scenario(
         )
     run = subprocess.run([str(exe.resolve())], cwd=out, capture_output=True, text=True)
     return ExportReport(files, build, run.stdout + run.stderr, run.returncode == 0)
+
+
+#: The float export of a GP cache is refused when float rounding widens its std by more
+#: than this factor somewhere in the box (:func:`float_safe_controller`).
+FLOAT_WIDENING_LIMIT = 10.0
+
+
+def float_safe_controller(
+    controller: Any,
+    low: Any,
+    high: Any,
+    *,
+    extra_states: Any = None,
+    n_states: int = 4096,
+    seed: int = 0,
+) -> tuple[Any, float]:
+    """The controller to export in float, and its CBF margin.
+
+    A float step errs on every term; two changes keep its CBF condition on the safe side of
+    the exact one over the box ``low <= x <= high``:
+
+    * a :class:`~safestab.learning.FastGP` uncertainty is replaced by
+      ``FastGP.for_precision("float")``, whose band still contains the exact band when
+      evaluated in float (where float cannot resolve the posterior variance, the band is
+      as wide as float can vouch for);
+    * ``cbf_margin = 2 E`` with ``E = DEFAULT_RTOL["float"] * max cbf_condition_scale``
+      over ``n_states`` uniform states of the box, its corners and ``extra_states``: the
+      float step's error on the condition, ``rtol`` times its magnitude, as the harness
+      certifies for every term. The formula then enforces the condition with margin ``2 E``
+      and ``cbf_satisfied`` reports it with margin ``E``, so a float step whose flag says
+      satisfied satisfies the exact condition (tested in tests/test_embedded.py).
+
+    Outside the box the margin is not checked: export with the box the controller will see.
+
+    Raises
+    ------
+    ParameterError
+        If float rounding widens the GP cache's std by more than
+        :data:`FLOAT_WIDENING_LIMIT` somewhere in the box: float cannot resolve that GP's
+        posterior (the stress preset's drag: 3000 times); export it in double.
+
+    Returns
+    -------
+    (controller, margin)
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    rng = np.random.default_rng(seed)
+    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+    parts = [rng.uniform(low, high, size=(n_states, len(low))), corners]
+    if extra_states is not None:
+        parts.append(np.asarray(extra_states, float))
+    x = np.concatenate(parts).astype(np.float32).astype(np.float64)
+    unc = controller.uncertainty
+    if unc is not None and hasattr(unc, "for_precision"):
+        unc_f = unc.for_precision("float")
+        _, std = unc.predict(x)
+        _, std_f = unc_f.predict(x)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(std > 0, std_f / std, 1.0).max(0)
+        worst = int(np.argmax(ratio))
+        if ratio[worst] > FLOAT_WIDENING_LIMIT:
+            raise ParameterError(
+                "precision='float' cannot evaluate this GP cache: for state component "
+                f"{worst}, float rounding alone widens the std up to {ratio[worst]:.3g} times "
+                f"the float64 cache's (to {std_f[:, worst].max():.3g} where the float64 "
+                f"cache's is at most {std[:, worst].max():.3g}): the posterior variance is far "
+                "below the prior one there, and amp^2 - |a|^2 cancels more digits than float "
+                "has. Export in double (a Cortex-M7 with a double-precision FPU), or use a "
+                "GP whose posterior std is closer to its prior (docs/export.md)"
+            )
+        controller = controller.replace(uncertainty=unc_f)
+    margin = 0.0
+    for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
+        ctrl = controller.replace(cbf_margin=margin)
+        scale = cbf_condition_scale(ctrl, ctrl.step_fn(x), x)
+        need = 2.0 * DEFAULT_RTOL["float"] * float(np.nanmax(scale))
+        if need <= margin:
+            break
+        margin = 1.25 * need
+    return controller.replace(cbf_margin=margin), margin
+
+
+def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):
+    from ..learning import FastGP
+    from ..scenarios.acc_study import collect_study_data, fit_study_gp, study_controllers
+
+    uncertainty = None
+    if controller == "gp":
+        say(f"collecting data and fitting the GP (Q = {n_samples or sc.n_samples})")
+        train, _ = collect_study_data(sc, seed=seed, n_samples=n_samples)
+        gp = fit_study_gp(sc, train, seed=seed)
+        uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
+    ctrl = study_controllers(sc, uncertainty)[CONTROLLERS[controller]]
+    units = (
+        "wheel force divided by M g (normalised input)"
+        if sc.input_units == "normalized"
+        else "wheel force in N"
+    )
+    description = (
+        f"Scenario '{sc.name}' (adaptive cruise control, docs/acc.md), controller "
+        f"'{CONTROLLERS[controller]}'. State x = (v_f follower speed, m/s; v_l lead speed, m/s; "
+        f"D gap, m). Input u: {units}. CLF V = (v_f - v_d)^2 with v_d = {sc.v_d} m/s; CBF "
+        f"h = D - tau v_f with tau = {sc.tau} s."
+    )
+    return ctrl, description, "acc"
+
+
+_OBSTACLE_NAMES = {"gp": "GP-robust", "nominal": "mismatched model", "true": "true model"}
+
+
+def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
+    from ..learning import FastGP
+    from ..scenarios.obstacle_study import fit_obstacle_gp, obstacle_controller
+
+    sc = sc.replace(seed=seed, **({} if n_samples is None else {"n_samples": n_samples}))
+    uncertainty = None
+    if controller == "gp":
+        say(f"collecting data and fitting the GP (Q = {sc.n_samples})")
+        _, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
+        uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
+    ctrl = obstacle_controller(sc, _OBSTACLE_NAMES[controller], uncertainty)
+    description = (
+        f"Scenario '{sc.name}' (a point robot passing a disc obstacle, docs/obstacle.md), "
+        f"controller '{_OBSTACLE_NAMES[controller]}', relaxed formula, no input limits. State "
+        "x = (x1, x2) position, m. Input u: velocity, m/s. CLF V = x^T P x with P = "
+        f"diag{tuple(sc.P)} (goal at the origin); CBF h = |x - x_o|^2 - r^2 with x_o = "
+        f"({sc.obstacle_x1}, 0) m, r = {sc.radius} m; V and h in m^2."
+    )
+    return ctrl, description, "obstacle"

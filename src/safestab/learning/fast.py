@@ -23,6 +23,7 @@ previous cache; the third is the cross term it lacked.
 
 from __future__ import annotations
 
+import copy
 import warnings
 from typing import Any
 
@@ -115,27 +116,82 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
-def _parts(p, x, kind):
-    """Per learned component: cache mean (without the prior mean), sqrt(v~) and E r(x)."""
-    z0 = (x - p["offset"]) / p["scale"]
-    mm = p["z"].shape[1]
+def _per_component(kind, mm, z0, work_unit, with_scales):
+    """One learned component's cache evaluation (see :func:`_parts`, :func:`_magnitudes`)."""
 
     def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
         k = jnp.where(mask, _kernel(kind, a, l_)(z, z0[None, :])[:, 0], 0.0)
         all3 = maps @ k
         v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
         r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
-        r = safe_sqrt(r2)  # safe_sqrt: derivative 0, not NaN, at 0
-        var = r2 + gv @ gv + 2.0 * safe_sqrt(cv @ cv) * rho * r  # >= exact variance
-        return k @ wk, safe_sqrt(var), err * r
+        mean = k @ wk
+        if not (work_unit or with_scales):
+            r = safe_sqrt(r2)  # safe_sqrt: derivative 0, not NaN, at 0
+            var = r2 + gv @ gv + 2.0 * safe_sqrt(cv @ cv) * rho * r  # >= exact variance
+            return mean, safe_sqrt(var), err * r
+        # running magnitudes: the products are rounded relative to |maps| |k|
+        mag3 = jnp.abs(maps) @ jnp.abs(k)
+        mv, mg, mc = mag3[:mm], mag3[mm : 2 * mm], mag3[2 * mm :]
+        r2_mag = a * a + 2.0 * jnp.abs(v) @ mv + r2
+        r2 = r2 + work_unit * r2_mag
+        r = safe_sqrt(r2)  # > 0: rnd > 0
+        cn = safe_sqrt(cv @ cv)
+        var = r2 + gv @ gv + 2.0 * cn * rho * r
+        r_mag = r2_mag / (2.0 * r)
+        cn_mag = jnp.where(cn > 0, jnp.abs(cv) @ mc / jnp.where(cn > 0, cn, 1.0), 0.0)
+        var_mag = r2_mag + 2.0 * jnp.abs(gv) @ mg + 2.0 * rho * (cn_mag * r + cn * r_mag) + var
+        var = var + work_unit * var_mag
+        mean_mag = jnp.abs(wk) @ jnp.abs(k)
+        merr = err * r + work_unit * (mean_mag + err * r_mag)
+        sd = safe_sqrt(var)
+        if with_scales:
+            return mean_mag, var_mag / (2.0 * sd), err * r_mag
+        return mean, sd, merr
 
+    return per_comp
+
+
+def _parts(p, x, kind, work_unit=0.0):
+    """Per learned component: cache mean (without the prior mean), sqrt(v~) and E r(x).
+
+    ``work_unit > 0`` (a Python float: the precision the step will be evaluated in, times
+    a safety factor; :meth:`FastGP.for_precision`) adds that rounding allowance per query,
+    relative to the running magnitudes of :func:`_magnitudes`, to ``r^2``, ``v~`` and the
+    mean-error term, so that the band still contains the exact one when every operation
+    is rounded to that precision. 0 (float64): the constant allowance ``round`` covers it.
+    """
+    z0 = (x - p["offset"]) / p["scale"]
+    per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, False)
     return jax.vmap(per_comp)(
         p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
     )
 
 
 # the cache's arrays are arguments: one compilation per (M, kernel), not per cache
-_parts_batch = jax.jit(jax.vmap(_parts, in_axes=(None, 0, None)), static_argnums=2)
+_parts_batch = jax.jit(jax.vmap(_parts, in_axes=(None, 0, None, None)), static_argnums=(2, 3))
+
+
+def _magnitudes(p, x, kind, work_unit=0.0):
+    """Per learned component: the magnitudes the cache's mean and std are rounded relative to.
+
+    A running-error analysis of :func:`_parts`: every kernel value carries a relative rounding
+    error (``exp``), and every product ``maps @ k`` one relative to ``|maps| @ |k|``. Carried
+    through the squares, the differences ``amp^2 - |a|^2`` and the square roots to first
+    order, the mean's error is a small multiple of ``u |wk| . |k|`` and the std's of ``u``
+    times ``var_mag / (2 sd) + E r_mag / min_beta``. These, not the cond(Lj)-based
+    allowance, are what two float64 evaluations (XLA's and the exported C) differ by.
+    Returns (mean magnitude, std magnitude without the mean-error term, mean-error term).
+    """
+    z0 = (x - p["offset"]) / p["scale"]
+    per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, True)
+    return jax.vmap(per_comp)(
+        p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
+    )
+
+
+_magnitudes_batch = jax.jit(
+    jax.vmap(_magnitudes, in_axes=(None, 0, None, None)), static_argnums=(2, 3)
+)
 
 
 class FastGP:
@@ -323,11 +379,34 @@ class FastGP:
                     stacklevel=2,
                 )
 
+    #: Rounding allowance per query for a lower working precision (``for_precision``).
+    work_unit = 0.0
+
+    def for_precision(self, precision: str) -> FastGP:
+        """The cache with a band that holds when the step is evaluated in ``precision``.
+
+        ``"double"`` returns ``self``. ``"float"`` returns a copy whose band adds, per
+        query, ``gamma u`` (``u = 2^-24`` the unit roundoff of float, ``gamma = 4 (M + 4)``)
+        times the running magnitudes of the cache's evaluation (:meth:`rounding_scales`) to
+        ``r^2``, to the variance and to the mean-error term. A float evaluation cannot
+        resolve a posterior variance that is far below the prior one (``amp^2 - |a|^2``
+        cancels digits that float does not have): this copy then reports the width float
+        can vouch for instead of a rounding artefact, so the float step's GP-robust terms
+        stay on the safe side of the exact ones (docs/export.md, "Float that stays safe").
+        """
+        if precision == "double":
+            return self
+        if precision != "float":
+            raise ParameterError(f"precision must be 'double' or 'float', got {precision!r}")
+        out = copy.copy(self)
+        out.work_unit = float(4 * (self._m + 4) * np.finfo(np.float32).eps / 2)
+        return out
+
     def _mean_std_parts(self, x: jax.Array):
-        return _parts(self._params, x, self.model.kernel)
+        return _parts(self._params, x, self.model.kernel, self.work_unit)
 
     def _parts_batch(self, x: np.ndarray):
-        return _parts_batch(self._params, jnp.asarray(x), self.model.kernel)
+        return _parts_batch(self._params, jnp.asarray(x), self.model.kernel, self.work_unit)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Copies of the cache's arrays, for evaluating the same band elsewhere (batched).
@@ -377,35 +456,40 @@ class FastGP:
         std[:, comps] = sd_c + merr / self.min_beta
         return mean, std
 
-    def std_rounding_scale(self, x: Any) -> np.ndarray:
-        """Magnitude relative to which the std at ``x`` is rounded; shape (N, n).
+    def rounding_scales(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Magnitudes relative to which the mean and the std at ``x`` are rounded.
 
-        The std is formed from ``r^2 = amp^2 - |a|^2`` (a difference) and the variance
-        ``r^2 + ...``, whose rounding is relative to ``S = (M + 2 + cond(Lj)) amp^2`` (the
-        allowance ``rnd = 2 u S`` of the module docstring). Through ``sqrt`` that becomes
-        ``S / (2 sd)`` in ``sqrt(v~)`` and ``(E / min_beta) S / (2 r)`` in the mean-error term,
-        so two float64 evaluations of :meth:`mean_std` (XLA's and the exported C, say) agree
-        to a small multiple of ``u`` times the returned value, not of ``u`` times the std.
-        Zero for components that are not learned.
+        A first-order running-error analysis of the cache's evaluation (module function
+        ``_magnitudes``): the kernel values and the products of the cache's maps with them
+        are rounded relative to ``|maps| |k|``; the std is then formed from the differences
+        ``r^2 = amp^2 - |a|^2`` and ``v~ = r^2 + ...`` and a square root. Two float64
+        evaluations of :meth:`mean_std` (XLA's and the exported C, say) agree to a small
+        multiple of the unit roundoff times these, not times the mean and the std. Where the
+        posterior variance is far below the prior one (the stress preset's drag, Q = 2000:
+        std 0.01 from ``amp^2 = 1143``), the std's scale is about 1e5 times the std: both
+        evaluations carry that rounding, neither is more accurate. The cache's allowance
+        ``round`` (cond(Lj)-based, a proven bound) is far larger still (docs/export.md).
 
         Parameters
         ----------
         x : array of shape (N, n)
+
+        Returns
+        -------
+        (mean_scale, std_scale) : arrays of shape (N, n)
+            Zero for components that are not learned.
         """
         x = np.asarray(x, float)
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
         check_finite("x", x)
-        _, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
-        big = np.asarray(self._round) / (2 * _U)  # S per component
-        err = np.asarray(self._err)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sd_part = big / (2 * sd_c)
-            # merr = E r, so E / (2 r) = E^2 / (2 merr); zero where E = 0
-            mean_part = np.where(err > 0, big * err**2 / (2 * merr), 0.0) / self.min_beta
-        out = np.zeros(x.shape)
-        out[:, list(self.components_)] = sd_part + mean_part
-        return out
+        parts = _magnitudes_batch(self._params, jnp.asarray(x), self.model.kernel, self.work_unit)
+        mean_mag, sd_mag, merr_mag = (np.asarray(a) for a in parts)
+        comps = list(self.components_)
+        mean_scale, std_scale = np.zeros(x.shape), np.zeros(x.shape)
+        mean_scale[:, comps] = mean_mag + np.abs(np.asarray(self.model.mean_))
+        std_scale[:, comps] = sd_mag + merr_mag / self.min_beta
+        return mean_scale, std_scale
 
     def mean_error_bound(self, x: Any) -> np.ndarray:
         """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""

@@ -36,6 +36,8 @@ from .obstacle import ObstacleScenario
 
 __all__ = [
     "CONTROLLERS",
+    "fit_obstacle_gp",
+    "obstacle_controller",
     "LIMIT_SETTINGS",
     "OUTCOMES",
     "CompatibilityMaps",
@@ -383,6 +385,96 @@ def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray) -> dict[str, Any]
     }
 
 
+def fit_obstacle_gp(
+    sc: ObstacleScenario,
+    *,
+    timings: dict[str, float] | None = None,
+    report: Progress | None = None,
+) -> tuple[Any, GaussianProcessModel, Any]:
+    """Collect the scenario's data and fit its GP as the study does.
+
+    Returns
+    -------
+    (data, gp, uncertainty)
+        The collected :class:`~safestab.learning.Dataset` (``Q`` training rows, then the
+        held-out rows), the fitted GP, and what the GP-robust controller uses: the GP's
+        :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP.
+    """
+    timings = {} if timings is None else timings
+    report = report or (lambda msg, frac: None)
+    true_sys, nominal = sc.system("true"), sc.system("nominal")
+    t0 = time.perf_counter()
+    q = sc.n_samples
+    n_test = max(50, q // 4)
+    n_check = n_test if sc.n_inducing > 0 else 0
+    span = sc.excitation_limit
+    data = collect_data(
+        true_sys,
+        nominal,
+        x0=(sc.x0_low, sc.x0_high),
+        u_low=-span,
+        u_high=span,
+        n_samples=q + n_test + n_check,
+        rate=sc.sample_rate,
+        horizon=sc.sample_horizon,
+        noise_std=sc.noise_std,
+        seed=sc.seed,
+    )
+    timings["collect_data"] = time.perf_counter() - t0
+
+    report(f"fitting the GP (Q = {q}, n = 2)", 0.1)
+    t0 = time.perf_counter()
+    gp = GaussianProcessModel(
+        kernel=sc.kernel
+    ).fit(  # type: ignore[arg-type]
+        data.x[:q], data.y[:q], hyper_subset=min(sc.hyper_subset, q), seed=sc.seed
+    )
+    uncertainty: Any = gp
+    if sc.n_inducing > 0:
+        # the cache's band provably contains the exact band for beta >= min_beta (1.0)
+        uncertainty = FastGP(gp, sc.n_inducing)
+    timings["fit_gp"] = time.perf_counter() - t0
+    return data, gp, uncertainty
+
+
+def obstacle_controller(
+    sc: ObstacleScenario,
+    name: str,
+    uncertainty: Any = None,
+    *,
+    limits: bool = False,
+    hard: bool = False,
+) -> UniversalController:
+    """The study's controller ``name`` (one of :data:`CONTROLLERS`).
+
+    ``uncertainty`` is used by ``"GP-robust"`` only; ``limits`` adds the input limits;
+    ``hard`` gives Theorem 1's formula (used inside the certified sublevel set), else the
+    relaxed one with the scenario's slack weight.
+    """
+    if name not in CONTROLLERS:
+        raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
+    system = sc.system("true" if name == "true model" else "nominal")
+    clf, cbf = sc.certificates()
+    extra: dict[str, Any] = {}
+    if name == "GP-robust":
+        if uncertainty is None:
+            raise ParameterError("the GP-robust controller needs an uncertainty model")
+        extra = {"uncertainty": uncertainty, "gp_beta": sc.gp_beta}
+    box: dict[str, Any] = {}
+    if limits:
+        u_min, u_max = sc.input_limits()
+        box = {"u_min": u_min, "u_max": u_max}
+    return UniversalController(
+        system,
+        clf,
+        cbf,
+        slack_weight=None if hard else sc.slack_weight,
+        **_params(sc),
+        **box,
+        **extra,
+    )
+
+
 def run_obstacle_study(
     scenario: ObstacleScenario,
     *,
@@ -415,44 +507,13 @@ def run_obstacle_study(
     report = progress or (lambda msg, frac: None)
     overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
     sc = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
-    true_sys, nominal = sc.system("true"), sc.system("nominal")
-    clf, cbf = sc.certificates()
-    params = _params(sc)
-    u_min, u_max = sc.input_limits()
+    true_sys = sc.system("true")
     timings: dict[str, float] = {}
 
     report("collecting data", 0.0)
-    t0 = time.perf_counter()
+    data, gp, uncertainty = fit_obstacle_gp(sc, timings=timings, report=report)
     q = sc.n_samples
     n_test = max(50, q // 4)
-    n_check = n_test if sc.n_inducing > 0 else 0
-    span = sc.excitation_limit
-    data = collect_data(
-        true_sys,
-        nominal,
-        x0=(sc.x0_low, sc.x0_high),
-        u_low=-span,
-        u_high=span,
-        n_samples=q + n_test + n_check,
-        rate=sc.sample_rate,
-        horizon=sc.sample_horizon,
-        noise_std=sc.noise_std,
-        seed=sc.seed,
-    )
-    timings["collect_data"] = time.perf_counter() - t0
-
-    report(f"fitting the GP (Q = {q}, n = 2)", 0.1)
-    t0 = time.perf_counter()
-    gp = GaussianProcessModel(
-        kernel=sc.kernel
-    ).fit(  # type: ignore[arg-type]
-        data.x[:q], data.y[:q], hyper_subset=min(sc.hyper_subset, q), seed=sc.seed
-    )
-    uncertainty: Any = gp
-    if sc.n_inducing > 0:
-        # the cache's band provably contains the exact band for beta >= min_beta (1.0)
-        uncertainty = FastGP(gp, sc.n_inducing)
-    timings["fit_gp"] = time.perf_counter() - t0
     coverage = _coverage(sc, uncertainty, data.x[q : q + n_test])
 
     report("domains of attraction and maps", 0.2)
@@ -467,33 +528,20 @@ def run_obstacle_study(
     x0 = sc.start_states()
     v0 = np.asarray(sc.V(x0))
     runs: dict[tuple[str, str], ObstacleRun] = {}
-    model_of = {"true model": true_sys, "mismatched model": nominal, "GP-robust": nominal}
     n_runs, k = len(CONTROLLERS) * len(LIMIT_SETTINGS), 0
     for name in CONTROLLERS:
-        extra: dict[str, Any] = {}
-        if unc_of[name] is not None:
-            extra = {"uncertainty": unc_of[name], "gp_beta": sc.gp_beta}
         for limits in LIMIT_SETTINGS:
             # Theorem 1 (2) applies inside the certified sublevel set and without limits
             inside = (v0 < sc.doa_fraction * doa[name]) & (limits == "no limits")
             report(f"simulating: {name}, {limits}", 0.3 + 0.7 * k / n_runs)
             k += 1
             t0 = time.perf_counter()
-            box: dict[str, Any] = {}
-            if limits == "input limits":
-                box = {"u_min": u_min, "u_max": u_max}
             parts = {}
             for hard, sel in ((True, inside), (False, ~inside)):
                 if not np.any(sel):
                     continue
-                ctrl = UniversalController(
-                    model_of[name],
-                    clf,
-                    cbf,
-                    slack_weight=None if hard else sc.slack_weight,
-                    **params,
-                    **box,
-                    **extra,
+                ctrl = obstacle_controller(
+                    sc, name, unc_of[name], limits=limits == "input limits", hard=hard
                 )
                 tr = simulate(ctrl, x0[sel], t_final=sc.t_final, dt=sc.dt, plant=true_sys)
                 parts[hard] = (sel, tr)

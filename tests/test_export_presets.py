@@ -1,0 +1,201 @@
+"""Every preset's export passes its own harness, and the float export stays safe.
+
+* ``export_scenario`` for each preset (stress, paper, obstacle), controller (gp, nominal,
+  true) and precision (double, float): the recorded harness, compiled with the strict flags,
+  reports 0 mismatches. The GP ones fit the study's GP (tens of seconds each): slow-marked,
+  run by ``bash scripts/run-tests.sh -m slow`` (README).
+* ``cbf_margin``: the formula enforces the CBF condition with the margin and the flag reports
+  it with half of it (checked against the Lie terms, by hand).
+* The float export: wherever its ``cbf_satisfied`` says 1, the exact (float64, unmargined)
+  step's Lie terms satisfy the CBF condition at the float step's input, on the harness box,
+  its corners and far states; the float-widened GP band evaluated in float32 arithmetic
+  contains the exact GP band.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import safestab as ss
+from safestab.errors import ParameterError
+from safestab.export import NativeController, compile_native, export_function
+from safestab.export.scenario_export import export_scenario, float_safe_controller
+from safestab.learning import Dataset, FastGP, GaussianProcessModel
+from safestab.scenarios import load_scenario
+from safestab.scenarios.acc_study import study_controllers
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+
+PRESETS = ("stress", "paper", "obstacle")
+
+
+def _check(rep):
+    assert rep.passed, rep.harness_output[-3000:]
+    assert " 0 mismatches" in rep.harness_output
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+@pytest.mark.parametrize("controller", ["nominal", "true"])
+@pytest.mark.parametrize("scenario", PRESETS)
+def test_model_controllers_pass_their_harness(scenario, controller, precision, tmp_path):
+    rep = export_scenario(scenario, tmp_path, controller=controller, precision=precision)
+    _check(rep)
+    header = next(tmp_path.glob("*.h")).read_text()
+    assert ("CBF margin" in header) == (precision == "float")
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
+@pytest.mark.parametrize(
+    "scenario, precision",
+    [(s, p) for s in PRESETS for p in ("double", "float") if (s, p) != ("stress", "float")],
+)
+def test_gp_controllers_pass_their_harness(scenario, precision, tmp_path):
+    _check(export_scenario(scenario, tmp_path, controller="gp", precision=precision))
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
+def test_float_export_of_an_unresolvable_gp_is_refused(tmp_path):
+    # the stress preset's drag: posterior std 0.01 under a prior std of 34, a variance 1e-7
+    # of the prior's, which float (7 digits) cannot form from amp^2 - |a|^2
+    with pytest.raises(ParameterError, match="cannot evaluate this GP cache.*Export in double"):
+        export_scenario("stress", tmp_path, controller="gp", precision="float")
+
+
+# -- cbf_margin -------------------------------------------------------------------------
+
+
+def _acc_controller(**kw):
+    sc = load_scenario("paper")
+    return sc, study_controllers(sc, None)["true model"].replace(**kw)
+
+
+def test_cbf_margin_enforces_and_reports_the_tightened_condition():
+    sc, base = _acc_controller()
+    rng = np.random.default_rng(0)
+    x = rng.uniform(sc.x0_low, sc.x0_high, (2000, 3))
+    margin = 0.05
+    tight = base.replace(cbf_margin=margin)
+    out = tight.step_fn(x)
+    a, b, c, d = (np.asarray(t) for t in out.terms)
+    u = np.asarray(out.u_unconstrained)
+    gamma = np.sqrt(c * c + float(tight.params["varphi"]) * np.sum(d * d, -1) ** 2)
+    cond = c + np.sum(d * u, -1) - float(tight.params["rho"]) * gamma
+    scale = np.abs(c) + gamma + np.sum(np.abs(d * u), -1)
+    # the formula keeps the margin wherever the CBF constraint can be met (slack on the CLF)
+    assert np.all(cond >= margin - 1e-12 * scale)
+    active = np.abs(cond - margin) <= 1e-9 * scale
+    assert active.sum() > 50  # states where the margin is what binds
+    # the base controller is on the boundary there: the margin moved the input
+    base_out = base.step_fn(x[active])
+    assert np.all(np.asarray(base_out.u)[:, 0] != np.asarray(out.u)[active, 0])
+    assert np.all(np.asarray(out.cbf_satisfied)[active])
+    # the flag asks for half the margin: pin the input (a one-point box) to leave a quarter
+    # or three quarters of it at one active state
+    k = int(np.flatnonzero(active)[0])
+    for share, expected in ((0.25, False), (0.75, True)):
+        u_pin = float(u[k, 0] - (1.0 - share) * margin / d[k, 0])
+        pinned = tight.replace(u_min=u_pin, u_max=u_pin).step_fn(x[k])
+        assert float(pinned.u[0]) == u_pin
+        assert bool(pinned.cbf_satisfied) is expected
+        exact = ss.conditions_satisfied(a[k], b[k], c[k], d[k], [u_pin], **_params(tight))
+        assert bool(exact.cbf_satisfied)  # the exact condition holds either way
+
+
+def _params(ctrl):
+    p = ctrl.params
+    return {k: float(p[k]) for k in ("kappa", "rho", "phi", "varphi")}
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), [0.1, 0.2]])
+def test_cbf_margin_bad_values_are_named(bad):
+    with pytest.raises((ParameterError, ss.errors.DimensionError), match="cbf_margin"):
+        _acc_controller(cbf_margin=bad)
+
+
+def test_cbf_margin_is_a_tunable_leaf():
+    _, ctrl = _acc_controller(cbf_margin=0.1)
+    assert "cbf_margin" in ctrl.tunables()
+    u = jax.jit(lambda c, x: c.step_fn(x).u)(ctrl, jnp.array([20.0, 18.0, 60.0]))
+    assert np.all(np.isfinite(np.asarray(u)))
+
+
+# -- float safety -------------------------------------------------------------------------
+
+
+def _extreme_states(sc, n=4000, seed=5):
+    """Uniform in the box, its corners and edges, and the box's faces, rounded to float."""
+    low, high = np.asarray(sc.x0_low, float), np.asarray(sc.x0_high, float)
+    rng = np.random.default_rng(seed)
+    inside = rng.uniform(low, high, (n, len(low)))
+    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+    faces = rng.uniform(low, high, (n, len(low)))
+    k = rng.integers(0, len(low), n)
+    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
+    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
+
+
+@pytest.mark.parametrize("scenario", ["paper", "stress", "obstacle"])
+@pytest.mark.parametrize("which", ["nominal", "true"])
+def test_float_flag_never_claims_a_violated_condition(scenario, which):
+    from safestab.export.scenario_export import _acc_controller as acc_build
+    from safestab.export.scenario_export import _obstacle_controller as obstacle_build
+    from safestab.scenarios.loading import load
+
+    sc = load(scenario)
+    build = acc_build if scenario != "obstacle" else obstacle_build
+    exact, *_ = build(sc, which, sc.seed, None, 32, lambda m: None)
+    ctrl_f, margin = float_safe_controller(exact, sc.x0_low, sc.x0_high)
+    assert margin > 0
+    native = NativeController(ctrl_f, name=f"f_{scenario}_{which}", precision="float")
+    x = _extreme_states(sc)
+    out_f = native.step(x)
+    u_f = np.asarray(out_f.u, dtype=np.float64)
+    flag = np.asarray(out_f.cbf_satisfied)
+    ok = np.asarray(out_f.status) == 0
+    # the exact step's Lie terms (float64, no margin) at the float step's input
+    terms = exact.step_fn(x).terms
+    flags = ss.conditions_satisfied(*terms, np.where(ok[:, None], u_f, 0.0), **_params(exact))
+    assert flag.sum() > 0.5 * len(x)
+    lied = flag & ok & ~np.asarray(flags.cbf_satisfied)
+    assert not lied.any(), x[lied][:5]
+
+
+def test_float_widened_gp_band_contains_the_exact_band_in_float32_arithmetic():
+    """FastGP.for_precision("float") evaluated in float (its exported C, float variant)
+    still contains the exact GP's band, in and far from the data."""
+    sc = load_scenario("stress")
+    rng = np.random.default_rng(1)
+    xd = rng.uniform(sc.x0_low, sc.x0_high, (300, 3))
+    yd = np.asarray(sc.omega(xd)) + 0.01 * rng.standard_normal((300, 3))
+    data = Dataset(x=xd, u=np.zeros((300, 1)), xdot=yd, y=yd, t=np.zeros(300))
+    gp = GaussianProcessModel.from_hyperparameters(
+        data.x[:200], data.y[:200], amplitude=np.array([0.7, 0.05, 0.05]),
+        noise=np.full(3, 0.01), lengthscale=np.tile([25.0, 25.0, 250.0], (3, 1)),
+    )  # fmt: skip
+    fast = FastGP(gp, 32).for_precision("float")
+    x = np.concatenate(
+        [
+            rng.uniform(sc.x0_low, sc.x0_high, (500, 3)),
+            rng.uniform(np.array(sc.x0_low) - 60.0, np.array(sc.x0_high) + 300.0, (100, 3)),
+        ]
+    ).astype(np.float32)
+    # the cache's mean and std as exported C in float (every operation rounded to float)
+    native = compile_native(export_function(fast.mean_std, 3, "gpf", precision="float"))
+    (mean32, std32), status = native.columns(np.ascontiguousarray(x))
+    assert np.all(np.asarray(status) == 0)
+    mean32, std32 = np.asarray(mean32, np.float64), np.asarray(std32, np.float64)
+    mean_ex, var_ex = (np.asarray(t) for t in gp.predict(x.astype(np.float64)))
+    std_ex = np.sqrt(var_ex)
+    for beta in (1.0, 2.0, 5.0):
+        assert np.all(mean32 - beta * std32 <= mean_ex - beta * std_ex)
+        assert np.all(mean32 + beta * std32 >= mean_ex + beta * std_ex)
+    # and the widening is what float needs, not a blanket: within 3x of the float64 cache
+    _, std64 = FastGP(gp, 32).predict(x.astype(np.float64))
+    assert np.median(std32 / std64) < 3.0

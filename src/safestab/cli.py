@@ -13,7 +13,7 @@ from __future__ import annotations
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import typer
 
@@ -370,12 +370,19 @@ def export_cmd(
     name: str | None = typer.Option(
         None, help="Prefix of the C names and files (default 'acc' or 'obstacle')."
     ),
-    precision: str = typer.Option("double", help="'double' or 'float'."),
+    precision: str | None = typer.Option(
+        None, help="'double' or 'float' (default: the target's, else 'double')."
+    ),
     cases: int = typer.Option(256, help="Recorded states in the C test harness."),
     n_samples: int | None = typer.Option(None, help="Override the number of GP samples Q."),
     n_inducing: int = typer.Option(32, help="Inducing points of the fast GP cache."),
     seed: int | None = typer.Option(None, help="Seed for data, GP fit and recorded states."),
     check: bool = typer.Option(True, help="Compile and run the harness (needs a C compiler)."),
+    target: str | None = typer.Option(
+        None,
+        help="Also build for 'cortex-m4' (float) or 'cortex-m7' (double), run the harness "
+        "under QEMU and measure size, stack and instructions per step (docs/export.md).",
+    ),
 ) -> None:
     """Export an ACC or obstacle controller step as C99 (name.c, name.h) with a C harness."""
     from rich.console import Console
@@ -395,7 +402,8 @@ def export_cmd(
             n_samples=n_samples,
             n_inducing=n_inducing,
             seed=seed,
-            check=check,
+            check=check or target is not None,
+            target=target,
             progress=lambda msg: console.print(msg),
         )
     except SafeStabError as exc:
@@ -409,6 +417,35 @@ def export_cmd(
         if not report.passed:
             console.print("[red]the harness found mismatches[/red]")
             raise typer.Exit(code=1)
+    if report.embedded is not None:
+        _print_embedded(console, report.embedded)
+        if report.embedded.harness_mismatches:
+            console.print("[red]the harness found mismatches on the target[/red]")
+            raise typer.Exit(code=1)
+
+
+def _print_embedded(console: Any, rep: Any) -> None:
+    """The embedded build's measurements as a table (safestab export --target)."""
+    from rich.table import Table
+
+    budget = 168_000  # instructions in 1 ms at 168 MHz
+    table = Table(title=f"{rep.target} ({rep.precision}) under QEMU", show_header=False)
+    rows = [
+        ("harness on the target vs JAX", f"{rep.harness_mismatches} mismatches / {rep.states}"),
+        ("outputs bit-identical to the host build", f"{rep.bit_identical_to_host} / {rep.states}"),
+        ("step object: code + constants (flash)", f"{rep.step_text:,} B"),
+        ("minimal firmware image: flash / static RAM", f"{rep.firmware_flash:,} B / "
+         f"{rep.firmware_ram:,} B"),
+        ("stack: static call graph / measured", f"{rep.stack_static:,} B / "
+         f"{rep.stack_measured:,} B"),
+        ("instructions per step: max / median", f"{rep.instructions_max:,} / "
+         f"{rep.instructions_median:,}"),
+        ("headroom at 168 MHz, 1 kHz (168,000 / max)", f"{budget / rep.instructions_max:.1f}x"),
+        ("library calls", ", ".join(rep.library_calls) or "none"),
+    ]  # fmt: skip
+    for key, value in rows:
+        table.add_row(key, value)
+    console.print(table)
 
 
 @app.command("mc")

@@ -53,18 +53,68 @@ def _block_comment(text: str, width: int = 92) -> list[str]:
 _SIZEOF = {"double": 8, "float": 4, "int": 4, "long long": 8, "unsigned char": 1}
 
 
-def stack_bytes(e: Emitter, stmts: Sequence[Stmt]) -> int:
+def stack_bytes(e: Emitter, stmts: Sequence[Stmt], work: int = 0) -> int:
     """Bytes of the run-time values the statements declare, nested blocks and scratch included.
 
-    An upper bound on the temporaries: every value of every block counted as if all were live
-    at once (the compiler overlaps them).
+    An upper bound on the temporaries: the shared work array (``work`` elements of the real
+    type) plus every other value of every block counted as if all were live at once (the
+    compiler overlaps them).
     """
-    total = 0
+    total = work * _SIZEOF.get(e.real, 8)
     for st in stmts:
-        outs_rt = [v for v in st.outs if v.const is None and v.base is None]
+        outs_rt = [v for v in st.outs if v.const is None and v.base is None and id(v) not in e.work]
         total += sum(v.size * _SIZEOF.get(e.ctype(v.dtype), 8) for v in outs_rt + list(st.scratch))
         total += sum(stack_bytes(e, block) for block in st.blocks)
     return total
+
+
+def _roots_used(stmts: Sequence[Stmt]) -> set[int]:
+    """Ids of the root values the statements (and their nested blocks) read or write."""
+    used: set[int] = set()
+    for st in stmts:
+        used.update(id(v.root()) for v in list(st.ins) + list(st.outs))
+        for block in st.blocks:
+            used |= _roots_used(block)
+    return used
+
+
+def plan_work(e: Emitter, stmts: Sequence[Stmt], outs: Sequence[Val]) -> int:
+    """Place the top-level real arrays in one work array by their lifetimes; its length.
+
+    A value lives from the statement that defines it to the last statement (nested blocks
+    included) that reads it; the function's outputs live to the end. Values whose lifetimes
+    are disjoint share storage (first fit, in order of definition); a statement's outputs
+    never share with its inputs. This bounds the stack by the largest set of arrays live at
+    once instead of their sum (the GP-robust ACC step: 4.6 kB of float arrays to about 1 kB).
+    """
+    real = e.real
+    defs: list[tuple[int, Val]] = []
+    last: dict[int, int] = {}
+    for i, st in enumerate(stmts):
+        for v in st.outs:
+            if v.const is None and v.base is None and v.param is None and v.size > 1:
+                if e.ctype(v.dtype) == real:
+                    defs.append((i, v))
+        for key in _roots_used([st]):
+            last[key] = i
+    end = len(stmts)
+    for v in outs:
+        last[id(v.root())] = end
+    live: list[tuple[int, int, int]] = []  # (last use, offset, size)
+    size_total = 0
+    e.work = {}
+    for i, v in defs:
+        key = id(v)
+        live = [item for item in live if item[0] >= i]
+        off = 0
+        for _, o, n in sorted(live, key=lambda item: item[1]):
+            if off + v.size <= o:
+                break
+            off = max(off, o + n)
+        e.work[key] = off
+        live.append((last.get(key, i), off, v.size))
+        size_total = max(size_total, off + v.size)
+    return size_total
 
 
 def render(e: Emitter, stmts: Sequence[Stmt]) -> list[str]:
@@ -90,16 +140,25 @@ def assemble(
     emitter: Emitter,
     description: str,
     version: str,
+    share_work: bool = False,
 ) -> tuple[str, str, str, int]:
-    """Return ``(source, header, cdef, stack_bytes)``."""
+    """Return ``(source, header, cdef, stack_bytes)``.
+
+    ``share_work``: place the top-level arrays in one work array by their lifetimes
+    (:func:`plan_work`; the embedded layout, where the stack is small).
+    """
     e = emitter
     real = e.real
     upper = name.upper()
     n = n_states
 
     # -- body of the step -------------------------------------------------------------
+    work = plan_work(e, stmts, outs) if share_work else 0
     body = render(e, stmts)
-    stack = stack_bytes(e, stmts)
+    if work:
+        decl = f"{e.real} ss_work[{work}];  /* arrays never live at once share its elements */"
+        body = [decl, *body]
+    stack = stack_bytes(e, stmts, work=work)
 
     # -- outputs ---------------------------------------------------------------------
     writes: list[str] = []

@@ -130,6 +130,8 @@ class Program:
         self._prim = "?"
         self._where = "?"
         self.rules: dict[str, Callable] = {}
+        #: "host" or "embedded": how rules lay out loops and constants (export_function)
+        self.layout = "host"
         # common subexpressions: key -> (outputs, inputs); holding the inputs keeps the ids
         # in the keys from being reused by new objects
         self._seen: dict[Any, tuple[list[Val], list[Val]]] = {}

@@ -539,15 +539,27 @@ def _dot_general(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         rvar[d] = f"i{len(lb) + len(lfree) + j}"
     for t, (a, b) in enumerate(zip(lc, rc, strict=True)):
         lvar[a] = rvar[b] = f"k{t}"
-    # The innermost loop runs over the last output axis; store a constant operand with that
-    # axis last so the loop reads contiguous memory (and the compiler can vectorise it).
+    # Host layout: the innermost loop runs over the last output axis; a constant operand is
+    # stored with that axis last so the loop reads contiguous memory (and the compiler can
+    # vectorise it). Embedded layout (cores without SIMD): each output element is summed in
+    # a register over the contraction axes, stored last in a constant operand. Both sum the
+    # products in the same order (the contraction index ascending), so they give the same
+    # bits.
+    embedded = getattr(p, "layout", "host") == "embedded"
     last = f"i{len(out.shape) - 1}" if out.shape else None
+    k_names = [f"k{t}" for t in range(len(lc))]
     operands = []
     for v, var in ((lhs, lvar), (rhs, rvar)):
         dims = list(range(len(v.shape)))
-        if v.const is not None and v.splat() is None and last in var.values():
-            d_last = next(d for d in dims if var[d] == last)
-            perm = [d for d in dims if d != d_last] + [d_last]
+        if v.const is not None and v.splat() is None:
+            if embedded:
+                tail = [next(d for d in dims if var[d] == k) for k in k_names]
+                perm = [d for d in dims if d not in tail] + tail
+            elif last in var.values():
+                d_last = next(d for d in dims if var[d] == last)
+                perm = [d for d in dims if d != d_last] + [d_last]
+            else:
+                perm = dims
             if perm != dims:
                 v = p.const(np.transpose(v.const, perm))
                 var = {j: var[d] for j, d in enumerate(perm)}
@@ -566,6 +578,11 @@ def _dot_general(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         ost = _strides(out.shape)
         tgt = e.target(out, _index([(v, ost[j]) for j, (v, s) in enumerate(out_loops) if s > 1]))
         prod = f"{term(*operands[0])} * {term(*operands[1])}"
+        if embedded:
+            body = ["{", f"    {ct} acc = {e.zero(out.dtype)};"]
+            body += ["    " + ln for ln in _nest(k_loops, [f"acc += {prod};"])]
+            body += [f"    {tgt} = acc;", "}"]
+            return [e.declare(out)] + _nest(out_loops, body)
         inner = out_loops[-1:] if out_loops else []
         body = _nest(inner, [f"{tgt} = {e.zero(out.dtype)};"])
         body += _nest(k_loops + inner, [f"{tgt} += {prod};"])

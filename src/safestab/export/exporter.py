@@ -211,6 +211,7 @@ def export_function(
     *,
     precision: str = "double",
     description: str = "",
+    layout: str = "host",
 ) -> ExportedC:
     """Translate a function of one state to C99.
 
@@ -226,6 +227,12 @@ def export_function(
         The C type of float64 values.
     description : str
         Text for the header comment (what the function computes, units).
+    layout : {"host", "embedded"}
+        How matrix products are written: ``"host"`` (default) loops innermost over an output
+        axis that a desktop compiler vectorises; ``"embedded"`` sums each output element in
+        a register over contiguous constants, for cores without SIMD (fewer instructions on a
+        Cortex-M), and places arrays that are never live at once in one work array (a
+        smaller stack). The same bits either way.
 
     Returns
     -------
@@ -243,6 +250,8 @@ def export_function(
     """
     check_name(name)
     check_precision(precision)
+    if layout not in ("host", "embedded"):
+        raise ParameterError(f"layout must be 'host' or 'embedded', got {layout!r}")
     if not isinstance(n_states, int | np.integer) or int(n_states) < 1:
         raise DimensionError(f"n_states must be a positive integer, got {n_states!r}")
     n = int(n_states)
@@ -254,6 +263,7 @@ def export_function(
         check_dtype(leaf.dtype, f"output {leaf.path}", "the function's result")
     program = Program()
     program.rules = RULES
+    program.layout = layout
     x = Val((n,), np.float64, param="x")
     outs = program.run(closed.jaxpr, closed.consts, [x])
     primary = next((i for i, leaf in enumerate(leaves) if leaf.path == "u"), 0)
@@ -270,6 +280,7 @@ def export_function(
         emitter=Emitter(precision),
         description=description,
         version=_version(),
+        share_work=layout == "embedded",
     )
     return ExportedC(
         name, n, precision, source, header, cdef, tuple(leaves), primary, treedef, stack
@@ -368,6 +379,7 @@ def export_c(
     *,
     precision: str = "double",
     description: str = "",
+    layout: str = "host",
 ) -> ExportedC:
     """Export a controller's whole step (Lie terms, GP, formula, limits, flags) as C99.
 
@@ -387,6 +399,8 @@ def export_c(
         The C type of real numbers (``float`` for small processors without a double FPU).
     description : str
         Extra text for the header, e.g. the units of the state and the input.
+    layout : {"host", "embedded"}
+        See :func:`export_function`.
 
     Returns
     -------
@@ -421,6 +435,7 @@ def export_c(
         name,
         precision=precision,
         description=text,
+        layout=layout,
     )
     if out_dir is not None:
         exported.write(out_dir)

@@ -70,9 +70,12 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     The magnitude of a margin is that of its summands, not of its value: ``a`` and ``c`` are
     themselves sums (``L_f V = dV/dx . f`` term by term, the class-K term, and with a GP
     ``dV/dx . m + sum_i |dV/dx_i| beta_i sigma_i``), which can cancel to far below their parts.
-    With a :class:`~safestab.learning.FastGP` the std's own rounding scale
-    (:meth:`~safestab.learning.FastGP.std_rounding_scale`, its variance is a difference) is
-    included as well.
+    With a :class:`~safestab.learning.FastGP` the mean's and the std's own rounding scales
+    (:meth:`~safestab.learning.FastGP.rounding_scales`, its variance is a difference) are
+    included as well. The Lie terms ``terms.a``, ``terms.c``, ``terms.b``, ``terms.d`` are
+    compared per state relative to their summands, and the relaxed formula's ``slack``
+    relative to the CLF multiplier's rounding scale (never less than the leaf's largest
+    magnitude).
     """
     from .. import Region, SafetyFilter, clf_cbf, clf_cbf_relaxed
 

@@ -39,6 +39,9 @@ class ExportReport:
     build_command: str
     harness_output: str | None
     passed: bool | None
+    exported: Any = None  #: the ExportedC
+    states: Any = None  #: the harness's recorded states, (N, n)
+    embedded: Any = None  #: with ``target``, the EmbeddedReport
 
 
 def _check_writable(out: Path) -> None:
@@ -57,12 +60,13 @@ def export_scenario(
     *,
     controller: str = "gp",
     name: str | None = None,
-    precision: str = "double",
+    precision: str | None = None,
     cases: int = 256,
     n_samples: int | None = None,
     n_inducing: int = 32,
     seed: int | None = None,
     check: bool = True,
+    target: str | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> ExportReport:
     """Export an ACC or obstacle controller of a scenario to ``out`` with a C test harness.
@@ -84,7 +88,9 @@ def export_scenario(
         study's relaxed controller without input limits.
     name : str, optional
         Prefix of the C names and files (default ``"acc"`` or ``"obstacle"``).
-    precision : {"double", "float"}
+    precision : {"double", "float"}, optional
+        Default: the target's (``"float"`` for ``cortex-m4``, ``"double"`` for
+        ``cortex-m7``), else ``"double"``.
     cases : int
         Number of recorded states, >= 1.
     n_samples : int, optional
@@ -95,6 +101,11 @@ def export_scenario(
         Overrides the scenario's seed.
     check : bool
         Compile and run the harness.
+    target : {"cortex-m4", "cortex-m7"}, optional
+        Also cross-compile the step and its harness for this core, run them under QEMU and
+        measure size, stack and instructions per step
+        (:func:`~safestab.export.embedded.run_on_target`; needs ``arm-none-eabi-gcc`` and
+        ``qemu-system-arm``, installed with apt-get where this process may).
     progress : callable, optional
         Called with a message at each stage.
 
@@ -114,8 +125,13 @@ def export_scenario(
         With ``check``, if no compiler is found or the harness does not compile.
     """
     from ..scenarios.loading import load as load_any_scenario
+    from .embedded import TARGETS
 
     say = progress or (lambda msg: None)
+    if target is not None and target not in TARGETS:
+        raise ParameterError(f"target must be one of {sorted(TARGETS)}, got {target!r}")
+    if precision is None:
+        precision = TARGETS[target].precision if target is not None else "double"
     if controller not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
     if int(cases) < 1:
@@ -149,6 +165,8 @@ def export_scenario(
     name = default_name if name is None else name
     rng = np.random.default_rng(seed)
     states = rng.uniform(sc.x0_low, sc.x0_high, size=(int(cases), len(sc.x0_low)))
+    if target is not None and hasattr(ctrl.uncertainty, "unpadded"):
+        ctrl = ctrl.replace(uncertainty=ctrl.uncertainty.unpadded())  # fewer operations
     if precision == "float":
         # the float step sees float states: record those, so that the comparison is of
         # the step's arithmetic, not of the rounding of its input
@@ -159,7 +177,10 @@ def export_scenario(
             "(docs/export.md, 'Float that stays safe')."
         )
     say("translating the controller step to C")
-    exported = export_c(ctrl, name, out, precision=precision, description=description)
+    layout = "host" if target is None else "embedded"
+    exported = export_c(
+        ctrl, name, out, precision=precision, description=description, layout=layout
+    )
     expected = ctrl.step_fn(states)
     harness = write_harness(
         exported, states, expected, out, scales=comparison_scales(ctrl, expected, states)
@@ -170,7 +191,7 @@ def export_scenario(
         f"-o {name}_harness && ./{name}_harness"
     )
     if not check:
-        return ExportReport(files, build, None, None)
+        return ExportReport(files, build, None, None, exported, states)
     say("compiling and running the harness")
     cc = find_compiler()
     exe = out / f"{name}_harness"
@@ -182,7 +203,14 @@ def export_scenario(
             + (proc.stderr or proc.stdout)[-4000:]
         )
     run = subprocess.run([str(exe.resolve())], cwd=out, capture_output=True, text=True)
-    return ExportReport(files, build, run.stdout + run.stderr, run.returncode == 0)
+    embedded = None
+    if target is not None:
+        from .embedded import run_on_target
+
+        embedded = run_on_target(out, name, exported, states, target, progress=say)
+    return ExportReport(
+        files, build, run.stdout + run.stderr, run.returncode == 0, exported, states, embedded
+    )
 
 
 #: The float export of a GP cache is refused when float rounding widens its std by more

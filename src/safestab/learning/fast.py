@@ -117,10 +117,15 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
 
 
 def _per_component(kind, mm, z0, work_unit, with_scales):
-    """One learned component's cache evaluation (see :func:`_parts`, :func:`_magnitudes`)."""
+    """One learned component's cache evaluation (see :func:`_parts`, :func:`_magnitudes`).
+
+    ``mask`` may be None (no padded inducing inputs).
+    """
 
     def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
-        k = jnp.where(mask, _kernel(kind, a, l_)(z, z0[None, :])[:, 0], 0.0)
+        k = _kernel(kind, a, l_)(z, z0[None, :])[:, 0]
+        if mask is not None:
+            k = jnp.where(mask, k, 0.0)
         all3 = maps @ k
         v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
         r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
@@ -129,7 +134,8 @@ def _per_component(kind, mm, z0, work_unit, with_scales):
             r = safe_sqrt(r2)  # safe_sqrt: derivative 0, not NaN, at 0
             var = r2 + gv @ gv + 2.0 * safe_sqrt(cv @ cv) * rho * r  # >= exact variance
             return mean, safe_sqrt(var), err * r
-        # running magnitudes: the products are rounded relative to |maps| |k|
+        # running magnitudes: the products are rounded relative to |maps| |k|; a working
+        # precision's allowance (work_unit > 0) is relative to them
         mag3 = jnp.abs(maps) @ jnp.abs(k)
         mv, mg, mc = mag3[:mm], mag3[mm : 2 * mm], mag3[2 * mm :]
         r2_mag = a * a + 2.0 * jnp.abs(v) @ mv + r2
@@ -142,13 +148,15 @@ def _per_component(kind, mm, z0, work_unit, with_scales):
         var_mag = r2_mag + 2.0 * jnp.abs(gv) @ mg + 2.0 * rho * (cn_mag * r + cn * r_mag) + var
         var = var + work_unit * var_mag
         mean_mag = jnp.abs(wk) @ jnp.abs(k)
-        merr = err * r + work_unit * (mean_mag + err * r_mag)
         sd = safe_sqrt(var)
         if with_scales:
             return mean_mag, var_mag / (2.0 * sd), err * r_mag
-        return mean, sd, merr
+        return mean, sd, err * r + work_unit * (mean_mag + err * r_mag)
 
     return per_comp
+
+
+_KEYS = ("amp", "ls", "z", "wk", "maps", "mask", "err", "rho", "round")
 
 
 def _parts(p, x, kind, work_unit=0.0):
@@ -162,9 +170,22 @@ def _parts(p, x, kind, work_unit=0.0):
     """
     z0 = (x - p["offset"]) / p["scale"]
     per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, False)
-    return jax.vmap(per_comp)(
-        p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
-    )
+    return jax.vmap(per_comp)(*(p[key] for key in _KEYS))
+
+
+def _parts_unpadded(p, comps, x, kind, work_unit):
+    """:func:`_parts` with each component at its own number of inducing inputs.
+
+    ``comps``: per component, a dict of its arrays without padding (``mask`` None). The
+    same values as the padded, vmapped evaluation, with fewer operations in exported code
+    (the padded rows and their masks are gone): used by the float copy.
+    """
+    z0 = (x - p["offset"]) / p["scale"]
+    outs = []
+    for c in comps:
+        per_comp = _per_component(kind, c["z"].shape[0], z0, work_unit, False)
+        outs.append(per_comp(*(c[key] for key in _KEYS)))
+    return tuple(jnp.stack([o[i] for o in outs]) for i in range(3))
 
 
 # the cache's arrays are arguments: one compilation per (M, kernel), not per cache
@@ -184,9 +205,7 @@ def _magnitudes(p, x, kind, work_unit=0.0):
     """
     z0 = (x - p["offset"]) / p["scale"]
     per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, True)
-    return jax.vmap(per_comp)(
-        p["amp"], p["ls"], p["z"], p["wk"], p["maps"], p["mask"], p["err"], p["rho"], p["round"]
-    )
+    return jax.vmap(per_comp)(*(p[key] for key in _KEYS))
 
 
 _magnitudes_batch = jax.jit(
@@ -385,24 +404,50 @@ class FastGP:
     def for_precision(self, precision: str) -> FastGP:
         """The cache with a band that holds when the step is evaluated in ``precision``.
 
-        ``"double"`` returns ``self``. ``"float"`` returns a copy whose band adds, per
-        query, ``gamma u`` (``u = 2^-24`` the unit roundoff of float, ``gamma = 4 (M + 4)``)
-        times the running magnitudes of the cache's evaluation (:meth:`rounding_scales`) to
-        ``r^2``, to the variance and to the mean-error term. A float evaluation cannot
-        resolve a posterior variance that is far below the prior one (``amp^2 - |a|^2``
-        cancels digits that float does not have): this copy then reports the width float
-        can vouch for instead of a rounding artefact, so the float step's GP-robust terms
-        stay on the safe side of the exact ones (docs/export.md, "Float that stays safe").
+        ``"double"`` returns ``self``. ``"float"`` returns an :meth:`unpadded` copy whose band
+        adds, per query, ``gamma u`` (``u = 2^-24`` the unit roundoff of float,
+        ``gamma = 4 (M + 4)``) times the running magnitudes of the cache's evaluation
+        (:meth:`rounding_scales`) to ``r^2``, to the variance and to the mean-error term. A
+        float evaluation cannot resolve a posterior variance that is far below the prior one
+        (``amp^2 - |a|^2`` cancels digits that float does not have): this copy then reports
+        the width float can vouch for instead of a rounding artefact, so the float step's
+        GP-robust terms stay on the safe side of the exact ones (docs/export.md, "Float that
+        stays safe").
         """
         if precision == "double":
             return self
         if precision != "float":
             raise ParameterError(f"precision must be 'double' or 'float', got {precision!r}")
-        out = copy.copy(self)
+        out = self.unpadded()
         out.work_unit = float(4 * (self._m + 4) * np.finfo(np.float32).eps / 2)
         return out
 
+    def unpadded(self) -> FastGP:
+        """A copy whose :meth:`mean_std` evaluates each component at its own size.
+
+        The same values (to rounding) with fewer operations where components use fewer
+        inducing inputs than the largest (no padded rows, no masks): what an exported step
+        for a microcontroller wants (``safestab export --target``). Batched evaluation
+        (:meth:`predict`) is unchanged.
+        """
+        out = copy.copy(self)
+        p, mm, comps = self._params, self._m, []
+        for j, m in enumerate(self.n_inducing_):
+            rows = np.concatenate([np.arange(b * mm, b * mm + m) for b in range(3)])
+            comp = {key: p[key][j] for key in _KEYS}
+            comp.update(z=p["z"][j, :m], wk=p["wk"][j, :m], mask=None)
+            comp["maps"] = p["maps"][j][rows][:, :m]
+            comps.append(comp)
+        out._unpadded = comps
+        return out
+
+    _unpadded: list | None = None
+
     def _mean_std_parts(self, x: jax.Array):
+        if self._unpadded is not None:
+            return _parts_unpadded(
+                self._params, self._unpadded, x, self.model.kernel, self.work_unit
+            )
         return _parts(self._params, x, self.model.kernel, self.work_unit)
 
     def _parts_batch(self, x: np.ndarray):

@@ -56,11 +56,11 @@ _SIZEOF = {"double": 8, "float": 4, "int": 4, "long long": 8, "unsigned char": 1
 def stack_bytes(e: Emitter, stmts: Sequence[Stmt], work: int = 0) -> int:
     """Bytes of the run-time values the statements declare, nested blocks and scratch included.
 
-    An upper bound on the temporaries: the shared work array (``work`` elements of the real
-    type) plus every other value of every block counted as if all were live at once (the
-    compiler overlaps them).
+    An upper bound on the temporaries: the shared work arrays (``work`` bytes) plus every
+    other value of every block counted as if all were live at once (the compiler overlaps
+    them).
     """
-    total = work * _SIZEOF.get(e.real, 8)
+    total = work
     for st in stmts:
         outs_rt = [v for v in st.outs if v.const is None and v.base is None and id(v) not in e.work]
         total += sum(v.size * _SIZEOF.get(e.ctype(v.dtype), 8) for v in outs_rt + list(st.scratch))
@@ -68,53 +68,84 @@ def stack_bytes(e: Emitter, stmts: Sequence[Stmt], work: int = 0) -> int:
     return total
 
 
-def _roots_used(stmts: Sequence[Stmt]) -> set[int]:
-    """Ids of the root values the statements (and their nested blocks) read or write."""
-    used: set[int] = set()
-    for st in stmts:
-        used.update(id(v.root()) for v in list(st.ins) + list(st.outs))
-        for block in st.blocks:
-            used |= _roots_used(block)
-    return used
+#: Work array names per C type (one array per type keeps every access well typed).
+WORK_NAMES = {"double": "ss_work", "float": "ss_work", "int": "ss_iwork",
+              "long long": "ss_lwork", "unsigned char": "ss_bwork"}  # fmt: skip
 
 
-def plan_work(e: Emitter, stmts: Sequence[Stmt], outs: Sequence[Val]) -> int:
-    """Place the top-level real arrays in one work array by their lifetimes; its length.
+_LOOPS = ("while", "scan")
 
-    A value lives from the statement that defines it to the last statement (nested blocks
-    included) that reads it; the function's outputs live to the end. Values whose lifetimes
-    are disjoint share storage (first fit, in order of definition); a statement's outputs
-    never share with its inputs. This bounds the stack by the largest set of arrays live at
-    once instead of their sum (the GP-robust ACC step: 4.6 kB of float arrays to about 1 kB).
+
+def plan_work(e: Emitter, stmts: Sequence[Stmt], outs: Sequence[Val]) -> dict[str, int]:
+    """Place the arrays in one work array per C type by their lifetimes; their lengths.
+
+    Statements are numbered depth first (a loop's or a branch's body right after the loop
+    statement). A value lives from the statement that defines it to the last statement that
+    reads or writes it, where a use inside a loop's body of a value defined outside the loop
+    counts to the end of the loop: the body runs again, so the value stays live for all of
+    it (a branch runs once: its uses are ordinary ones). A block's results, which the
+    enclosing statement reads after the block, live to its end. The function's outputs live
+    to the end. Values whose lifetimes are disjoint share storage (first fit, in order of
+    definition); a statement's outputs never share with its inputs. This bounds the stack by
+    the largest set of arrays live at once instead of their sum.
     """
-    real = e.real
     defs: list[tuple[int, Val]] = []
+    def_at: dict[int, int] = {}
     last: dict[int, int] = {}
-    for i, st in enumerate(stmts):
-        for v in st.outs:
-            if v.const is None and v.base is None and v.param is None and v.size > 1:
-                if e.ctype(v.dtype) == real:
-                    defs.append((i, v))
-        for key in _roots_used([st]):
-            last[key] = i
-    end = len(stmts)
+    counter = 0
+
+    def visit(block: Sequence[Stmt], enclosing: tuple[tuple[int, list[int]], ...]) -> None:
+        nonlocal counter
+        for st in block:
+            idx = counter
+            counter += 1
+            for v in st.outs:
+                if v.const is None and v.base is None and v.param is None and v.size > 1:
+                    if e.ctype(v.dtype) in WORK_NAMES and id(v) not in def_at:
+                        defs.append((idx, v))
+                        def_at[id(v)] = idx
+            pending.append((idx, enclosing, [id(v.root()) for v in list(st.ins) + list(st.outs)]))
+            if st.blocks:
+                end_cell = [idx]
+                # a loop's body runs again: what it reads from outside stays live to its end;
+                # a branch runs once, so its uses are ordinary ones
+                inner = (*enclosing, (idx, end_cell)) if st.prim in _LOOPS else enclosing
+                for sub in st.blocks:
+                    visit(sub, inner)
+                end_cell[0] = counter - 1
+                # the statement's own code reads the blocks' results after them
+                pending.append((counter - 1, enclosing, [id(v.root()) for v in st.results]))
+
+    pending: list[tuple[int, tuple[tuple[int, list[int]], ...], list[int]]] = []
+    visit(stmts, ())
+    for idx, enclosing, keys in pending:
+        for key in keys:
+            use = idx
+            start = def_at.get(key)
+            for block_start, end_cell in enclosing:
+                if start is None or start <= block_start:  # defined outside this block
+                    use = max(use, end_cell[0])
+                    break  # the outermost such block already covers the inner ones
+            last[key] = max(last.get(key, use), use)
+    end = counter
     for v in outs:
         last[id(v.root())] = end
-    live: list[tuple[int, int, int]] = []  # (last use, offset, size)
-    size_total = 0
+    live: dict[str, list[tuple[int, int, int]]] = {}  # per type: (last use, offset, size)
+    sizes: dict[str, int] = {}
     e.work = {}
-    for i, v in defs:
-        key = id(v)
-        live = [item for item in live if item[0] >= i]
+    for i, v in sorted(defs, key=lambda item: item[0]):
+        key, ct = id(v), e.ctype(v.dtype)
+        pool = [item for item in live.get(ct, []) if item[0] >= i]
         off = 0
-        for _, o, n in sorted(live, key=lambda item: item[1]):
+        for _, o, n in sorted(pool, key=lambda item: item[1]):
             if off + v.size <= o:
                 break
             off = max(off, o + n)
-        e.work[key] = off
-        live.append((last.get(key, i), off, v.size))
-        size_total = max(size_total, off + v.size)
-    return size_total
+        e.work[key] = (WORK_NAMES[ct], off)
+        pool.append((last.get(key, i), off, v.size))
+        live[ct] = pool
+        sizes[ct] = max(sizes.get(ct, 0), off + v.size)
+    return sizes
 
 
 def render(e: Emitter, stmts: Sequence[Stmt]) -> list[str]:
@@ -153,12 +184,14 @@ def assemble(
     n = n_states
 
     # -- body of the step -------------------------------------------------------------
-    work = plan_work(e, stmts, outs) if share_work else 0
+    work = plan_work(e, stmts, outs) if share_work else {}
     body = render(e, stmts)
-    if work:
-        decl = f"{e.real} ss_work[{work}];  /* arrays never live at once share its elements */"
-        body = [decl, *body]
-    stack = stack_bytes(e, stmts, work=work)
+    decls = [
+        f"{ct} {WORK_NAMES[ct]}[{n}];  /* arrays never live at once share its elements */"
+        for ct, n in sorted(work.items())
+    ]
+    body = decls + body
+    stack = stack_bytes(e, stmts, work=sum(n * _SIZEOF.get(ct, 8) for ct, n in work.items()))
 
     # -- outputs ---------------------------------------------------------------------
     writes: list[str] = []

@@ -56,9 +56,9 @@ class Emitter:
         #: headers the helpers need besides <math.h> (freestanding headers only)
         self.includes: set[str] = set()
         self._count = 0
-        #: Offsets of run-time arrays in the shared work array ``ss_work`` (by root id), set
-        #: by ``_assemble.plan_work`` from the values' lifetimes; others are declared alone.
-        self.work: dict[int, int] = {}
+        #: Work array and offset of run-time arrays (by root id), set by
+        #: ``_assemble.plan_work`` from the values' lifetimes; others are declared alone.
+        self.work: dict[int, tuple[str, int]] = {}
 
     # -- types and literals ----------------------------------------------------------
 
@@ -174,9 +174,10 @@ class Emitter:
         ct = self.ctype(v.dtype)
         if v.size == 1:
             return f"const {ct} {self.name(v)} = {init};" if init else f"{ct} {self.name(v)};"
-        off = self.work.get(id(v.root()))
-        if off is not None:  # a slice of the shared work array, reused once the value is dead
-            return f"{ct} *const {self.name(v)} = ss_work + {off};  /* [{v.size}] */"
+        slot = self.work.get(id(v.root()))
+        if slot is not None:  # a slice of a shared work array, reused once the value is dead
+            array, off = slot
+            return f"{ct} *const {self.name(v)} = {array} + {off};  /* [{v.size}] */"
         return f"{ct} {self.name(v)}[{v.size}];"
 
     def tables(self) -> list[str]:

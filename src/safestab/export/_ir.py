@@ -89,9 +89,11 @@ class Val:
 class Stmt:
     """Run-time code for one equation: ``gen(emitter)`` returns its C lines."""
 
-    __slots__ = ("prim", "where", "outs", "ins", "gen", "blocks", "scratch")
+    __slots__ = ("prim", "where", "outs", "ins", "gen", "blocks", "scratch", "results")
 
-    def __init__(self, prim: str, where: str, outs, ins, gen, blocks=(), scratch=()) -> None:
+    def __init__(
+        self, prim: str, where: str, outs, ins, gen, blocks=(), scratch=(), results=()
+    ) -> None:
         self.prim = prim
         self.where = where
         self.outs: list[Val] = list(outs)
@@ -102,6 +104,9 @@ class Stmt:
         #: Values the C code may hold besides the outputs (staged copies, work arrays), at
         #: most these sizes: counted in the stack bound.
         self.scratch: tuple[Val, ...] = tuple(scratch)
+        #: Values of the blocks that ``gen`` itself reads after them (a branch's or a loop
+        #: body's results, a loop condition): they live to the end of the blocks.
+        self.results: tuple[Val, ...] = tuple(results)
 
 
 def where_from(eqn: Any) -> str:
@@ -159,8 +164,9 @@ class Program:
         gen: Callable,
         blocks: Sequence = (),
         scratch: Sequence[Val] = (),
+        results: Sequence[Val] = (),
     ) -> None:
-        st = Stmt(self._prim, self._where, outs, ins, gen, blocks, scratch)
+        st = Stmt(self._prim, self._where, outs, ins, gen, blocks, scratch, results)
         for v in outs:
             v.producer = st
         self.stmts.append(st)

@@ -660,7 +660,8 @@ def _cond(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             lines += [head] + _indent(render(e, stmts) + _assign_all(e, outs, res))
         return lines + ["}"]
 
-    p.stmt(outs, ins, gen, blocks=[b[0] for b in blocks], scratch=outs)
+    results = [v for b in blocks for v in b[1]]
+    p.stmt(outs, ins, gen, blocks=[b[0] for b in blocks], scratch=outs, results=results)
     return outs
 
 
@@ -686,7 +687,9 @@ def _while(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         inner += render(e, body_stmts) + _assign_all(e, carried, res)
         return lines + ["for (;;) {"] + _indent(inner) + ["}"]
 
-    p.stmt(carried, ins, gen, blocks=[cond_stmts, body_stmts], scratch=carried)
+    p.stmt(
+        carried, ins, gen, blocks=[cond_stmts, body_stmts], scratch=carried, results=[pred, *res]
+    )
     return carried
 
 
@@ -807,5 +810,5 @@ def _scan(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         head = f"for (int scan_s = 0; scan_s < {int(prm['length'])}; ++scan_s) {{"
         return lines + [head] + _indent(inner) + ["}"]
 
-    p.stmt(carried, ins, gen, blocks=[body_stmts], scratch=carried)
+    p.stmt(carried, ins, gen, blocks=[body_stmts], scratch=carried, results=res)
     return carried

@@ -97,12 +97,12 @@ def _robot_filter():
     import safestab as ss
 
     rng = np.random.default_rng(0)
-    obstacles = rng.uniform(-6, 6, (8, 2))
+    obstacles = rng.uniform(-4, 4, (3, 2))  # three discs: every phase, a quick compile
     system = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="robot")
     cbfs = [ss.CBF(lambda x, o=o: jnp.sum((x - o) ** 2) - 1.0, beta=1.0) for o in obstacles]
     clf = ss.CLF(lambda x: jnp.sum(x**2), lam=0.5)
     filt = ss.SafetyFilter(system, cbfs, clfs=clf, u_nom=lambda x: -x, u_min=-1.0, u_max=1.0)
-    return filt, rng.uniform(-6, 6, (400, 2))
+    return filt, rng.uniform(-5, 5, (400, 2))
 
 
 def _gp_controller():

@@ -76,18 +76,6 @@ def filter_row(target, out, precision=None):
     return row
 
 
-def _extreme_states(low, high, n=4000, seed=5):
-    """Uniform in the box, its corners, and points on its faces, rounded to float."""
-    low, high = np.asarray(low, float), np.asarray(high, float)
-    rng = np.random.default_rng(seed)
-    inside = rng.uniform(low, high, (n, len(low)))
-    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
-    faces = rng.uniform(low, high, (n, len(low)))
-    k = rng.integers(0, len(low), n)
-    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
-    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
-
-
 def float_safety(scenario, which):
     """Float step against float64: errors on the recorded and extreme states, false flags."""
     import safestab as ss
@@ -96,6 +84,7 @@ def float_safety(scenario, which):
     from safestab.export.scenario_export import (
         _acc_controller,
         _obstacle_controller,
+        box_test_states,
         float_safe_controller,
     )
     from safestab.scenarios.loading import load
@@ -111,8 +100,8 @@ def float_safety(scenario, which):
     row = {"scenario": scenario, "controller": which, "cbf_margin": margin}
     for label, ctrl in (("without_margin", exact), ("with_margin", ctrl_f)):
         native = NativeController(ctrl, name=f"fs_{label}", precision="float")
-        for states_label, x in (("recorded", recorded), ("extreme", _extreme_states(
-                sc.x0_low, sc.x0_high))):  # fmt: skip
+        extreme = box_test_states(sc.x0_low, sc.x0_high)
+        for states_label, x in (("recorded", recorded), ("extreme", extreme)):
             got = native.step(x)
             u_f = np.asarray(got.u, np.float64)
             ok = np.asarray(got.status) == 0

@@ -106,21 +106,12 @@ def _robot_filter():
 
 
 def _gp_controller():
-    import numpy as np
-
-    from safestab.learning import Dataset, FastGP, GaussianProcessModel
-    from safestab.scenarios import load_scenario
+    from safestab.learning import FastGP
     from safestab.scenarios.acc_study import study_controllers
 
-    sc = load_scenario("stress")
-    rng = np.random.default_rng(1)
-    xd = rng.uniform(sc.x0_low, sc.x0_high, (300, 3))
-    yd = np.asarray(sc.omega(xd)) + 0.01 * rng.standard_normal((300, 3))
-    data = Dataset(x=xd, u=np.zeros((300, 1)), xdot=yd, y=yd, t=np.zeros(300))
-    gp = GaussianProcessModel.from_hyperparameters(
-        data.x[:200], data.y[:200], amplitude=np.array([0.7, 0.05, 0.05]),
-        noise=np.full(3, 0.01), lengthscale=np.tile([25.0, 25.0, 250.0], (3, 1)),
-    )  # fmt: skip
+    from .systems_zoo import small_stress_gp
+
+    sc, gp, rng = small_stress_gp()
     ctrl = study_controllers(sc, FastGP(gp, 32))["GP-corrected"]
     return ctrl, rng.uniform(sc.x0_low, sc.x0_high, (400, 3))
 

@@ -24,10 +24,16 @@ import pytest
 import safestab as ss
 from safestab.errors import ParameterError
 from safestab.export import NativeController, compile_native, export_function
-from safestab.export.scenario_export import export_scenario, float_safe_controller
-from safestab.learning import Dataset, FastGP, GaussianProcessModel
+from safestab.export.scenario_export import (
+    box_test_states,
+    export_scenario,
+    float_safe_controller,
+)
+from safestab.learning import FastGP
 from safestab.scenarios import load_scenario
 from safestab.scenarios.acc_study import study_controllers
+
+from .systems_zoo import small_stress_gp
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
 
@@ -129,18 +135,6 @@ def test_cbf_margin_is_a_tunable_leaf():
 # -- float safety -------------------------------------------------------------------------
 
 
-def _extreme_states(sc, n=4000, seed=5):
-    """Uniform in the box, its corners and edges, and the box's faces, rounded to float."""
-    low, high = np.asarray(sc.x0_low, float), np.asarray(sc.x0_high, float)
-    rng = np.random.default_rng(seed)
-    inside = rng.uniform(low, high, (n, len(low)))
-    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
-    faces = rng.uniform(low, high, (n, len(low)))
-    k = rng.integers(0, len(low), n)
-    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
-    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
-
-
 @pytest.mark.parametrize("scenario", ["paper", "stress", "obstacle"])
 @pytest.mark.parametrize("which", ["nominal", "true"])
 def test_float_flag_never_claims_a_violated_condition(scenario, which):
@@ -154,7 +148,7 @@ def test_float_flag_never_claims_a_violated_condition(scenario, which):
     ctrl_f, margin = float_safe_controller(exact, sc.x0_low, sc.x0_high)
     assert margin > 0
     native = NativeController(ctrl_f, name=f"f_{scenario}_{which}", precision="float")
-    x = _extreme_states(sc)
+    x = box_test_states(sc.x0_low, sc.x0_high)
     out_f = native.step(x)
     u_f = np.asarray(out_f.u, dtype=np.float64)
     flag = np.asarray(out_f.cbf_satisfied)
@@ -170,15 +164,7 @@ def test_float_flag_never_claims_a_violated_condition(scenario, which):
 def test_float_widened_gp_band_contains_the_exact_band_in_float32_arithmetic():
     """FastGP.for_precision("float") evaluated in float (its exported C, float variant)
     still contains the exact GP's band, in and far from the data."""
-    sc = load_scenario("stress")
-    rng = np.random.default_rng(1)
-    xd = rng.uniform(sc.x0_low, sc.x0_high, (300, 3))
-    yd = np.asarray(sc.omega(xd)) + 0.01 * rng.standard_normal((300, 3))
-    data = Dataset(x=xd, u=np.zeros((300, 1)), xdot=yd, y=yd, t=np.zeros(300))
-    gp = GaussianProcessModel.from_hyperparameters(
-        data.x[:200], data.y[:200], amplitude=np.array([0.7, 0.05, 0.05]),
-        noise=np.full(3, 0.01), lengthscale=np.tile([25.0, 25.0, 250.0], (3, 1)),
-    )  # fmt: skip
+    sc, gp, rng = small_stress_gp()
     fast = FastGP(gp, 32).for_precision("float")
     x = np.concatenate(
         [

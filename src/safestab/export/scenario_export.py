@@ -15,7 +15,13 @@ from .exporter import check_name, check_precision, export_c
 from .harness import DEFAULT_RTOL, cbf_condition_scale, comparison_scales, write_harness
 from .native import find_compiler
 
-__all__ = ["HARNESS_FLAGS", "ExportReport", "export_scenario", "float_safe_controller"]
+__all__ = [
+    "HARNESS_FLAGS",
+    "ExportReport",
+    "box_test_states",
+    "export_scenario",
+    "float_safe_controller",
+]
 
 #: Flags the harness (and the exported code) must compile with, warning-free.
 HARNESS_FLAGS = (
@@ -211,6 +217,22 @@ def export_scenario(
     return ExportReport(
         files, build, run.stdout + run.stderr, run.returncode == 0, exported, states, embedded
     )
+
+
+def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.ndarray:
+    """States to test a float step on: uniform in a box, its corners and its faces.
+
+    ``n`` uniform states, the ``2^n_states`` corners and ``n`` states with one coordinate on
+    a face, rounded to float (what a float step is given); shape (2 n + 2^n_states, n_states).
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    rng = np.random.default_rng(seed)
+    inside = rng.uniform(low, high, (n, len(low)))
+    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+    faces = rng.uniform(low, high, (n, len(low)))
+    k = rng.integers(0, len(low), n)
+    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
+    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
 
 
 #: The float export of a GP cache is refused when float rounding widens its std by more

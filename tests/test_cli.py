@@ -19,7 +19,7 @@ from safestab import NumericalError
 from safestab.scenarios import acc_study, load_scenario
 from safestab.scenarios.acc_study import StudyResult
 
-OUTPUTS = ["acc_stress.pdf", "acc_stress.png", "acc_stress_metrics.json"]
+OUTPUTS = ["acc_stress.pdf", "acc_stress.png", "acc_stress_metrics.json", "acc_stress_run.json"]
 
 
 def _metrics(min_h):
@@ -226,6 +226,49 @@ def test_failed_rename_rolls_back_the_set(tmp_path, study, monkeypatch, stale):
     assert res.exit_code == 1
     _one_error_line(res, "error: OutputError: cannot write ")
     assert _listing(tmp_path) == before
+
+
+def test_each_run_records_itself_and_names_the_other_runs_in_the_folder(
+    tmp_path, study, monkeypatch
+):
+    """Outputs of different runs in one folder can be told apart: each run writes a record
+    (command line, scenario, seed, version, time, its files) with its outputs, and the
+    command names the other runs' records and the files no record claims."""
+    monkeypatch.setattr("sys.argv", ["safestab", "acc", "--scenario", "stress", "--seed", "4"])
+    (tmp_path / "acc_old_metrics.json").write_text("{}")  # from a safestab without records
+    res = _invoke("--out", tmp_path, "--seed", 4)
+    assert res.exit_code == 0, res.output
+    record = json.loads((tmp_path / "acc_stress_run.json").read_text())
+    assert record["files"] == OUTPUTS
+    assert record["scenario"] == "stress" and record["seed"] == 4
+    assert record["command"] == "safestab acc --scenario stress --seed 4"
+    assert record["safestab"] == safestab.__version__ and record["finished_utc"].endswith("+00:00")
+    assert "1 file(s) there come from no recorded run" in " ".join(res.stdout.split())
+    # another run's record in the folder is named, with its command and time
+    other = {"command": "safestab run --scenario paper", "finished_utc": "2026-01-01T00:00:00",
+             "files": ["acc_paper.png", "acc_paper_run.json"]}  # fmt: skip
+    (tmp_path / "acc_paper_run.json").write_text(json.dumps(other))
+    (tmp_path / "acc_paper.png").write_bytes(b"png")
+    res = _invoke("--out", tmp_path, "--seed", 4)
+    text = " ".join(res.stdout.split())
+    assert "outputs of 1 other run(s) are also in" in text
+    assert "acc_paper_run.json (safestab run --scenario paper, 2026-01-01T00:00:00)" in text
+    assert "1 file(s) there come from no recorded run" in text  # still only the old one
+
+
+def test_warnings_print_one_line_without_internal_paths(tmp_path, study, monkeypatch):
+    import warnings
+
+    from safestab.errors import DataWarning
+
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)  # restored after
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    text = warnings.formatwarning(
+        DataWarning("the targets' offset\n   dwarfs their spread"), DataWarning,
+        "/somewhere/site-packages/safestab/learning/gp.py", 412,
+    )  # fmt: skip
+    assert text == "warning: DataWarning: the targets' offset dwarfs their spread\n"
 
 
 def test_json_has_no_nan_tokens_when_a_metric_is_not_finite(tmp_path, study):

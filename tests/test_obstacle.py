@@ -413,6 +413,7 @@ def test_cli_run_obstacle_smoke(tmp_path):
         "obstacle_obstacle_maps.pdf",
         "obstacle_obstacle_maps.png",
         "obstacle_obstacle_metrics.json",
+        "obstacle_obstacle_run.json",
     ]
     doc = json.loads((tmp_path / "obstacle_obstacle_metrics.json").read_text())
     assert doc["status"] == "ok"
@@ -487,4 +488,5 @@ def test_cli_run_dispatches_acc_presets(tmp_path, monkeypatch):
         "acc_stress.pdf",
         "acc_stress.png",
         "acc_stress_metrics.json",
+        "acc_stress_run.json",
     ]

@@ -80,7 +80,9 @@ def test_command_writes_the_figure_and_metrics(tmp_path):
     )
     assert res.exit_code == 0, res.output
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["swarm_swarm.pdf", "swarm_swarm.png", "swarm_swarm_metrics.json"]
+    assert names == [
+        "swarm_swarm.pdf", "swarm_swarm.png", "swarm_swarm_metrics.json", "swarm_swarm_run.json"
+    ]  # fmt: skip
     doc = json.loads((out / "swarm_swarm_metrics.json").read_text())
     assert doc["settings"]["t_final"] == 1.0
     bad = CliRunner().invoke(

@@ -40,10 +40,28 @@ def _main(
     ),
 ) -> None:
     """Safe stabilization with closed-form CLF-CBF formulas and GP learning."""
+    import warnings
+
+    warnings.formatwarning = _format_warning  # one line, no path into the installed package
     if no_compilation_cache:
         from ._cache import disable_compilation_cache
 
         disable_compilation_cache()
+
+
+def _format_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    line: str | None = None,
+) -> str:
+    """A warning at the command line: ``warning: <Category>: <message>`` on one line.
+
+    The default format leads with the file and line inside safestab that raised it, which
+    tells a user of the command nothing (and shows an internal path).
+    """
+    return f"warning: {category.__name__}: {' '.join(str(message).split())}\n"
 
 
 def _one_line(exc: BaseException) -> str:
@@ -97,8 +115,13 @@ def _with_progress(console, work):
         return work(report)
 
 
-def _write_figures(figures: dict, documents: dict) -> list[Path]:
-    """Write each figure as PNG and PDF and each JSON document, all or none; close figures."""
+def _write_figures(figures: dict, documents: dict, record: Path, sc: Any) -> list[Path]:
+    """Write each figure as PNG and PDF and each JSON document, all or none; close figures.
+
+    ``record`` (``<out>/<prefix>_run.json``) is written with them: which run made these
+    files (command line, scenario name, seed, safestab version, UTC time, the files), so
+    that outputs of different runs in one folder can be told apart (:func:`_other_runs`).
+    """
     import matplotlib.pyplot as plt
 
     from ._io import figure_writer, json_writer, write_all
@@ -111,10 +134,65 @@ def _write_figures(figures: dict, documents: dict) -> list[Path]:
                 outputs[path] = figure_writer(fig, path, dpi=200)
         for path, doc in documents.items():
             outputs[path] = json_writer(doc)
+        outputs[record] = _record_writer(record, sc, list(outputs))
         return write_all(outputs)
     finally:
         for fig in figures.values():
             plt.close(fig)
+
+
+def _record_writer(record: Path, sc: Any, paths: list[Path]) -> Any:
+    """The writer of a run record: command line, scenario, seed, version, UTC time, files."""
+    import datetime
+    import sys
+
+    from . import __version__
+    from ._io import json_writer
+
+    return json_writer(
+        {
+            "command": " ".join(["safestab", *sys.argv[1:]]),
+            "scenario": sc.name,
+            "seed": getattr(sc, "seed", None),
+            "safestab": __version__,
+            "finished_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "files": sorted(p.name for p in [*paths, record]),
+        }
+    )
+
+
+def _note_other_runs(console: Any, written: list[Path]) -> None:
+    """Print :func:`_other_runs` for the record among ``written``, if any."""
+    record = next((p for p in written if p.name.endswith("_run.json")), None)
+    note = None if record is None else _other_runs(record.parent, record)
+    if note:
+        console.print(f"note: {note}", markup=False, soft_wrap=True)
+
+
+def _other_runs(out_dir: Path, record: Path) -> str | None:
+    """A line naming the other runs' records and the unrecorded files in ``out_dir``."""
+    import json
+
+    ours = set(json.loads(record.read_text())["files"])
+    others, recorded = [], set(ours)
+    for path in sorted(out_dir.glob("*_run.json")):
+        if path == record:
+            continue
+        try:
+            doc = json.loads(path.read_text())
+            recorded |= set(doc["files"])
+            others.append(f"{path.name} ({doc.get('command', '?')}, {doc.get('finished_utc')})")
+        except (OSError, ValueError, KeyError, TypeError):
+            others.append(f"{path.name} (unreadable)")
+    loose = [p.name for p in out_dir.glob("*_*.*") if p.is_file() and p.name not in recorded]
+    parts = []
+    if others:
+        parts.append(
+            f"outputs of {len(others)} other run(s) are also in {out_dir}: " + "; ".join(others)
+        )
+    if loose:
+        parts.append(f"{len(loose)} file(s) there come from no recorded run (an older safestab)")
+    return " ".join(parts) or None
 
 
 def _acc_outputs(sc, out_dir: Path, debug: bool) -> None:
@@ -137,6 +215,8 @@ def _acc_outputs(sc, out_dir: Path, debug: bool) -> None:
         return _write_figures(
             {stem: plot_acc_study(result)},
             {out_dir / f"acc_{sc.name}_metrics.json": result.metrics_document()},
+            out_dir / f"acc_{sc.name}_run.json",
+            sc,
         )
 
     written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
@@ -162,6 +242,7 @@ def _acc_outputs(sc, out_dir: Path, debug: bool) -> None:
         f"RMSE {[float(f'{r:.2e}') for r in cal.rmse]} m/s^2"
     )
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+    _note_other_runs(console, written)
 
 
 def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
@@ -189,6 +270,8 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
                 out_dir / f"{base}_maps": plot_compatibility_maps(result),
             },
             {out_dir / f"{base}_metrics.json": result.metrics_document()},
+            out_dir / f"{base}_run.json",
+            sc,
         )
 
     written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
@@ -216,6 +299,7 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
         f"stated probability (1 - delta)^2 = {cov['stated_probability']:.4f}"
     )
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+    _note_other_runs(console, written)
 
 
 def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
@@ -237,7 +321,10 @@ def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
 
         stem = out_dir / f"swarm_{sc.name}"
         return _write_figures(
-            {stem: plot_swarm(result)}, {out_dir / f"swarm_{sc.name}_metrics.json": doc}
+            {stem: plot_swarm(result)},
+            {out_dir / f"swarm_{sc.name}_metrics.json": doc},
+            out_dir / f"swarm_{sc.name}_run.json",
+            sc,
         )
 
     written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
@@ -266,6 +353,7 @@ def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
                 f"{gap['max_barrier_violation_m2ps']:.2e} m^2/s)"
             )
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+    _note_other_runs(console, written)
 
 
 def _overrides(seed, n_samples, t_final) -> dict:
@@ -531,11 +619,13 @@ def mc(
         doc = montecarlo.metrics_document(result)
         fig = montecarlo.plot_montecarlo(result)
         try:
+            record = out_dir / f"{stem}_run.json"
             written = write_all(
                 {
                     png: figure_writer(fig, png, dpi=150),
                     metrics: json_writer(doc),
                     npz: bytes_writer(montecarlo.trials_npz_bytes(result)),
+                    record: _record_writer(record, sc, [png, metrics, npz]),
                 }
             )
         finally:
@@ -545,6 +635,7 @@ def mc(
     written, doc = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
     Console().print(mc_table(sc.name, doc["summary"]))  # the terminal's own width
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+    _note_other_runs(console, written)
 
 
 def mc_table(name: str, summary: dict):

@@ -82,16 +82,14 @@ def float_safety(scenario, which):
     from safestab.export import NativeController
     from safestab.export.harness import comparison_scales
     from safestab.export.scenario_export import (
-        _acc_controller,
-        _obstacle_controller,
         box_test_states,
         float_safe_controller,
+        scenario_controller,
     )
     from safestab.scenarios.loading import load
 
     sc = load(scenario)
-    build = _obstacle_controller if scenario == "obstacle" else _acc_controller
-    exact, *_ = build(sc, which, sc.seed, None, 32, lambda m: None)
+    exact, *_ = scenario_controller(sc, which)
     rng = np.random.default_rng(sc.seed)
     recorded = rng.uniform(sc.x0_low, sc.x0_high, (256, len(sc.x0_low)))
     recorded = recorded.astype(np.float32).astype(np.float64)

@@ -142,13 +142,11 @@ def test_cbf_margin_is_a_tunable_leaf():
 )
 @pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
 def test_float_flag_never_claims_a_violated_condition(scenario, which):
-    from safestab.export.scenario_export import _acc_controller as acc_build
-    from safestab.export.scenario_export import _obstacle_controller as obstacle_build
+    from safestab.export.scenario_export import scenario_controller
     from safestab.scenarios.loading import load
 
     sc = load(scenario)
-    build = acc_build if scenario != "obstacle" else obstacle_build
-    exact, *_ = build(sc, which, sc.seed, None, 32, lambda m: None)
+    exact, *_ = scenario_controller(sc, which)
     ctrl_f, margin = float_safe_controller(exact, sc.x0_low, sc.x0_high)
     assert margin > 0
     native = NativeController(ctrl_f, name=f"f_{scenario}_{which}", precision="float")

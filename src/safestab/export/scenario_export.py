@@ -21,6 +21,7 @@ __all__ = [
     "box_test_states",
     "export_scenario",
     "float_safe_controller",
+    "scenario_controller",
 ]
 
 #: Flags the harness (and the exported code) must compile with, warning-free.
@@ -138,7 +139,7 @@ def export_scenario(
         raise ParameterError(f"target must be one of {sorted(TARGETS)}, got {target!r}")
     if precision is None:
         precision = TARGETS[target].precision if target is not None else "double"
-    if controller not in CONTROLLERS:
+    if controller not in CONTROLLERS:  # before the output folder is made
         raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
     if int(cases) < 1:
         raise ParameterError(f"cases must be >= 1, got {cases!r}")
@@ -156,18 +157,9 @@ def export_scenario(
     _check_writable(out)
     sc = load_any_scenario(scenario)
     seed = sc.seed if seed is None else int(seed)
-    from ..scenarios import ACCScenario, ObstacleScenario
-
-    if isinstance(sc, ACCScenario):
-        builder = _acc_controller
-    elif isinstance(sc, ObstacleScenario):
-        builder = _obstacle_controller
-    else:
-        raise ParameterError(
-            f"export takes an ACC or obstacle scenario, got {type(sc).__name__} "
-            f"({sc.name!r}); export a safety filter with safestab.export_c"
-        )
-    ctrl, description, default_name = builder(sc, controller, seed, n_samples, n_inducing, say)
+    ctrl, description, default_name = scenario_controller(
+        sc, controller, seed=seed, n_samples=n_samples, n_inducing=n_inducing, progress=say
+    )
     name = default_name if name is None else name
     rng = np.random.default_rng(seed)
     states = rng.uniform(sc.x0_low, sc.x0_high, size=(int(cases), len(sc.x0_low)))
@@ -313,6 +305,55 @@ def float_safe_controller(
             break
         margin = 1.25 * need
     return controller.replace(cbf_margin=margin), margin
+
+
+def scenario_controller(
+    sc: Any,
+    controller: str,
+    *,
+    seed: int | None = None,
+    n_samples: int | None = None,
+    n_inducing: int = 32,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[Any, str, str]:
+    """A scenario's controller as :func:`export_scenario` exports it.
+
+    Parameters
+    ----------
+    sc : ACCScenario or ObstacleScenario
+    controller : {"gp", "nominal", "true"}
+        With ``"gp"``, the data are collected and the GP fitted as in the study (seconds to
+        a minute) and the controller uses its :class:`~safestab.learning.FastGP` cache.
+    seed, n_samples : optional
+        Override the scenario's.
+    n_inducing : int
+    progress : callable, optional
+
+    Returns
+    -------
+    (controller, description, default_name)
+        The :class:`~safestab.UniversalController`, the header text (model, units) and the
+        default C prefix (``"acc"`` or ``"obstacle"``).
+
+    Raises
+    ------
+    ParameterError
+        If ``controller`` is unknown or the scenario is of another kind.
+    """
+    from ..scenarios import ACCScenario, ObstacleScenario
+
+    if controller not in CONTROLLERS:
+        raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+    seed = sc.seed if seed is None else int(seed)
+    say = progress or (lambda msg: None)
+    if isinstance(sc, ACCScenario):
+        return _acc_controller(sc, controller, seed, n_samples, n_inducing, say)
+    if isinstance(sc, ObstacleScenario):
+        return _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say)
+    raise ParameterError(
+        f"export takes an ACC or obstacle scenario, got {type(sc).__name__} "
+        f"({sc.name!r}); export a safety filter with safestab.export_c"
+    )
 
 
 def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):

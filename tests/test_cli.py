@@ -251,8 +251,7 @@ def test_each_run_records_itself_and_names_the_other_runs_in_the_folder(
     (tmp_path / "acc_paper.png").write_bytes(b"png")
     res = _invoke("--out", tmp_path, "--seed", 4)
     text = " ".join(res.stdout.split())
-    assert "outputs of 1 other run(s) are also in" in text
-    assert "acc_paper_run.json (safestab run --scenario paper, 2026-01-01T00:00:00)" in text
+    assert "also holds the outputs of 1 other run(s): acc_paper (2026-01-01T00:00:00)" in text
     assert "1 file(s) there come from no recorded run" in text  # still only the old one
 
 

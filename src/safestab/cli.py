@@ -178,17 +178,20 @@ def _other_runs(out_dir: Path, record: Path) -> str | None:
     for path in sorted(out_dir.glob("*_run.json")):
         if path == record:
             continue
+        prefix = path.name[: -len("_run.json")]
         try:
             doc = json.loads(path.read_text())
             recorded |= set(doc["files"])
-            others.append(f"{path.name} ({doc.get('command', '?')}, {doc.get('finished_utc')})")
+            others.append(f"{prefix} ({doc.get('finished_utc')})")
         except (OSError, ValueError, KeyError, TypeError):
-            others.append(f"{path.name} (unreadable)")
+            others.append(f"{prefix} (unreadable record)")
     loose = [p.name for p in out_dir.glob("*_*.*") if p.is_file() and p.name not in recorded]
     parts = []
     if others:
         parts.append(
-            f"outputs of {len(others)} other run(s) are also in {out_dir}: " + "; ".join(others)
+            f"{out_dir} also holds the outputs of {len(others)} other run(s): "
+            + ", ".join(others)
+            + " (their *_run.json name the command and the files)"
         )
     if loose:
         parts.append(f"{len(loose)} file(s) there come from no recorded run (an older safestab)")

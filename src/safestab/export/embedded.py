@@ -139,7 +139,10 @@ def find_toolchain(install: bool = True) -> dict[str, str]:
         env = {"DEBIAN_FRONTEND": "noninteractive", "PATH": _path()}
         for cmd in (["apt-get", "install", "-y", "-qq", *PACKAGES], ["apt-get", "update", "-qq"],
                     ["apt-get", "install", "-y", "-qq", *PACKAGES]):  # fmt: skip
-            done = subprocess.run(cmd, capture_output=True, env=env, check=False)
+            try:  # bounded: a machine without a reachable package mirror must not hang here
+                done = subprocess.run(cmd, capture_output=True, env=env, check=False, timeout=600)
+            except subprocess.TimeoutExpired:
+                break
             if done.returncode == 0 and cmd[1] == "install":
                 break
         found = {key: shutil.which(exe) for key, (exe, _) in _TOOLS.items()}

@@ -214,8 +214,7 @@ def cbf_condition_scale(controller: Any, out: Any, states: Any) -> np.ndarray:
     _, c_sum, _, d_mag = _summand_magnitudes(controller, x)
     c, d = np.asarray(out.terms.c), np.asarray(out.terms.d)
     u = np.abs(np.nan_to_num(np.asarray(out.u)))
-    phi, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(jax.numpy.asarray(x)))
-    del phi
+    _, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(jax.numpy.asarray(x)))
     gamma = np.sqrt(c * c + varphi * np.sum(d * d, -1) ** 2)
     rho = float(controller.params["rho"])
     return np.abs(c) + c_sum + rho * gamma + np.sum((np.abs(d) + d_mag) * u, -1)

@@ -211,6 +211,11 @@ def export_scenario(
     )
 
 
+def _corners(low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The ``2^n`` corners of the box ``low <= x <= high``, shape (2^n, n)."""
+    return np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+
+
 def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.ndarray:
     """States to test a float step on: uniform in a box, its corners and its faces.
 
@@ -220,7 +225,7 @@ def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.nda
     low, high = np.asarray(low, float), np.asarray(high, float)
     rng = np.random.default_rng(seed)
     inside = rng.uniform(low, high, (n, len(low)))
-    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+    corners = _corners(low, high)
     faces = rng.uniform(low, high, (n, len(low)))
     k = rng.integers(0, len(low), n)
     faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
@@ -272,7 +277,7 @@ def float_safe_controller(
     """
     low, high = np.asarray(low, float), np.asarray(high, float)
     rng = np.random.default_rng(seed)
-    corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+    corners = _corners(low, high)
     parts = [rng.uniform(low, high, size=(n_states, len(low))), corners]
     if extra_states is not None:
         parts.append(np.asarray(extra_states, float))

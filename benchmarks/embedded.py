@@ -53,7 +53,7 @@ def robot_filter(n_obstacles: int = 8, seed: int = 0):
 
 
 def scenario_row(scenario, controller, target, out):
-    from safestab.export.scenario_export import export_scenario
+    from safestab.scenarios.export_study import export_scenario
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -81,11 +81,8 @@ def float_safety(scenario, which):
     import safestab as ss
     from safestab.export import NativeController
     from safestab.export.harness import comparison_scales
-    from safestab.export.scenario_export import (
-        box_test_states,
-        float_safe_controller,
-        scenario_controller,
-    )
+    from safestab.export.float_safety import box_test_states, float_safe_controller
+    from safestab.scenarios.export_study import scenario_controller
     from safestab.scenarios.loading import load
 
     sc = load(scenario)

@@ -257,7 +257,7 @@ def native_row(name, filt, states, repeat):
     for x in states:
         h = [float(cb.fn(jnp.asarray(x))) for cb in filt.cbfs]
         d = np.stack([np.asarray(cb.grad(jnp.asarray(x))) for cb in filt.cbfs])
-        u_nom = np.asarray(filt._u_nom_of(jnp.asarray(x), None))
+        u_nom = np.asarray(filt.nominal_input(jnp.asarray(x)))
         k = len(h)
         rows.append(
             (np.eye(m), -u_nom, np.ascontiguousarray(-d), np.concatenate([np.ones(m), h]),

@@ -30,7 +30,7 @@ def trajectories(sc, seed, n_traj, span):
         u_high=span, n_samples=n_traj * per, rate=sc.sample_rate, horizon=sc.sample_horizon,
         noise_std=sc.noise_std, seed=seed,
     )  # fmt: skip
-    return data._take(np.arange(0, len(data), int(round(sc.sample_rate))))  # every 1 s
+    return data.take(np.arange(0, len(data), int(round(sc.sample_rate))))  # every 1 s
 
 
 def one_seed(sc, seed):

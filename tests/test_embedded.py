@@ -14,7 +14,7 @@ import pytest
 
 from safestab.errors import CompilationError, ParameterError
 from safestab.export import embedded
-from safestab.export.scenario_export import export_scenario
+from safestab.scenarios.export_study import export_scenario
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,8 @@ from safestab.errors import (
 )
 from safestab.export import NativeController, compile_native, export_c, export_function
 from safestab.export.harness import compare, comparison_scales
-from safestab.export.scenario_export import HARNESS_FLAGS, export_scenario
+from safestab.export.harness import HARNESS_FLAGS
+from safestab.scenarios.export_study import export_scenario
 from safestab.learning import FastGP, GaussianProcessModel
 from safestab.scenarios import load_scenario
 
@@ -193,7 +194,7 @@ def test_one_state_paths_give_the_batch_bits(acc, built):
     bound buffer for anything else) give the bits of the batch loop, in double and float;
     each call returns a fresh array."""
     ctrl, native = built("acc GP-robust, relaxed, safety-first")
-    assert native.function._step_args is not None  # the api-mode build has the glue
+    assert native.function.step_args is not None  # the api-mode build has the glue
     x = acc["states"][:200]
     batch = native.step(x).u
     f32 = NativeController(ctrl, name="f32one", precision="float")

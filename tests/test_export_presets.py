@@ -24,14 +24,11 @@ import pytest
 import safestab as ss
 from safestab.errors import ParameterError
 from safestab.export import NativeController, compile_native, export_function
-from safestab.export.scenario_export import (
-    box_test_states,
-    export_scenario,
-    float_safe_controller,
-)
+from safestab.export.float_safety import box_test_states, float_safe_controller
 from safestab.learning import FastGP
 from safestab.scenarios import load_scenario
 from safestab.scenarios.acc_study import study_controllers
+from safestab.scenarios.export_study import export_scenario
 
 from .systems_zoo import small_stress_gp
 
@@ -142,7 +139,7 @@ def test_cbf_margin_is_a_tunable_leaf():
 )
 @pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
 def test_float_flag_never_claims_a_violated_condition(scenario, which):
-    from safestab.export.scenario_export import scenario_controller
+    from safestab.scenarios.export_study import scenario_controller
     from safestab.scenarios.loading import load
 
     sc = load(scenario)

@@ -20,7 +20,7 @@ def acc_gp():
         sc.system("true"), sc.system("nominal"), x0=(sc.x0_low, sc.x0_high),
         u_low=-0.3, u_high=0.3, n_samples=1400, rate=10, horizon=20, noise_std=1e-3, seed=0,
     )  # fmt: skip
-    train, test = data._take(np.arange(800)), data._take(np.arange(800, 1400))
+    train, test = data.take(np.arange(800)), data.take(np.arange(800, 1400))
     gp = GaussianProcessModel(n_restarts=0).fit(train.x, train.y, hyper_subset=300)
     return sc, gp, test
 

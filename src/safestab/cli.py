@@ -146,8 +146,8 @@ def _record_writer(record: Path, sc: Any, paths: list[Path]) -> Any:
     import datetime
     import sys
 
-    from . import __version__
     from ._io import json_writer
+    from ._version import __version__
 
     return json_writer(
         {
@@ -479,7 +479,7 @@ def export_cmd(
     from rich.console import Console
 
     from .errors import SafeStabError
-    from .export.scenario_export import export_scenario
+    from .scenarios.export_study import export_scenario
 
     console = Console()
     try:

@@ -96,6 +96,13 @@ OUTCOME_COLORS = {
 }
 
 
+def _run_keys(result: Any) -> tuple[list[str], list[str]]:
+    """The controllers and the limit settings of a study's runs, in the study's order."""
+    names = list(dict.fromkeys(name for name, _ in result.runs))
+    settings = list(dict.fromkeys(limits for _, limits in result.runs))
+    return names, settings
+
+
 def _plane(ax: Any, sc: Any, level: float | None) -> None:
     """Safe set (green), obstacle (red disc), level sets of V (grey), ``{V <= level}`` (black)."""
     from matplotlib.patches import Circle
@@ -141,15 +148,16 @@ def plot_obstacle_plane(result: Any, axes: Any = None) -> Any:
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    from .scenarios.obstacle_study import CONTROLLERS, LIMIT_SETTINGS
-
     sc = result.scenario
+    names, settings = _run_keys(result)
     if axes is None:
-        fig, axes = plt.subplots(2, 3, figsize=(15, 7.2), constrained_layout=True)
+        fig, axes = plt.subplots(
+            len(settings), len(names), figsize=(15, 7.2), constrained_layout=True, squeeze=False
+        )
     else:
         fig = axes[0][0].figure
-    for i, limits in enumerate(LIMIT_SETTINGS):
-        for j, name in enumerate(CONTROLLERS):
+    for i, limits in enumerate(settings):
+        for j, name in enumerate(names):
             ax = axes[i][j]
             run = result.runs[(name, limits)]
             _plane(ax, sc, sc.doa_fraction * result.doa[name])
@@ -204,9 +212,8 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
-    from .scenarios.obstacle_study import LIMIT_SETTINGS
-
     sc, maps = result.scenario, result.maps
+    _, settings = _run_keys(result)
     if axes is None:
         fig, axes = plt.subplots(1, 2, figsize=(13, 4.6), constrained_layout=True)
     else:
@@ -233,7 +240,7 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
         bad = ~result.parallel_verdicts[name]
         pts = result.parallel_set[bad]
         ax.plot(pts[:, 0], pts[:, 1], ".", color="black", ms=3)
-        for limits in LIMIT_SETTINGS:
+        for limits in settings:
             run = result.runs[(name, limits)]
             ends = run.x[run.stopped(sc.ball_radius, sc.rest_speed), -1]
             ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=8, mew=2)

@@ -288,7 +288,7 @@ def export_function(
 
 
 def _version() -> str:
-    from .. import __version__
+    from .._version import __version__
 
     return __version__
 

@@ -23,6 +23,7 @@ from .exporter import ExportedC
 
 __all__ = [
     "DEFAULT_RTOL",
+    "HARNESS_FLAGS",
     "cbf_condition_scale",
     "compare",
     "comparison_scales",
@@ -33,6 +34,17 @@ __all__ = [
 #: differences are below 1e-14 of the scales, docs/export.md); float has a unit roundoff of
 #: 6e-8, and errors grow by the few dozen operations of a step.
 DEFAULT_RTOL = {"double": 1e-12, "float": 1e-5}
+
+#: Flags the harness (and the exported code) must compile with, warning-free.
+HARNESS_FLAGS = (
+    "-std=c99",
+    "-Wall",
+    "-Wextra",
+    "-Werror",
+    "-pedantic",
+    "-O2",
+    "-ffp-contract=off",
+)
 
 _INPUT_LEAVES = ("u", "u_unconstrained")
 
@@ -77,7 +89,8 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     relative to the CLF multiplier's rounding scale (never less than the leaf's largest
     magnitude).
     """
-    from .. import Region, SafetyFilter, clf_cbf, clf_cbf_relaxed
+    from ..filters import SafetyFilter
+    from ..formulas import Region, clf_cbf, clf_cbf_relaxed
 
     if isinstance(controller, SafetyFilter):
         return _largest_magnitudes(out)
@@ -87,7 +100,7 @@ def comparison_scales(controller: Any, out: Any, states: Any) -> list[np.ndarray
     if x.ndim != 2 or x.shape[0] != a.shape[0]:
         raise DimensionError(f"states must have shape ({a.shape[0]}, n), got {x.shape}")
     p = dict(controller.params)
-    phi, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(xj))
+    phi, varphi = (np.asarray(w) for w in jax.vmap(controller.weights_point)(xj))
     p.update(phi=phi, varphi=varphi)
     if controller.slack_weight is None:
         res = clf_cbf(a, b, c, d, parallel_rtol=controller.parallel_rtol, **p)
@@ -214,7 +227,7 @@ def cbf_condition_scale(controller: Any, out: Any, states: Any) -> np.ndarray:
     _, c_sum, _, d_mag = _summand_magnitudes(controller, x)
     c, d = np.asarray(out.terms.c), np.asarray(out.terms.d)
     u = np.abs(np.nan_to_num(np.asarray(out.u)))
-    _, varphi = (np.asarray(w) for w in jax.vmap(controller._weights_point)(jax.numpy.asarray(x)))
+    _, varphi = (np.asarray(w) for w in jax.vmap(controller.weights_point)(jax.numpy.asarray(x)))
     gamma = np.sqrt(c * c + varphi * np.sum(d * d, -1) ** 2)
     rho = float(controller.params["rho"])
     return np.abs(c) + c_sum + rho * gamma + np.sum((np.abs(d) + d_mag) * u, -1)

@@ -254,7 +254,7 @@ class NativeFunction:
         self._null = self._ffi.NULL
         self._local = threading.local()
         #: ``ss_step_args`` (api mode, at most ``_MAX_ARGS_STATES`` states), else None
-        self._step_args = getattr(self._lib, "ss_step_args", None) if self.mode == "api" else None
+        self.step_args = getattr(self._lib, "ss_step_args", None) if self.mode == "api" else None
 
     def columns(self, x: np.ndarray) -> tuple[list[np.ndarray], int]:
         """Evaluate at ``x`` of shape (count, n) (C-contiguous, this precision).
@@ -449,7 +449,7 @@ class NativeController:
         """
         fn = self.function
         one, local = self._one_state, fn._local
-        step_args: Any = fn._step_args
+        step_args: Any = fn.step_args
         general = self._general
         ndarray, f64, has_args = np.ndarray, np.dtype(np.float64), step_args is not None
 

@@ -71,9 +71,11 @@ class Dataset:
         perm = np.random.default_rng(seed).permutation(len(self))
         n_test = max(1, int(round(test_fraction * len(self))))
         te, tr = perm[:n_test], perm[n_test:]
-        return self._take(tr), self._take(te)
+        return self.take(tr), self.take(te)
 
-    def _take(self, idx: np.ndarray) -> Dataset:
+    def take(self, idx: Any) -> Dataset:
+        """The rows ``idx`` (an int array or a boolean mask of shape (N,)) as a new data set."""
+        idx = np.asarray(idx)
         traj = None if self.trajectory is None else self.trajectory[idx]
         return Dataset(self.x[idx], self.u[idx], self.xdot[idx], self.y[idx], self.t[idx], traj)
 

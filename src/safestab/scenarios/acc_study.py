@@ -164,7 +164,7 @@ def collect_study_data(
         noise_std=scenario.noise_std,
         seed=seed,
     )
-    return data._take(np.arange(q)), data._take(np.arange(q, q + n_test))
+    return data.take(np.arange(q)), data.take(np.arange(q, q + n_test))
 
 
 def fit_study_gp(
@@ -329,7 +329,7 @@ def _conformal_check(scenario, gp, true_sys, nominal, span, seed, test) -> dict[
         seed=(seed + 2**31) % 2**32,  # an independent stream: trajectories not used to fit
     )
     stride = max(1, int(round(_CONFORMAL_STRIDE_S * scenario.sample_rate)))
-    cal = cal._take(np.arange(0, len(cal), stride))
+    cal = cal.take(np.arange(0, len(cal), stride))
     omega_cal = np.asarray(scenario.omega(cal.x))
     rep = conformal_beta(gp, cal.x, omega_cal, CONFORMAL_DELTA, groups=cal.trajectory)
     beta_c = float(rep.beta[list(gp.components_)][0])

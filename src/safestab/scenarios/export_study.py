@@ -1,4 +1,9 @@
-"""Export an ACC scenario's controller with its C test harness (``safestab export``)."""
+"""Export a scenario's controller with its C test harness (``safestab export``).
+
+The scenario's side of the export: build the preset's controller (collect, fit, cache), export
+it with :mod:`safestab.export`, write and run the harness, and optionally run it on a target.
+The export package itself sees only a controller.
+"""
 
 from __future__ import annotations
 
@@ -11,29 +16,23 @@ from typing import Any
 import numpy as np
 
 from ..errors import CompilationError, ParameterError
-from .exporter import check_name, check_precision, export_c
-from .harness import DEFAULT_RTOL, cbf_condition_scale, comparison_scales, write_harness
-from .native import find_compiler
+from ..export.embedded import TARGETS, run_on_target
+from ..export.exporter import check_name, check_precision, export_c
+from ..export.float_safety import float_safe_controller
+from ..export.harness import HARNESS_FLAGS, comparison_scales, write_harness
+from ..export.native import find_compiler
+from ..learning import FastGP
+from .acc import ACCScenario
+from .acc_study import collect_study_data, fit_study_gp, study_controllers
+from .loading import load as load_any_scenario
+from .obstacle import ObstacleScenario
+from .obstacle_study import fit_obstacle_gp, obstacle_controller
 
 __all__ = [
-    "HARNESS_FLAGS",
     "ExportReport",
-    "box_test_states",
     "export_scenario",
-    "float_safe_controller",
     "scenario_controller",
 ]
-
-#: Flags the harness (and the exported code) must compile with, warning-free.
-HARNESS_FLAGS = (
-    "-std=c99",
-    "-Wall",
-    "-Wextra",
-    "-Werror",
-    "-pedantic",
-    "-O2",
-    "-ffp-contract=off",
-)
 
 CONTROLLERS = {"gp": "GP-corrected", "nominal": "mismatched model", "true": "true model"}
 
@@ -131,9 +130,6 @@ def export_scenario(
     CompilationError
         With ``check``, if no compiler is found or the harness does not compile.
     """
-    from ..scenarios.loading import load as load_any_scenario
-    from .embedded import TARGETS
-
     say = progress or (lambda msg: None)
     if target is not None and target not in TARGETS:
         raise ParameterError(f"target must be one of {sorted(TARGETS)}, got {target!r}")
@@ -203,113 +199,10 @@ def export_scenario(
     run = subprocess.run([str(exe.resolve())], cwd=out, capture_output=True, text=True)
     embedded = None
     if target is not None:
-        from .embedded import run_on_target
-
         embedded = run_on_target(out, name, exported, states, target, progress=say)
     return ExportReport(
         files, build, run.stdout + run.stderr, run.returncode == 0, exported, states, embedded
     )
-
-
-def _corners(low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """The ``2^n`` corners of the box ``low <= x <= high``, shape (2^n, n)."""
-    return np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
-
-
-def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.ndarray:
-    """States to test a float step on: uniform in a box, its corners and its faces.
-
-    ``n`` uniform states, the ``2^n_states`` corners and ``n`` states with one coordinate on
-    a face, rounded to float (what a float step is given); shape (2 n + 2^n_states, n_states).
-    """
-    low, high = np.asarray(low, float), np.asarray(high, float)
-    rng = np.random.default_rng(seed)
-    inside = rng.uniform(low, high, (n, len(low)))
-    corners = _corners(low, high)
-    faces = rng.uniform(low, high, (n, len(low)))
-    k = rng.integers(0, len(low), n)
-    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
-    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
-
-
-#: The float export of a GP cache is refused when float rounding widens its std by more
-#: than this factor somewhere in the box (:func:`float_safe_controller`).
-FLOAT_WIDENING_LIMIT = 10.0
-
-
-def float_safe_controller(
-    controller: Any,
-    low: Any,
-    high: Any,
-    *,
-    extra_states: Any = None,
-    n_states: int = 4096,
-    seed: int = 0,
-) -> tuple[Any, float]:
-    """The controller to export in float, and its CBF margin.
-
-    A float step errs on every term; two changes keep its CBF condition on the safe side of
-    the exact one over the box ``low <= x <= high``:
-
-    * a :class:`~safestab.learning.FastGP` uncertainty is replaced by
-      ``FastGP.for_precision("float")``, whose band still contains the exact band when
-      evaluated in float (where float cannot resolve the posterior variance, the band is
-      as wide as float can vouch for);
-    * ``cbf_margin = 2 E`` with ``E = DEFAULT_RTOL["float"] * max cbf_condition_scale``
-      over ``n_states`` uniform states of the box, its corners and ``extra_states``: the
-      float step's error on the condition, ``rtol`` times its magnitude, as the harness
-      certifies for every term. The formula then enforces the condition with margin ``2 E``
-      and ``cbf_satisfied`` reports it with margin ``E``, so a float step whose flag says
-      satisfied satisfies the exact condition (tested in tests/test_embedded.py).
-
-    Outside the box the margin is not checked: export with the box the controller will see.
-
-    Raises
-    ------
-    ParameterError
-        If float rounding widens the GP cache's std by more than
-        :data:`FLOAT_WIDENING_LIMIT` somewhere in the box: float cannot resolve that GP's
-        posterior (the stress preset's drag: 3000 times); export it in double.
-
-    Returns
-    -------
-    (controller, margin)
-    """
-    low, high = np.asarray(low, float), np.asarray(high, float)
-    rng = np.random.default_rng(seed)
-    corners = _corners(low, high)
-    parts = [rng.uniform(low, high, size=(n_states, len(low))), corners]
-    if extra_states is not None:
-        parts.append(np.asarray(extra_states, float))
-    x = np.concatenate(parts).astype(np.float32).astype(np.float64)
-    unc = controller.uncertainty
-    if unc is not None and hasattr(unc, "for_precision"):
-        unc_f = unc.for_precision("float")
-        _, std = unc.predict(x)
-        _, std_f = unc_f.predict(x)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(std > 0, std_f / std, 1.0).max(0)
-        worst = int(np.argmax(ratio))
-        if ratio[worst] > FLOAT_WIDENING_LIMIT:
-            raise ParameterError(
-                "precision='float' cannot evaluate this GP cache: for state component "
-                f"{worst}, float rounding alone widens the std up to {ratio[worst]:.3g} times "
-                f"the float64 cache's (to {std_f[:, worst].max():.3g} where the float64 "
-                f"cache's is at most {std[:, worst].max():.3g}): the posterior variance is far "
-                "below the prior one there, and amp^2 - |a|^2 cancels more digits than float "
-                "has. Export in double (a Cortex-M7 with a double-precision FPU), or use a "
-                "GP whose posterior std is closer to its prior (docs/export.md)"
-            )
-        controller = controller.replace(uncertainty=unc_f)
-    margin = 0.0
-    for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
-        ctrl = controller.replace(cbf_margin=margin)
-        scale = cbf_condition_scale(ctrl, ctrl.step_fn(x), x)
-        need = 2.0 * DEFAULT_RTOL["float"] * float(np.nanmax(scale))
-        if need <= margin:
-            break
-        margin = 1.25 * need
-    return controller.replace(cbf_margin=margin), margin
 
 
 def scenario_controller(
@@ -345,8 +238,6 @@ def scenario_controller(
     ParameterError
         If ``controller`` is unknown or the scenario is of another kind.
     """
-    from ..scenarios import ACCScenario, ObstacleScenario
-
     if controller not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
     seed = sc.seed if seed is None else int(seed)
@@ -362,9 +253,6 @@ def scenario_controller(
 
 
 def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):
-    from ..learning import FastGP
-    from ..scenarios.acc_study import collect_study_data, fit_study_gp, study_controllers
-
     uncertainty = None
     if controller == "gp":
         say(f"collecting data and fitting the GP (Q = {n_samples or sc.n_samples})")
@@ -390,9 +278,6 @@ _OBSTACLE_NAMES = {"gp": "GP-robust", "nominal": "mismatched model", "true": "tr
 
 
 def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
-    from ..learning import FastGP
-    from ..scenarios.obstacle_study import fit_obstacle_gp, obstacle_controller
-
     sc = sc.replace(seed=seed, **({} if n_samples is None else {"n_samples": n_samples}))
     uncertainty = None
     if controller == "gp":

@@ -1,0 +1,119 @@
+"""Float exports that stay safe: the controller to export in float, and states to test it on.
+
+A float step errs on every term; :func:`float_safe_controller` widens a GP cache's band for
+float rounding and adds a CBF margin of twice the float step's error on the condition, so a
+float step whose flag says satisfied keeps the exact condition (docs/export.md, "Float that
+stays safe").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError
+from .harness import DEFAULT_RTOL, cbf_condition_scale
+
+__all__ = ["FLOAT_WIDENING_LIMIT", "box_test_states", "float_safe_controller"]
+
+
+def _corners(low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The ``2^n`` corners of the box ``low <= x <= high``, shape (2^n, n)."""
+    return np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(len(low), -1).T
+
+
+def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.ndarray:
+    """States to test a float step on: uniform in a box, its corners and its faces.
+
+    ``n`` uniform states, the ``2^n_states`` corners and ``n`` states with one coordinate on
+    a face, rounded to float (what a float step is given); shape (2 n + 2^n_states, n_states).
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    rng = np.random.default_rng(seed)
+    inside = rng.uniform(low, high, (n, len(low)))
+    corners = _corners(low, high)
+    faces = rng.uniform(low, high, (n, len(low)))
+    k = rng.integers(0, len(low), n)
+    faces[np.arange(n), k] = np.where(rng.random(n) < 0.5, low[k], high[k])
+    return np.concatenate([inside, corners, faces]).astype(np.float32).astype(np.float64)
+
+
+#: The float export of a GP cache is refused when float rounding widens its std by more
+#: than this factor somewhere in the box (:func:`float_safe_controller`).
+FLOAT_WIDENING_LIMIT = 10.0
+
+
+def float_safe_controller(
+    controller: Any,
+    low: Any,
+    high: Any,
+    *,
+    extra_states: Any = None,
+    n_states: int = 4096,
+    seed: int = 0,
+) -> tuple[Any, float]:
+    """The controller to export in float, and its CBF margin.
+
+    A float step errs on every term; two changes keep its CBF condition on the safe side of
+    the exact one over the box ``low <= x <= high``:
+
+    * a :class:`~safestab.learning.FastGP` uncertainty is replaced by
+      ``FastGP.for_precision("float")``, whose band still contains the exact band when
+      evaluated in float (where float cannot resolve the posterior variance, the band is
+      as wide as float can vouch for);
+    * ``cbf_margin = 2 E`` with ``E = DEFAULT_RTOL["float"] * max cbf_condition_scale``
+      over ``n_states`` uniform states of the box, its corners and ``extra_states``: the
+      float step's error on the condition, ``rtol`` times its magnitude, as the harness
+      certifies for every term. The formula then enforces the condition with margin ``2 E``
+      and ``cbf_satisfied`` reports it with margin ``E``, so a float step whose flag says
+      satisfied satisfies the exact condition (tested in tests/test_embedded.py).
+
+    Outside the box the margin is not checked: export with the box the controller will see.
+
+    Raises
+    ------
+    ParameterError
+        If float rounding widens the GP cache's std by more than
+        :data:`FLOAT_WIDENING_LIMIT` somewhere in the box: float cannot resolve that GP's
+        posterior (the stress preset's drag: 3000 times); export it in double.
+
+    Returns
+    -------
+    (controller, margin)
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    rng = np.random.default_rng(seed)
+    corners = _corners(low, high)
+    parts = [rng.uniform(low, high, size=(n_states, len(low))), corners]
+    if extra_states is not None:
+        parts.append(np.asarray(extra_states, float))
+    x = np.concatenate(parts).astype(np.float32).astype(np.float64)
+    unc = controller.uncertainty
+    if unc is not None and hasattr(unc, "for_precision"):
+        unc_f = unc.for_precision("float")
+        _, std = unc.predict(x)
+        _, std_f = unc_f.predict(x)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(std > 0, std_f / std, 1.0).max(0)
+        worst = int(np.argmax(ratio))
+        if ratio[worst] > FLOAT_WIDENING_LIMIT:
+            raise ParameterError(
+                "precision='float' cannot evaluate this GP cache: for state component "
+                f"{worst}, float rounding alone widens the std up to {ratio[worst]:.3g} times "
+                f"the float64 cache's (to {std_f[:, worst].max():.3g} where the float64 "
+                f"cache's is at most {std[:, worst].max():.3g}): the posterior variance is far "
+                "below the prior one there, and amp^2 - |a|^2 cancels more digits than float "
+                "has. Export in double (a Cortex-M7 with a double-precision FPU), or use a "
+                "GP whose posterior std is closer to its prior (docs/export.md)"
+            )
+        controller = controller.replace(uncertainty=unc_f)
+    margin = 0.0
+    for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
+        ctrl = controller.replace(cbf_margin=margin)
+        scale = cbf_condition_scale(ctrl, ctrl.step_fn(x), x)
+        need = 2.0 * DEFAULT_RTOL["float"] * float(np.nanmax(scale))
+        if need <= margin:
+            break
+        margin = 1.25 * need
+    return controller.replace(cbf_margin=margin), margin

@@ -25,7 +25,7 @@ import safestab as ss
 from safestab.learning import FastGP, GaussianProcessModel, calibration, collect_data
 from safestab.reference import solve_formula_qp
 from safestab.scenarios import load_scenario
-from safestab.simulation import _closed_loop
+from safestab.simulation import TrajectoryRecorder, closed_loop
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -79,8 +79,8 @@ def setup(q, seed):
         u_low=-0.3, u_high=0.3, n_samples=q + n_test, rate=sc.sample_rate,
         horizon=sc.sample_horizon, noise_std=sc.noise_std, seed=seed,
     )  # fmt: skip
-    train = data._take(np.arange(q))
-    test = data._take(np.arange(q, q + n_test))
+    train = data.take(np.arange(q))
+    test = data.take(np.arange(q, q + n_test))
     return sc, train, test
 
 
@@ -501,15 +501,24 @@ def main():
     loop = {}
     for name, ctrl in [("fast GP controller", c_fast), ("nominal controller", c_nom)]:
         n_steps = int(round(80.0 / 0.001))
-        run = jax.jit(_closed_loop(ctrl, true_sys, sc.exogenous, n_steps, 0.001))
+        # simulate's loop (the full history) without its argument checks
+        run = jax.jit(
+            closed_loop(
+                lambda t, x, data, ctrl=ctrl: ctrl.step_fn(x),
+                lambda t, x, out, data: true_sys.f(x) + true_sys.g(x) @ out.u + sc.exogenous(t),
+                TrajectoryRecorder(ctrl, lambda t, data: None),
+                n_steps=n_steps,
+                dt=0.001,
+            )
+        )
         x0 = jnp.asarray(sc.x0)
         t0 = time.perf_counter()
-        jax.block_until_ready(run(x0))
+        jax.block_until_ready(run(x0, None))
         first = time.perf_counter() - t0
         reps = []
         for _ in range(3):
             t0 = time.perf_counter()
-            jax.block_until_ready(run(x0))
+            jax.block_until_ready(run(x0, None))
             reps.append(time.perf_counter() - t0)
         loop[name] = {
             "seconds_after_compile": float(np.median(reps)),

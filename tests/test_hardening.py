@@ -314,7 +314,7 @@ def test_a_preset_of_another_kind_is_named_as_such():
 )
 def test_export_options_are_checked_before_the_data(option, message, tmp_path, monkeypatch):
     import safestab.scenarios.acc_study as acc_study
-    from safestab.export.scenario_export import export_scenario
+    from safestab.scenarios.export_study import export_scenario
 
     def no_data(*args, **kwargs):  # the check must come first: fail if data are collected
         raise AssertionError("data collected before the options were checked")
@@ -351,13 +351,16 @@ def test_gp_fit_names_huge_and_non_real_data():
         GaussianProcessModel().fit(x.astype(str), x)
 
 
-def test_simulate_names_a_safety_filter():
+def test_simulate_takes_a_safety_filter():
+    # once a raw AttributeError (no attribute 'clf'): a filter is a controller to its users
     from safestab import SafetyFilter
 
     system = ControlAffineSystem(lambda x: jnp.zeros(1), lambda x: jnp.ones((1, 1)), 1)
-    filt = SafetyFilter(system, CBF(lambda x: 1.0 - x[0], beta=1.0))
-    with pytest.raises(InputTypeError, match="simulate takes a UniversalController, got Safety"):
-        simulate(filt, np.zeros(1), t_final=1.0, dt=0.1)
+    filt = SafetyFilter(system, CBF(lambda x: 1.0 - x[0], beta=1.0), u_nom=np.ones(1))
+    traj = simulate(filt, np.zeros(1), t_final=1.0, dt=0.1)
+    assert traj.h.shape == (11, 1) and traj.V.shape == (11, 0) and traj.ok
+    # u = min(1, 1 - x) keeps h = 1 - x >= 0 and approaches it from above
+    assert np.all(np.asarray(traj.h) >= 0) and np.all(np.diff(np.asarray(traj.h)[:, 0]) < 0)
 
 
 def test_mc_help_keeps_its_bracketed_words():

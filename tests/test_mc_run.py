@@ -162,11 +162,10 @@ def test_conformal_beta_is_calibrated_on_a_separate_draw(local_run):
     assert len(np.unique(cal.trajectory)) == 100  # max(100, ceil(1 / 0.05))
     assert not np.array_equal(calibration_draw(sc, spec, 3, 0).x, cal.x)
     # no calibration state is a row of the data set (fitting or held out)
-    from safestab.montecarlo.acc_trials import _collect
+    from safestab.montecarlo.acc_trials import dataset_draw
 
-    q = sc.n_samples
-    data = _collect(sc, spec, q + max(50, q // 4), int(np.random.SeedSequence([3, 1])
-                                                       .generate_state(1)[0]))  # fmt: skip
+    data = dataset_draw(sc, spec, 3, 1)
+    assert len(data) == sc.n_samples + max(50, sc.n_samples // 4)
     rows = {tuple(r) for r in np.round(data.x, 12)}
     assert not any(tuple(r) in rows for r in np.round(cal.x, 12))
     ref = conformal_beta(BatchedUncertainty(model.cache), cal.x, np.asarray(sc.omega(cal.x)),

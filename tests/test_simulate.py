@@ -64,3 +64,42 @@ def test_strict_simulation_raises():
         simulate(ctrl, [0.5], t_final=1.0, dt=0.01, strict=True)
     with pytest.raises(ss.ParameterError, match=r"dt must be > 0.0"):
         simulate(ctrl, [0.5], t_final=1.0, dt=0.0)
+
+
+def test_simulate_runs_a_safety_filter_like_a_hand_written_loop():
+    # A robot (single integrator) among three discs, a CLF at the goal and input limits: the
+    # trajectory of simulate equals an eager loop over filt.step (x_{k+1} = x_k + dt u_k, which
+    # RK4 reproduces exactly for xdot = u), and it records every barrier's value.
+    sys = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    centres = np.array([[1.5, 0.1], [2.5, -0.6], [3.0, 0.8]])
+    cbfs = [
+        ss.CBF(lambda x, c=jnp.asarray(c): jnp.sum((x - c) ** 2) - 0.25, beta=2.0) for c in centres
+    ]
+    goal = jnp.array([4.0, 0.0])
+    clf = ss.CLF(lambda x: jnp.sum((x - goal) ** 2), lam=1.0)
+    filt = ss.SafetyFilter(
+        sys, cbfs, clfs=[clf], u_nom=lambda x: 0.8 * (goal - x), slack_weight=10.0,
+        u_min=-1.0, u_max=1.0,
+    )  # fmt: skip
+    dt, n = 0.02, 150
+    tr = simulate(filt, np.zeros(2), t_final=n * dt, dt=dt)
+    assert tr.multi and tr.h.shape == (n + 1, 3) and tr.V.shape == (n + 1, 1)
+    x = np.zeros(2)
+    for k in range(n + 1):
+        out = filt.step(x)
+        np.testing.assert_allclose(np.asarray(tr.x)[k], x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(tr.u)[k], np.asarray(out.u), rtol=0, atol=1e-10)
+        hs = [float(c.fn(jnp.asarray(x))) for c in cbfs]
+        np.testing.assert_allclose(np.asarray(tr.h)[k], hs, rtol=0, atol=1e-12)
+        assert int(tr.region[k]) == int(out.formula_status)
+        x = x + dt * np.asarray(out.u)
+    assert tr.ok and tr.infeasible_steps == 0 and np.all(np.asarray(tr.cbf_satisfied))
+    assert float(np.min(tr.h)) >= 0.0
+    batch = simulate(filt, np.zeros((2, 2)), t_final=n * dt, dt=dt)
+    assert batch.h.shape == (2, n + 1, 3)
+    np.testing.assert_array_equal(np.asarray(batch.x[1]), np.asarray(tr.x))
+
+
+def test_simulate_refuses_what_is_not_a_controller():
+    with pytest.raises(ss.InputTypeError, match="UniversalController or a SafetyFilter"):
+        simulate(lambda x: x, np.zeros(2), t_final=1.0)

@@ -193,11 +193,21 @@ def calibration_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, ind
     cal_seed = int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
     cal = _collect(scenario, spec, n_traj * per_traj, cal_seed)
     stride = max(1, int(round(scenario.sample_rate)))
-    keep = np.arange(0, len(cal), stride)
-    return dataclasses.replace(
-        cal, x=cal.x[keep], u=cal.u[keep], xdot=cal.xdot[keep], y=cal.y[keep], t=cal.t[keep],
-        trajectory=None if cal.trajectory is None else cal.trajectory[keep],
-    )  # fmt: skip
+    return cal.take(np.arange(0, len(cal), stride))
+
+
+def dataset_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, index: int) -> Any:
+    """The rows of data set ``index``: ``Q`` fitting rows, then ``max(50, Q // 4)`` held out.
+
+    Drawn with the seed ``SeedSequence([seed, index])`` (:func:`fit_dataset` fits on it).
+
+    Returns
+    -------
+    Dataset
+    """
+    data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
+    q = scenario.n_samples
+    return _collect(scenario, spec, q + max(50, q // 4), data_seed)
 
 
 def fit_dataset(
@@ -222,8 +232,7 @@ def fit_dataset(
 def _fit_dataset(scenario, spec, seed, index, hyper):
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
     q = scenario.n_samples
-    n_test = max(50, q // 4)
-    data = _collect(scenario, spec, q + n_test, data_seed)
+    data = dataset_draw(scenario, spec, seed, index)
     x, y, x_test = data.x[:q], data.y[:q], data.x[q:]
     if hyper is None:
         gp = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
@@ -299,30 +308,25 @@ def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
 
     def chunk(cache, betas, x0, params):
         model = BatchedUncertainty(cache)
-        ctrls, checks, builders = [], [], []
+        ctrls, checks = [], []
         for name in spec.controllers:
             if name == "true model":
                 ctrls.append(UniversalController(true_sys, clf, cbf, **common))
                 checks.append(None)
-                builders.append(None)
             elif name == "mismatched model":
                 ctrls.append(UniversalController(nominal, clf, cbf, **common))
                 checks.append(None)
-                builders.append(None)
             else:
                 beta = betas[name]
-
-                def build(unc, beta=beta):
-                    return UniversalController(
-                        nominal, clf, cbf, uncertainty=unc, gp_beta=beta, **common
+                ctrls.append(
+                    UniversalController(
+                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common
                     )
-
-                ctrls.append(build(model))
+                )
                 checks.append((model, beta))
-                builders.append(build)
         run = trial_function(
             ctrls, plant=true_sys, n_steps=n_steps, dt=scenario.dt,
-            exogenous=lead_acceleration, omega=omega, lemma2=checks, rebuild=builders,
+            exogenous=lead_acceleration, omega=omega, lemma2=checks,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 

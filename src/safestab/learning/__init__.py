@@ -1,6 +1,6 @@
 """Learning the unknown dynamics ``omega(x)``: data, GPs, confidence bounds."""
 
-from .confidence import (
+from .bounds import (
     Calibration,
     ConfidenceReport,
     beta_lemma2,

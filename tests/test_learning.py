@@ -483,7 +483,7 @@ def test_compiled_predictor_takes_the_data_as_arguments():
         gp = GaussianProcessModel(max_iter=5, n_restarts=0)
         with pytest.warns(ss.errors.ConvergenceWarning):
             gp.fit(x, y)
-        text = _predict_batch.lower(gp._posterior, jnp.zeros((3, 2)), gp.kernel, 2).as_text()
+        text = _predict_batch.lower(gp.posterior_, jnp.zeros((3, 2)), gp.kernel, 2).as_text()
         sizes.append(len(text))
         # a constant holding the 400 x 400 factor would print at least Q^2 numbers
         assert len(text) < 20 * q * q

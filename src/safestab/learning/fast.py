@@ -35,6 +35,7 @@ import scipy.linalg
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
+from ._checks import check_fitted
 from ._kernels import kernel as _kernel
 from ._kernels import kernel_matrix
 from .gp import GaussianProcessModel
@@ -277,7 +278,7 @@ class FastGP:
         pivot_tol: float = 1e-10,
         noise_tol: float = 0.1,
     ) -> None:
-        model._check_fitted()
+        check_fitted(model)
         if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
             raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
         if int(n_inducing) < 1:
@@ -294,7 +295,7 @@ class FastGP:
         for j in range(len(model.components_)):
             amp = float(model.amplitude_[j])
             eps = model.jitter * amp * amp
-            ls_j = jnp.asarray(model._lengthscale_std[j])
+            ls_j = jnp.asarray(model.lengthscale_std_[j])
 
             def kfn(x1, x2, amp=amp, ls_j=ls_j):
                 return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
@@ -361,7 +362,7 @@ class FastGP:
             "offset": jnp.asarray(model.x_offset_),
             "scale": jnp.asarray(model.x_scale_),
             "amp": jnp.asarray(model.amplitude_),
-            "ls": jnp.asarray(model._lengthscale_std),
+            "ls": jnp.asarray(model.lengthscale_std_),
             "z": self._z,
             "wk": self._wk,
             "maps": self._maps,

@@ -31,7 +31,7 @@ from ..errors import (
     NumericalError,
     ParameterError,
 )
-from ._checks import check_seed
+from ._checks import check_fitted, check_seed
 from ._kernels import kernel as _kernel
 from ._kernels import kernel_matrix
 
@@ -233,6 +233,14 @@ class GaussianProcessModel:
         likelihood and the posterior use.
     lengthscale_ : array of shape (k, n)
         In the units of ``x``.
+    x_offset_, x_scale_ : arrays of shape (n,)
+        The inputs are standardised as ``(x - x_offset_) / x_scale_`` (mean and std of the
+        training inputs; a zero std is replaced by 1).
+    lengthscale_std_ : array of shape (k, n)
+        Lengthscales of the standardised inputs (``lengthscale_ / x_scale_``): the ones the
+        kernel is evaluated with.
+    y_train_ : array of shape (Q, k)
+        The learned components' targets.
     log_marginal_likelihood_ : array of shape (k,)
         At the fitted hyperparameters, on the data used to fit them.
     n_starts_ : int
@@ -252,6 +260,10 @@ class GaussianProcessModel:
         Cholesky factor of ``K + noise_^2 I`` per component.
     alpha_ : array of shape (k, Q)
         ``(K + noise_^2 I)^-1 (y - mean)``.
+    posterior_ : dict of str to jax.Array
+        The arrays the compiled predictor takes as arguments (standardised training inputs
+        ``xs`` (Q, n), ``offset`` and ``scale`` (n,), ``chol`` (k, Q, Q), ``alpha`` (k, Q),
+        ``amp`` and ``mu`` (k,), ``ls`` (k, n), ``comps`` (k,)), on the device.
     """
 
     def __init__(
@@ -419,8 +431,8 @@ class GaussianProcessModel:
         self.amplitude_ = np.array([f["amplitude"] for f in fits])
         self.noise_ = np.array([f["noise"] for f in fits])
         self.mean_ = np.array([f["mean"] for f in fits])
-        self._lengthscale_std = np.array([f["lengthscale"] for f in fits])
-        self.lengthscale_ = self._lengthscale_std * scale
+        self.lengthscale_std_ = np.array([f["lengthscale"] for f in fits])
+        self.lengthscale_ = self.lengthscale_std_ * scale
         self.log_marginal_likelihood_ = np.array([f["lml"] for f in fits])
         self.n_starts_ = len(fits[0]["start_lmls"])
         self.start_log_marginal_likelihoods_ = np.array([f["start_lmls"] for f in fits])
@@ -542,7 +554,7 @@ class GaussianProcessModel:
         model.amplitude_ = hyper["amplitude"]
         model.noise_ = hyper["noise"]
         model.mean_ = hyper["mean"]
-        model._lengthscale_std = hyper["lengthscale"] / scale
+        model.lengthscale_std_ = hyper["lengthscale"] / scale
         model.lengthscale_ = hyper["lengthscale"]
         model._condition()
         # log p(y) = -1/2 (y - mu)^T alpha - sum log diag L - Q/2 log(2 pi)
@@ -718,7 +730,7 @@ class GaussianProcessModel:
         chols, alphas = [], []
         for j in range(len(self.components_)):
             chol, alpha = _factor(
-                self.amplitude_[j], jnp.asarray(self._lengthscale_std[j]), self.noise_[j], xs,
+                self.amplitude_[j], jnp.asarray(self.lengthscale_std_[j]), self.noise_[j], xs,
                 jnp.asarray(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
             )  # fmt: skip
             if not bool(jnp.all(jnp.isfinite(chol))):
@@ -734,14 +746,14 @@ class GaussianProcessModel:
         alpha_all = jnp.stack(alphas)
         self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
         self.alpha_ = np.asarray(alpha_all)
-        self._posterior = {
+        self.posterior_ = {
             "xs": xs,
             "offset": jnp.asarray(self.x_offset_),
             "scale": jnp.asarray(self.x_scale_),
             "chol": chol_all,
             "alpha": alpha_all,
             "amp": jnp.asarray(self.amplitude_),
-            "ls": jnp.asarray(self._lengthscale_std),
+            "ls": jnp.asarray(self.lengthscale_std_),
             "mu": jnp.asarray(self.mean_),
             "comps": jnp.asarray(self.components_),
         }
@@ -762,10 +774,6 @@ class GaussianProcessModel:
         return np.array(out)
 
     # -------------------------------------------------------------------------- predict
-
-    def _check_fitted(self) -> None:
-        if not hasattr(self, "alpha_"):
-            raise RuntimeError("this GaussianProcessModel is not fitted yet; call fit(x, y) first")
 
     def predict(self, x: Any) -> tuple[jax.Array, jax.Array]:
         """Posterior mean and variance of ``omega`` at states ``x``, eqs. (12), (13).
@@ -789,13 +797,13 @@ class GaussianProcessModel:
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
-        self._check_fitted()
+        check_fitted(self)
         x = jnp.asarray(x, dtype=float)
         if x.ndim == 0 or x.shape[-1] != self.n_states_:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
         check_finite("x", x)
         flat = x.reshape((-1, self.n_states_))
-        mean, var = _predict_batch(self._posterior, flat, self.kernel, self.n_states_)
+        mean, var = _predict_batch(self.posterior_, flat, self.kernel, self.n_states_)
         return mean.reshape(x.shape), var.reshape(x.shape)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -806,23 +814,23 @@ class GaussianProcessModel:
         NonFiniteError
             If a concrete ``x`` contains NaN or inf (not checked inside ``jax.jit``).
         """
-        self._check_fitted()
+        check_fitted(self)
         if is_concrete(x):
             check_finite("x", x)
-        mean, var = _posterior_one(self._posterior, x, self.kernel, self.n_states_)
+        mean, var = _posterior_one(self.posterior_, x, self.kernel, self.n_states_)
         return mean, safe_sqrt(var)  # derivative 0, not NaN, where the std is 0
 
     @property
     def n_states(self) -> int:
         """State dimension (for the :class:`~safestab.robust.UncertaintyModel` protocol)."""
-        self._check_fitted()
+        check_fitted(self)
         return self.n_states_
 
     # ------------------------------------------------------------------------ save/load
 
     def save(self, path: str | Path) -> None:
         """Write the fitted model to a ``.npz`` file (plain arrays and JSON; no pickle)."""
-        self._check_fitted()
+        check_fitted(self)
         meta = {
             "format": _FORMAT,
             "kernel": self.kernel,
@@ -842,7 +850,7 @@ class GaussianProcessModel:
             amplitude=self.amplitude_,
             noise=self.noise_,
             mean=self.mean_,
-            lengthscale_std=self._lengthscale_std,
+            lengthscale_std=self.lengthscale_std_,
             log_marginal_likelihood=self.log_marginal_likelihood_,
         )
 
@@ -871,8 +879,8 @@ class GaussianProcessModel:
             if meta["format"] == _FORMAT_V1:
                 model.noise_ = np.sqrt(model.noise_**2 + model.jitter * model.amplitude_**2)
             model.mean_ = data["mean"]
-            model._lengthscale_std = data["lengthscale_std"]
-            model.lengthscale_ = model._lengthscale_std * model.x_scale_
+            model.lengthscale_std_ = data["lengthscale_std"]
+            model.lengthscale_ = model.lengthscale_std_ * model.x_scale_
             model.log_marginal_likelihood_ = data["log_marginal_likelihood"]
             model.optimizer_status_ = tuple(meta.get("optimizer_status", ()))
         model._condition()

@@ -9,7 +9,6 @@ costs the same at every ``Q``.
 
 from __future__ import annotations
 
-import functools
 import json
 import warnings
 from pathlib import Path
@@ -19,8 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
-from jax.scipy.linalg import cho_solve, solve_triangular
-from tinygp import GaussianProcess
+from jax.scipy.linalg import solve_triangular
 
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
@@ -32,8 +30,8 @@ from ..errors import (
     ParameterError,
 )
 from ._checks import check_fitted, check_seed
-from ._kernels import kernel as _kernel
-from ._kernels import kernel_matrix
+from ._likelihood import nll_value_and_grad, unpack
+from ._posterior import exact_point, factor, predict_batch
 
 __all__ = [
     "GaussianProcessModel",
@@ -75,105 +73,6 @@ def _components(components: Any, n: int) -> tuple[int, ...]:
     if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
         raise DimensionError(f"components must be distinct indices in [0, {n}), got {components!r}")
     return comps
-
-
-def _unpack(theta, n_features):
-    log_amp, log_noise, mean = theta[0], theta[1], theta[2]
-    log_ls = theta[3 : 3 + n_features]
-    return jnp.exp(log_amp), jnp.exp(log_noise), mean, jnp.exp(log_ls)
-
-
-@functools.partial(jax.jit, static_argnames=("kind",))
-def _nll_value_and_grad(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, *, kind):
-    """Negative log marginal likelihood and its gradient in ``theta`` (GPML eq. (5.9)).
-
-    The data are arguments, so one compilation serves every component and every start. The
-    gradient ``-1/2 tr((alpha alpha^T - K^-1) dK/dtheta)`` is written out: three times
-    faster than reverse-mode through the Cholesky factorisation at Q = 500 (a test checks
-    it against ``jax.grad`` of tinygp's likelihood).
-    """
-    q, n = xs.shape
-    amp, noise, mean, ls = _unpack(theta, n)
-    z = xs / ls
-    diff2 = (z[:, None, :] - z[None, :, :]) ** 2  # (Q, Q, n)
-    r2 = jnp.sum(diff2, -1)
-    if kind == "se":
-        k0 = jnp.exp(-0.5 * r2)
-        dk0 = k0  # d k0 / d log ls_d = dk0 * diff2_d
-    else:
-        r = jnp.sqrt(5.0 * r2)
-        e = jnp.exp(-r)
-        k0 = (1.0 + r + r * r / 3.0) * e
-        dk0 = (5.0 / 3.0) * (1.0 + r) * e
-    noise_var = jnp.where(use_fixed, fixed_var, noise**2)
-    s2 = noise_var + jitter * amp**2
-    kmat = amp**2 * k0 + s2 * jnp.eye(q)
-    chol = jnp.linalg.cholesky(kmat)
-    resid = y - mean * use_mean
-    alpha = cho_solve((chol, True), resid)
-    value = 0.5 * resid @ alpha + jnp.sum(jnp.log(jnp.diag(chol))) + 0.5 * q * jnp.log(2 * jnp.pi)
-    w = jnp.outer(alpha, alpha) - cho_solve((chol, True), jnp.eye(q))
-    tr_w = jnp.trace(w)
-    g_amp = -0.5 * (2.0 * amp**2 * jnp.sum(w * k0) + 2.0 * jitter * amp**2 * tr_w)
-    g_noise = jnp.where(use_fixed, 0.0, -0.5 * tr_w * 2.0 * noise**2)
-    g_mean = -jnp.sum(alpha) * use_mean
-    g_ls = -0.5 * amp**2 * jnp.einsum("ij,ijd->d", w * dk0, diff2)
-    return value, jnp.concatenate([jnp.stack([g_amp, g_noise, g_mean]), g_ls])
-
-
-def _nll_tinygp(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, kind):
-    """The same negative log marginal likelihood through tinygp (reference for the tests)."""
-    amp, noise, mean, ls = _unpack(theta, xs.shape[1])
-    var = jnp.where(use_fixed, fixed_var, noise**2) + jitter * amp**2
-    gp = GaussianProcess(_kernel(kind, amp, ls), xs, diag=var, mean=mean * use_mean)
-    return -gp.log_probability(y)
-
-
-def _posterior_one(post, x, kind, n):
-    """Posterior mean and latent variance at one state (n,), from the arrays in ``post``."""
-    z = ((x - post["offset"]) / post["scale"])[None, :]
-
-    def per_comp(a, l_, al, chol, m):
-        kstar = _kernel(kind, a, l_)(post["xs"], z)[:, 0]
-        v = solve_triangular(chol, kstar, lower=True)
-        return kstar @ al + m, jnp.maximum(a**2 - v @ v, 0.0)
-
-    mean_c, var_c = jax.vmap(per_comp)(
-        post["amp"], post["ls"], post["alpha"], post["chol"], post["mu"]
-    )
-    mean = jnp.zeros(n, dtype=mean_c.dtype).at[post["comps"]].set(mean_c)
-    var = jnp.zeros(n, dtype=var_c.dtype).at[post["comps"]].set(var_c)
-    return mean, var
-
-
-# The training arrays enter as arguments, never as constants of the compiled program: with
-# constants the first predict at Q = 6,000 took 15.8 s and 5.35 GB (issue 14).
-_predict_batch = jax.jit(
-    jax.vmap(_posterior_one, in_axes=(None, 0, None, None)), static_argnums=(2, 3)
-)
-
-
-@functools.partial(jax.jit, static_argnames=("kind",))
-def _noisy_kernel(amp, ls, nz, xs, *, kind):
-    """``K + nz^2 I``, compiled once per ``Q`` (eagerly, the sum cost as much as the factor)."""
-    k = kernel_matrix(amp, ls, xs, xs, kind=kind)
-    return k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
-
-
-@jax.jit
-def _chol_alpha(k, y, mu):
-    """Cholesky factor of ``k`` and ``alpha = k^-1 (y - mu)``.
-
-    Compiled apart from :func:`_noisy_kernel`: fused with the kernel, the factor differed from
-    the eager one in the last bits; apart, both are bit for bit the eager operations'.
-    """
-    chol = jnp.linalg.cholesky(k)
-    return chol, cho_solve((chol, True), y - mu)
-
-
-def _factor(amp, ls, nz, xs, y, mu, *, kind):
-    """Cholesky factor of ``K + nz^2 I`` and ``alpha``: two compiled calls per ``Q``."""
-    return _chol_alpha(_noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
 
 
 def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:
@@ -645,7 +544,7 @@ class GaussianProcessModel:
         )
 
         def fun(t):
-            v, g = _nll_value_and_grad(jnp.asarray(t), *args, kind=self.kernel)
+            v, g = nll_value_and_grad(jnp.asarray(t), *args, kind=self.kernel)
             return float(v), np.asarray(g, dtype=float)
 
         results = []
@@ -690,7 +589,7 @@ class GaussianProcessModel:
                 ConvergenceWarning,
                 stacklevel=3,
             )
-        amp, nz, mu, ls = (np.asarray(v) for v in _unpack(jnp.asarray(theta), n))
+        amp, nz, mu, ls = (np.asarray(v) for v in unpack(jnp.asarray(theta), n))
         if fixed_noise is not None:
             nz = np.asarray(fixed_noise)
         elif self.max_iter > 0 and theta[1] <= lo_noise + 1e-6:
@@ -729,7 +628,7 @@ class GaussianProcessModel:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
         chols, alphas = [], []
         for j in range(len(self.components_)):
-            chol, alpha = _factor(
+            chol, alpha = factor(
                 self.amplitude_[j], jnp.asarray(self.lengthscale_std_[j]), self.noise_[j], xs,
                 jnp.asarray(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
             )  # fmt: skip
@@ -803,7 +702,7 @@ class GaussianProcessModel:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
         check_finite("x", x)
         flat = x.reshape((-1, self.n_states_))
-        mean, var = _predict_batch(self.posterior_, flat, self.kernel, self.n_states_)
+        mean, var = predict_batch(self.posterior_, flat, self.kernel, self.n_states_)
         return mean.reshape(x.shape), var.reshape(x.shape)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -817,7 +716,7 @@ class GaussianProcessModel:
         check_fitted(self)
         if is_concrete(x):
             check_finite("x", x)
-        mean, var = _posterior_one(self.posterior_, x, self.kernel, self.n_states_)
+        mean, var = exact_point(self.posterior_, x, self.kernel, self.n_states_)
         return mean, safe_sqrt(var)  # derivative 0, not NaN, where the std is 0
 
     @property

@@ -372,7 +372,8 @@ class FastGP:
         ``mask`` (k, M), ``err`` (k,) ``E``, ``rho`` (k,), ``round`` (k,) the rounding
         allowance of ``r^2``. With ``[a; G a; C a] = maps k_Z(x)``, ``r^2 = amp^2 - |a|^2 +
         round``, the cache's mean is ``k . wk + mean_`` and its std ``sqrt(r^2 + |G a|^2 +
-        2 |C a| rho r) + err r / min_beta`` (module docstring; ``montecarlo.gpbatch``).
+        2 |C a| rho r) + err r / min_beta`` (module docstring); batched by
+        :class:`~safestab.learning.InducingCache`.
         """
         return {key: np.array(value) for key, value in self._params.items()}
 

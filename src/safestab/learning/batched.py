@@ -16,7 +16,7 @@ uncertainty model whose ``jax.vmap`` is the batched evaluation.
 Both caches are JAX pytrees of arrays, so a compiled function takes them as arguments (one
 compilation for every data set of the same shapes: the inducing-input counts' buckets) and
 they travel between processes as plain arrays. The arithmetic is
-:mod:`safestab.learning._posterior`'s (``exact_products``, ``band_products``).
+``safestab.learning._posterior``'s (``exact_products``, ``band_products``).
 
 Notes
 -----
@@ -241,7 +241,7 @@ class InducingCache:
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
         """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n).
 
-        Per component ``band_products`` of :mod:`safestab.learning._posterior`, with the
+        Per component ``band_products`` of ``safestab.learning._posterior``, with the
         batch as the minor (contiguous) axis of every intermediate, ``(M_c, B)``.
         """
         xs_t = ((x - self.offset) / self.scale).T  # (n, B)

@@ -1,10 +1,11 @@
 """Independent Gaussian processes for the components of ``omega(x)`` (eqs. (12), (13)).
 
-Kernels and the marginal likelihood come from tinygp; hyperparameters are fitted by
-maximising the log marginal likelihood with SciPy's L-BFGS-B on JAX gradients, from several
-starts (data-driven and seeded random ones). Prediction uses a Cholesky factor computed once at
-fit time; the compiled predictor receives the training arrays as arguments, so compiling it
-costs the same at every ``Q``.
+Kernels come from tinygp; hyperparameters are fitted by maximising the log marginal
+likelihood with SciPy's L-BFGS-B on JAX gradients, from several starts (data-driven and
+seeded random ones; ``safestab.learning._likelihood``). Prediction uses a Cholesky factor
+computed once at fit time; the compiled predictor receives the training arrays as arguments,
+so compiling it costs the same at every ``Q`` (``safestab.learning._posterior`` holds the
+posterior arithmetic, shared with FastGP and the batched forms).
 """
 
 from __future__ import annotations
@@ -17,20 +18,18 @@ from typing import Any, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.optimize
 from jax.scipy.linalg import solve_triangular
 
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
 from ..errors import (
-    ConvergenceWarning,
     DataWarning,
     DimensionError,
     NumericalError,
     ParameterError,
 )
 from ._checks import check_fitted, check_seed
-from ._likelihood import nll_value_and_grad, unpack
+from ._likelihood import fit_component
 from ._posterior import exact_point, factor, predict_batch
 
 __all__ = [
@@ -73,32 +72,6 @@ def _components(components: Any, n: int) -> tuple[int, ...]:
     if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
         raise DimensionError(f"components must be distinct indices in [0, {n}), got {components!r}")
     return comps
-
-
-def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:
-    """Whether the projected gradient is below ``rtol (1 + |value|)``.
-
-    L-BFGS-B's line search stalls ("ABNORMAL") when the likelihood's rounding noise (about
-    1e-4 nats at Q = 500 on the ACC data, where the kernel matrix is ill-conditioned) exceeds
-    the decrease it looks for. With this test passed, changing any log-hyperparameter by 0.01
-    changes the log-likelihood by less than 1e-6 of its size: converged for any use.
-    """
-    g = np.asarray(grad, float)
-    g = np.where((theta <= lo) & (g > 0), 0.0, g)
-    g = np.where((theta >= hi) & (g < 0), 0.0, g)
-    g = np.where(lo == hi, 0.0, g)
-    return bool(np.isfinite(value) and np.max(np.abs(g)) <= rtol * (1.0 + abs(value)))
-
-
-def _nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
-    """Noise std estimated from nearest-neighbour differences (on at most 1,000 rows)."""
-    rows = rng.choice(len(xs), min(len(xs), 1000), replace=False)
-    xr, yr = xs[rows], y[rows]
-    d2 = np.sum((xr[:, None, :] - xr[None, :, :]) ** 2, -1)
-    np.fill_diagonal(d2, np.inf)
-    diff = yr - yr[np.argmin(d2, 1)]
-    # y_i - y_j ~ N(0, 2 s^2) where f is locally flat; median of a chi^2_1 is 0.4549
-    return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
 
 
 class GaussianProcessModel:
@@ -319,7 +292,7 @@ class GaussianProcessModel:
         fits = []
         for j, comp in enumerate(comps):
             fixed = None if noise is None else float(noise[j])
-            fits.append(self._fit_component(xs[idx], y[idx, comp], fixed, rng, comp))
+            fits.append(fit_component(self, xs[idx], y[idx, comp], fixed, rng, comp))
 
         self.n_states_ = n
         self.components_ = comps
@@ -492,137 +465,6 @@ class GaussianProcessModel:
                         DataWarning,
                         stacklevel=3,
                     )
-
-    def _fit_component(self, xs, y, fixed_noise, rng, comp):
-        n = xs.shape[1]
-        sd = float(np.std(y))
-        rms = float(np.sqrt(np.mean(y**2)))
-        sd = sd if sd > 0 else (rms if rms > 0 else 1.0)
-        amp_scale = max(rms, sd) if self.mean == "zero" else sd
-        mean0 = float(np.mean(y)) if self.mean == "constant" else 0.0
-        lo_amp, hi_amp = np.log(1e-6 * amp_scale), np.log(1e3 * amp_scale)
-        lo_noise, hi_noise = np.log(1e-6 * sd), np.log(10 * sd)
-        lo_ls, hi_ls = np.log(1e-3), np.log(1e5)  # long: irrelevant inputs, as in sklearn
-        nn = float(np.clip(_nn_noise(xs, y, rng), 1e-4 * sd, 0.5 * sd))
-        starts = [
-            np.concatenate([[np.log(amp_scale), np.log(0.1 * sd), mean0], np.zeros(n)]),
-            np.concatenate([[np.log(amp_scale), np.log(nn), mean0], np.full(n, np.log(3.0))]),
-        ]
-        for _ in range(self.n_restarts):
-            starts.append(
-                np.concatenate(
-                    [
-                        [
-                            np.log(amp_scale) + rng.uniform(np.log(0.3), np.log(3.0)),
-                            np.log(sd) + rng.uniform(np.log(1e-3), np.log(0.3)),
-                            mean0,
-                        ],
-                        rng.uniform(np.log(0.3), np.log(30.0), n),
-                    ]
-                )
-            )
-        if fixed_noise is not None:
-            noise_bound = (0.0, 0.0)  # unused: the fixed variance enters instead
-            for s in starts:
-                s[1] = 0.0
-        else:
-            noise_bound = (lo_noise, hi_noise)
-        bounds = [
-            (lo_amp, hi_amp),
-            noise_bound,
-            (None, None) if self.mean == "constant" else (0.0, 0.0),
-        ] + [(lo_ls, hi_ls)] * n
-        lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
-        hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
-        args = (
-            jnp.asarray(xs),
-            jnp.asarray(y),
-            jnp.asarray(0.0 if fixed_noise is None else fixed_noise**2),
-            jnp.asarray(fixed_noise is not None),
-            jnp.asarray(float(self.mean == "constant")),
-            jnp.asarray(self.jitter),
-        )
-
-        def fun(t):
-            v, g = nll_value_and_grad(jnp.asarray(t), *args, kind=self.kernel)
-            return float(v), np.asarray(g, dtype=float)
-
-        results = []
-        for s in starts:
-            s = np.clip(s, lo, hi)
-            if self.max_iter == 0:
-                results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
-                continue
-            with np.errstate(all="ignore"):
-                res = scipy.optimize.minimize(
-                    fun,
-                    s,
-                    jac=True,
-                    method="L-BFGS-B",
-                    bounds=bounds,
-                    options={"maxiter": self.max_iter},
-                )
-            nit = int(res.nit)
-            ok = res.status == 0 or _stationary(res.x, res.jac, lo, hi, res.fun)
-            results.append((float(res.fun), res.x, nit, ok, str(res.message)))
-        values = np.array([r[0] for r in results])
-        finite = np.isfinite(values)
-        if not np.any(finite):
-            raise NumericalError(
-                f"the marginal likelihood of component {comp} is not finite at any of the "
-                f"{len(starts)} starts; the kernel matrix is not positive definite: try "
-                "increasing the noise (noise=) or jitter="
-            )
-        best = int(np.argmin(np.where(finite, values, np.inf)))
-        fun_best, theta, nit, converged, message = results[best]
-        if self.max_iter == 0:
-            warnings.warn(
-                f"max_iter=0: component {comp} keeps the best of {len(starts)} start values; "
-                "the hyperparameters are not fitted",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        elif not converged:
-            warnings.warn(
-                f"the fit of component {comp} did not converge: L-BFGS-B stopped after {nit} "
-                f"iterations ({message}); raise max_iter= or check the data",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        amp, nz, mu, ls = (np.asarray(v) for v in unpack(jnp.asarray(theta), n))
-        if fixed_noise is not None:
-            nz = np.asarray(fixed_noise)
-        elif self.max_iter > 0 and theta[1] <= lo_noise + 1e-6:
-            warnings.warn(
-                f"the fitted noise of component {comp} is at its lower bound (1e-6 std(y) = "
-                f"{1e-6 * sd:.3g}): the likelihood sees no noise (duplicate rows? an "
-                "interpolating fit?); fix noise= from the sensor's specification",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        noise_eff = float(np.sqrt(nz**2 + self.jitter * amp**2))
-        # a lengthscale at its lower bound matters only where the signal is not negligible
-        if self.max_iter > 0 and np.any(theta[3:] <= lo_ls + 1e-6) and amp > noise_eff:
-            dims = np.flatnonzero(theta[3:] <= lo_ls + 1e-6).tolist()
-            warnings.warn(
-                f"the fitted lengthscale of component {comp} along input(s) {dims} is at its "
-                "lower bound (1e-3 std(x)): the GP treats the rows as unrelated points and "
-                "predicts the prior mean between them (noise=0 or too small on noisy data? too "
-                "few rows?); fit the noise or give the sensor's noise",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        return {
-            "amplitude": float(amp),
-            "noise": noise_eff,
-            "mean": float(mu) if self.mean == "constant" else 0.0,
-            "lengthscale": ls,
-            "lml": -fun_best,
-            "start_lmls": np.where(finite, -values, -np.inf),
-            "nit": nit,
-            "converged": converged,
-            "message": message,
-        }
 
     def _condition(self) -> None:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)

@@ -18,11 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from _page import put_block
-from safestab.learning import FastGP, GaussianProcessModel
+from safestab.learning import FastGP, GaussianProcessModel, condition, inducing_cache
 from safestab.montecarlo import (
-    condition,
     fit_dataset,
-    inducing_cache,
     run_montecarlo,
     start_ray,
 )

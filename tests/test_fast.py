@@ -142,7 +142,7 @@ def test_noise_tol_stops_below_the_noise_and_keeps_the_band():
     for j, amp in enumerate(gp.amplitude_):
         m = int(fast.n_inducing_[j])
         z = (fast.inducing_[j, :m] - gp.x_offset_) / gp.x_scale_
-        ls = np.asarray(gp._lengthscale_std[j])
+        ls = np.asarray(gp.lengthscale_std_[j])
 
         def k(a, b, amp=amp, ls=ls):  # the SE kernel in standardised units (independent)
             d = ((a[:, None, :] - b[None, :, :]) / ls) ** 2

@@ -62,10 +62,10 @@ def test_fitted_hyperparameters_maximise_likelihood(toy_data):
     x, y = toy_data
     gp = GaussianProcessModel().fit(x, y, components=[0])
     # perturbing any hyperparameter must not increase the marginal likelihood (local optimum)
-    from safestab.learning._kernels import kernel as _kernel
+    from safestab.learning._posterior import kernel
 
     def lml(amp, ls, nz):
-        K = np.array(_kernel("se", amp, jnp.asarray(ls))(jnp.asarray(x), jnp.asarray(x)))
+        K = np.array(kernel("se", amp, jnp.asarray(ls))(jnp.asarray(x), jnp.asarray(x)))
         K += nz**2 * np.eye(len(x))
         sign, logdet = np.linalg.slogdet(K)
         return (
@@ -370,7 +370,7 @@ def test_fit_records_optimiser_status_and_warns():
 def test_manual_likelihood_gradient_matches_autodiff_of_tinygp():
     import jax
 
-    from safestab.learning.gp import _nll_tinygp, _nll_value_and_grad
+    from safestab.learning._likelihood import nll_tinygp, nll_value_and_grad
 
     rng = np.random.default_rng(0)
     xs, y = jnp.asarray(rng.normal(size=(40, 3))), jnp.asarray(rng.normal(size=40) + 2)
@@ -379,8 +379,8 @@ def test_manual_likelihood_gradient_matches_autodiff_of_tinygp():
             th = jnp.asarray(0.5 * rng.normal(size=6))
             flags = (jnp.asarray(0.3), jnp.asarray(fixed), jnp.asarray(1.0), jnp.asarray(1e-4))
             args = (xs, y, *flags)
-            v, g = _nll_value_and_grad(th, *args, kind=kind)
-            v_ref, g_ref = jax.value_and_grad(_nll_tinygp)(th, *args, kind)
+            v, g = nll_value_and_grad(th, *args, kind=kind)
+            v_ref, g_ref = jax.value_and_grad(nll_tinygp)(th, *args, kind)
             # both are float64 Cholesky-based; the 40x40 matrix is well conditioned
             np.testing.assert_allclose(v, v_ref, rtol=1e-12)
             np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-11)
@@ -473,7 +473,7 @@ def test_seeds_are_checked_everywhere(toy_data):
 def test_compiled_predictor_takes_the_data_as_arguments():
     # defect 4: with the training arrays embedded as constants the compiled program grew
     # with Q^2 (5.35 GB to compile at Q = 6000); as arguments its size does not depend on Q
-    from safestab.learning.gp import _predict_batch
+    from safestab.learning._posterior import predict_batch
 
     rng = np.random.default_rng(0)
     sizes = []
@@ -483,7 +483,7 @@ def test_compiled_predictor_takes_the_data_as_arguments():
         gp = GaussianProcessModel(max_iter=5, n_restarts=0)
         with pytest.warns(ss.errors.ConvergenceWarning):
             gp.fit(x, y)
-        text = _predict_batch.lower(gp._posterior, jnp.zeros((3, 2)), gp.kernel, 2).as_text()
+        text = predict_batch.lower(gp.posterior_, jnp.zeros((3, 2)), gp.kernel, 2).as_text()
         sizes.append(len(text))
         # a constant holding the 400 x 400 factor would print at least Q^2 numbers
         assert len(text) < 20 * q * q

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from safestab.errors import DimensionError, NonFiniteError, ParameterError
-from safestab.learning import Dataset, FastGP, GaussianProcessModel
-from safestab.montecarlo import (
+from safestab.learning import (
     BatchedUncertainty,
+    Dataset,
     ExactPosterior,
+    FastGP,
+    GaussianProcessModel,
     Hyperparameters,
     condition,
     inducing_cache,
@@ -104,10 +106,10 @@ def test_batched_cache_is_fastgp_and_contains_the_exact_band_far_from_the_data(f
 
 
 def test_inducing_buckets():
-    from safestab.montecarlo.gpbatch import _bucket
+    from safestab.learning._posterior import bucket
 
     table = {0: 1, 1: 1, 2: 2, 3: 4, 4: 4, 5: 8, 8: 8, 9: 12, 12: 12, 13: 16, 32: 32}
-    assert {used: _bucket(used) for used in table} == table
+    assert {used: bucket(used) for used in table} == table
 
 
 def test_batched_uncertainty_rule_equals_the_batch(fitted):

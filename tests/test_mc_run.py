@@ -8,10 +8,9 @@ import pytest
 
 import safestab as ss
 from safestab.errors import ParameterError
-from safestab.learning import conformal_beta
+from safestab.learning import BatchedUncertainty, conformal_beta
 from safestab.montecarlo import (
     RECORD_FIELDS,
-    BatchedUncertainty,
     calibration_draw,
     draw_trials,
     fit_dataset,

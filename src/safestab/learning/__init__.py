@@ -1,6 +1,14 @@
-"""Learning the unknown dynamics ``omega(x)``: data, GPs, confidence bounds."""
+"""Learning the unknown dynamics ``omega(x)``: data, GPs, their batched forms, confidence bounds."""
 
-from .confidence import (
+from .batched import (
+    BatchedUncertainty,
+    ExactPosterior,
+    Hyperparameters,
+    InducingCache,
+    condition,
+    inducing_cache,
+)
+from .bounds import (
     Calibration,
     ConfidenceReport,
     beta_lemma2,
@@ -15,16 +23,22 @@ from .gp import GaussianProcessModel
 from .sklearn_adapter import SklearnGPAdapter
 
 __all__ = [
+    "BatchedUncertainty",
     "Calibration",
     "ConfidenceReport",
     "Dataset",
+    "ExactPosterior",
     "FastGP",
     "GaussianProcessModel",
+    "Hyperparameters",
+    "InducingCache",
     "SklearnGPAdapter",
     "beta_lemma2",
     "calibration",
     "collect_data",
+    "condition",
     "confidence",
     "conformal_beta",
+    "inducing_cache",
     "information_gain",
 ]

@@ -7,7 +7,7 @@ from typing import Any
 
 from ..errors import ParameterError
 
-__all__ = ["SEED_MAX", "check_seed"]
+__all__ = ["SEED_MAX", "check_fitted", "check_seed"]
 
 #: Largest accepted seed: NumPy's generators take any non-negative integer, but JAX's
 #: ``PRNGKey`` wraps negative seeds and overflows past 64 bits; one range for every seed keeps
@@ -31,3 +31,15 @@ def check_seed(name: str, seed: Any) -> int:
     if not 0 <= int(seed) <= SEED_MAX:
         raise ParameterError(f"{name} must be an integer in [0, {SEED_MAX}], got {int(seed)}")
     return int(seed)
+
+
+def check_fitted(model: Any, attribute: str = "alpha_") -> None:
+    """Raise unless ``model`` has the fitted ``attribute`` (scikit-learn's ``check_is_fitted``).
+
+    Raises
+    ------
+    RuntimeError
+        If ``model`` has not been fitted: ``model.attribute`` does not exist.
+    """
+    if not hasattr(model, attribute):
+        raise RuntimeError(f"this {type(model).__name__} is not fitted yet; call fit(x, y) first")

@@ -32,11 +32,17 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .._numerics import safe_sqrt
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
-from ._kernels import kernel as _kernel
-from ._kernels import kernel_matrix
+from ._checks import check_fitted
+from ._posterior import (
+    BAND_KEYS,
+    band_batch,
+    band_magnitudes_batch,
+    band_point,
+    band_point_unpadded,
+    kernel_matrix,
+)
 from .gp import GaussianProcessModel
 
 __all__ = ["FastGP", "INFLATION_WARN"]
@@ -116,103 +122,6 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
-def _per_component(kind, mm, z0, work_unit, with_scales):
-    """One learned component's cache evaluation (see :func:`_parts`, :func:`_magnitudes`).
-
-    ``mask`` may be None (no padded inducing inputs).
-    """
-
-    def per_comp(a, l_, z, wk, maps, mask, err, rho, rnd):
-        k = _kernel(kind, a, l_)(z, z0[None, :])[:, 0]
-        if mask is not None:
-            k = jnp.where(mask, k, 0.0)
-        all3 = maps @ k
-        v, gv, cv = all3[:mm], all3[mm : 2 * mm], all3[2 * mm :]
-        r2 = jnp.maximum(a * a - v @ v, 0.0) + rnd
-        mean = k @ wk
-        if not (work_unit or with_scales):
-            r = safe_sqrt(r2)  # safe_sqrt: derivative 0, not NaN, at 0
-            var = r2 + gv @ gv + 2.0 * safe_sqrt(cv @ cv) * rho * r  # >= exact variance
-            return mean, safe_sqrt(var), err * r
-        # running magnitudes: the products are rounded relative to |maps| |k|; a working
-        # precision's allowance (work_unit > 0) is relative to them
-        mag3 = jnp.abs(maps) @ jnp.abs(k)
-        mv, mg, mc = mag3[:mm], mag3[mm : 2 * mm], mag3[2 * mm :]
-        r2_mag = a * a + 2.0 * jnp.abs(v) @ mv + r2
-        r2 = r2 + work_unit * r2_mag
-        r = safe_sqrt(r2)  # > 0: rnd > 0
-        cn = safe_sqrt(cv @ cv)
-        var = r2 + gv @ gv + 2.0 * cn * rho * r
-        r_mag = r2_mag / (2.0 * r)
-        cn_mag = jnp.where(cn > 0, jnp.abs(cv) @ mc / jnp.where(cn > 0, cn, 1.0), 0.0)
-        var_mag = r2_mag + 2.0 * jnp.abs(gv) @ mg + 2.0 * rho * (cn_mag * r + cn * r_mag) + var
-        var = var + work_unit * var_mag
-        mean_mag = jnp.abs(wk) @ jnp.abs(k)
-        sd = safe_sqrt(var)
-        if with_scales:
-            return mean_mag, var_mag / (2.0 * sd), err * r_mag
-        return mean, sd, err * r + work_unit * (mean_mag + err * r_mag)
-
-    return per_comp
-
-
-_KEYS = ("amp", "ls", "z", "wk", "maps", "mask", "err", "rho", "round")
-
-
-def _parts(p, x, kind, work_unit=0.0):
-    """Per learned component: cache mean (without the prior mean), sqrt(v~) and E r(x).
-
-    ``work_unit > 0`` (a Python float: the precision the step will be evaluated in, times
-    a safety factor; :meth:`FastGP.for_precision`) adds that rounding allowance per query,
-    relative to the running magnitudes of :func:`_magnitudes`, to ``r^2``, ``v~`` and the
-    mean-error term, so that the band still contains the exact one when every operation
-    is rounded to that precision. 0 (float64): the constant allowance ``round`` covers it.
-    """
-    z0 = (x - p["offset"]) / p["scale"]
-    per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, False)
-    return jax.vmap(per_comp)(*(p[key] for key in _KEYS))
-
-
-def _parts_unpadded(p, comps, x, kind, work_unit):
-    """:func:`_parts` with each component at its own number of inducing inputs.
-
-    ``comps``: per component, a dict of its arrays without padding (``mask`` None). The
-    same values as the padded, vmapped evaluation, with fewer operations in exported code
-    (the padded rows and their masks are gone): used by the float copy.
-    """
-    z0 = (x - p["offset"]) / p["scale"]
-    outs = []
-    for c in comps:
-        per_comp = _per_component(kind, c["z"].shape[0], z0, work_unit, False)
-        outs.append(per_comp(*(c[key] for key in _KEYS)))
-    return tuple(jnp.stack([o[i] for o in outs]) for i in range(3))
-
-
-# the cache's arrays are arguments: one compilation per (M, kernel), not per cache
-_parts_batch = jax.jit(jax.vmap(_parts, in_axes=(None, 0, None, None)), static_argnums=(2, 3))
-
-
-def _magnitudes(p, x, kind, work_unit=0.0):
-    """Per learned component: the magnitudes the cache's mean and std are rounded relative to.
-
-    A running-error analysis of :func:`_parts`: every kernel value carries a relative rounding
-    error (``exp``), and every product ``maps @ k`` one relative to ``|maps| @ |k|``. Carried
-    through the squares, the differences ``amp^2 - |a|^2`` and the square roots to first
-    order, the mean's error is a small multiple of ``u |wk| . |k|`` and the std's of ``u``
-    times ``var_mag / (2 sd) + E r_mag / min_beta``. These, not the cond(Lj)-based
-    allowance, are what two float64 evaluations (XLA's and the exported C) differ by.
-    Returns (mean magnitude, std magnitude without the mean-error term, mean-error term).
-    """
-    z0 = (x - p["offset"]) / p["scale"]
-    per_comp = _per_component(kind, p["z"].shape[1], z0, work_unit, True)
-    return jax.vmap(per_comp)(*(p[key] for key in _KEYS))
-
-
-_magnitudes_batch = jax.jit(
-    jax.vmap(_magnitudes, in_axes=(None, 0, None, None)), static_argnums=(2, 3)
-)
-
-
 class FastGP:
     """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
 
@@ -277,7 +186,7 @@ class FastGP:
         pivot_tol: float = 1e-10,
         noise_tol: float = 0.1,
     ) -> None:
-        model._check_fitted()
+        check_fitted(model)
         if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
             raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
         if int(n_inducing) < 1:
@@ -294,7 +203,7 @@ class FastGP:
         for j in range(len(model.components_)):
             amp = float(model.amplitude_[j])
             eps = model.jitter * amp * amp
-            ls_j = jnp.asarray(model._lengthscale_std[j])
+            ls_j = jnp.asarray(model.lengthscale_std_[j])
 
             def kfn(x1, x2, amp=amp, ls_j=ls_j):
                 return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
@@ -361,7 +270,7 @@ class FastGP:
             "offset": jnp.asarray(model.x_offset_),
             "scale": jnp.asarray(model.x_scale_),
             "amp": jnp.asarray(model.amplitude_),
-            "ls": jnp.asarray(model._lengthscale_std),
+            "ls": jnp.asarray(model.lengthscale_std_),
             "z": self._z,
             "wk": self._wk,
             "maps": self._maps,
@@ -434,7 +343,7 @@ class FastGP:
         p, mm, comps = self._params, self._m, []
         for j, m in enumerate(self.n_inducing_):
             rows = np.concatenate([np.arange(b * mm, b * mm + m) for b in range(3)])
-            comp = {key: p[key][j] for key in _KEYS}
+            comp = {key: p[key][j] for key in BAND_KEYS}
             comp.update(z=p["z"][j, :m], wk=p["wk"][j, :m], mask=None)
             comp["maps"] = p["maps"][j][rows][:, :m]
             comps.append(comp)
@@ -445,13 +354,13 @@ class FastGP:
 
     def _mean_std_parts(self, x: jax.Array):
         if self._unpadded is not None:
-            return _parts_unpadded(
+            return band_point_unpadded(
                 self._params, self._unpadded, x, self.model.kernel, self.work_unit
             )
-        return _parts(self._params, x, self.model.kernel, self.work_unit)
+        return band_point(self._params, x, self.model.kernel, self.work_unit)
 
     def _parts_batch(self, x: np.ndarray):
-        return _parts_batch(self._params, jnp.asarray(x), self.model.kernel, self.work_unit)
+        return band_batch(self._params, jnp.asarray(x), self.model.kernel, self.work_unit)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Copies of the cache's arrays, for evaluating the same band elsewhere (batched).
@@ -463,7 +372,8 @@ class FastGP:
         ``mask`` (k, M), ``err`` (k,) ``E``, ``rho`` (k,), ``round`` (k,) the rounding
         allowance of ``r^2``. With ``[a; G a; C a] = maps k_Z(x)``, ``r^2 = amp^2 - |a|^2 +
         round``, the cache's mean is ``k . wk + mean_`` and its std ``sqrt(r^2 + |G a|^2 +
-        2 |C a| rho r) + err r / min_beta`` (module docstring; ``montecarlo.gpbatch``).
+        2 |C a| rho r) + err r / min_beta`` (module docstring); batched by
+        :class:`~safestab.learning.InducingCache`.
         """
         return {key: np.array(value) for key, value in self._params.items()}
 
@@ -504,10 +414,11 @@ class FastGP:
     def rounding_scales(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
         """Magnitudes relative to which the mean and the std at ``x`` are rounded.
 
-        A first-order running-error analysis of the cache's evaluation (module function
-        ``_magnitudes``): the kernel values and the products of the cache's maps with them
-        are rounded relative to ``|maps| |k|``; the std is then formed from the differences
-        ``r^2 = amp^2 - |a|^2`` and ``v~ = r^2 + ...`` and a square root. Two float64
+        A first-order running-error analysis of the cache's evaluation
+        (``learning._posterior.band_magnitudes``): the kernel values and the products of the
+        cache's maps with them are rounded relative to ``|maps| |k|``; the std is then formed
+        from the differences ``r^2 = amp^2 - |a|^2`` and ``v~ = r^2 + ...`` and a square
+        root. Two float64
         evaluations of :meth:`mean_std` (XLA's and the exported C, say) agree to a small
         multiple of the unit roundoff times these, not times the mean and the std. Where the
         posterior variance is far below the prior one (the stress preset's drag, Q = 2000:
@@ -528,7 +439,9 @@ class FastGP:
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
         check_finite("x", x)
-        parts = _magnitudes_batch(self._params, jnp.asarray(x), self.model.kernel, self.work_unit)
+        parts = band_magnitudes_batch(
+            self._params, jnp.asarray(x), self.model.kernel, self.work_unit
+        )
         mean_mag, sd_mag, merr_mag = (np.asarray(a) for a in parts)
         comps = list(self.components_)
         mean_scale, std_scale = np.zeros(x.shape), np.zeros(x.shape)

@@ -1,15 +1,15 @@
 """Independent Gaussian processes for the components of ``omega(x)`` (eqs. (12), (13)).
 
-Kernels and the marginal likelihood come from tinygp; hyperparameters are fitted by
-maximising the log marginal likelihood with SciPy's L-BFGS-B on JAX gradients, from several
-starts (data-driven and seeded random ones). Prediction uses a Cholesky factor computed once at
-fit time; the compiled predictor receives the training arrays as arguments, so compiling it
-costs the same at every ``Q``.
+Kernels come from tinygp; hyperparameters are fitted by maximising the log marginal
+likelihood with SciPy's L-BFGS-B on JAX gradients, from several starts (data-driven and
+seeded random ones; ``safestab.learning._likelihood``). Prediction uses a Cholesky factor
+computed once at fit time; the compiled predictor receives the training arrays as arguments,
+so compiling it costs the same at every ``Q`` (``safestab.learning._posterior`` holds the
+posterior arithmetic, shared with FastGP and the batched forms).
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import warnings
 from pathlib import Path
@@ -18,22 +18,19 @@ from typing import Any, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.optimize
-from jax.scipy.linalg import cho_solve, solve_triangular
-from tinygp import GaussianProcess
+from jax.scipy.linalg import solve_triangular
 
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
 from ..errors import (
-    ConvergenceWarning,
     DataWarning,
     DimensionError,
     NumericalError,
     ParameterError,
 )
-from ._checks import check_seed
-from ._kernels import kernel as _kernel
-from ._kernels import kernel_matrix
+from ._checks import check_fitted, check_seed
+from ._likelihood import fit_component
+from ._posterior import exact_point, factor, predict_batch
 
 __all__ = [
     "GaussianProcessModel",
@@ -77,131 +74,6 @@ def _components(components: Any, n: int) -> tuple[int, ...]:
     return comps
 
 
-def _unpack(theta, n_features):
-    log_amp, log_noise, mean = theta[0], theta[1], theta[2]
-    log_ls = theta[3 : 3 + n_features]
-    return jnp.exp(log_amp), jnp.exp(log_noise), mean, jnp.exp(log_ls)
-
-
-@functools.partial(jax.jit, static_argnames=("kind",))
-def _nll_value_and_grad(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, *, kind):
-    """Negative log marginal likelihood and its gradient in ``theta`` (GPML eq. (5.9)).
-
-    The data are arguments, so one compilation serves every component and every start. The
-    gradient ``-1/2 tr((alpha alpha^T - K^-1) dK/dtheta)`` is written out: three times
-    faster than reverse-mode through the Cholesky factorisation at Q = 500 (a test checks
-    it against ``jax.grad`` of tinygp's likelihood).
-    """
-    q, n = xs.shape
-    amp, noise, mean, ls = _unpack(theta, n)
-    z = xs / ls
-    diff2 = (z[:, None, :] - z[None, :, :]) ** 2  # (Q, Q, n)
-    r2 = jnp.sum(diff2, -1)
-    if kind == "se":
-        k0 = jnp.exp(-0.5 * r2)
-        dk0 = k0  # d k0 / d log ls_d = dk0 * diff2_d
-    else:
-        r = jnp.sqrt(5.0 * r2)
-        e = jnp.exp(-r)
-        k0 = (1.0 + r + r * r / 3.0) * e
-        dk0 = (5.0 / 3.0) * (1.0 + r) * e
-    noise_var = jnp.where(use_fixed, fixed_var, noise**2)
-    s2 = noise_var + jitter * amp**2
-    kmat = amp**2 * k0 + s2 * jnp.eye(q)
-    chol = jnp.linalg.cholesky(kmat)
-    resid = y - mean * use_mean
-    alpha = cho_solve((chol, True), resid)
-    value = 0.5 * resid @ alpha + jnp.sum(jnp.log(jnp.diag(chol))) + 0.5 * q * jnp.log(2 * jnp.pi)
-    w = jnp.outer(alpha, alpha) - cho_solve((chol, True), jnp.eye(q))
-    tr_w = jnp.trace(w)
-    g_amp = -0.5 * (2.0 * amp**2 * jnp.sum(w * k0) + 2.0 * jitter * amp**2 * tr_w)
-    g_noise = jnp.where(use_fixed, 0.0, -0.5 * tr_w * 2.0 * noise**2)
-    g_mean = -jnp.sum(alpha) * use_mean
-    g_ls = -0.5 * amp**2 * jnp.einsum("ij,ijd->d", w * dk0, diff2)
-    return value, jnp.concatenate([jnp.stack([g_amp, g_noise, g_mean]), g_ls])
-
-
-def _nll_tinygp(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, kind):
-    """The same negative log marginal likelihood through tinygp (reference for the tests)."""
-    amp, noise, mean, ls = _unpack(theta, xs.shape[1])
-    var = jnp.where(use_fixed, fixed_var, noise**2) + jitter * amp**2
-    gp = GaussianProcess(_kernel(kind, amp, ls), xs, diag=var, mean=mean * use_mean)
-    return -gp.log_probability(y)
-
-
-def _posterior_one(post, x, kind, n):
-    """Posterior mean and latent variance at one state (n,), from the arrays in ``post``."""
-    z = ((x - post["offset"]) / post["scale"])[None, :]
-
-    def per_comp(a, l_, al, chol, m):
-        kstar = _kernel(kind, a, l_)(post["xs"], z)[:, 0]
-        v = solve_triangular(chol, kstar, lower=True)
-        return kstar @ al + m, jnp.maximum(a**2 - v @ v, 0.0)
-
-    mean_c, var_c = jax.vmap(per_comp)(
-        post["amp"], post["ls"], post["alpha"], post["chol"], post["mu"]
-    )
-    mean = jnp.zeros(n, dtype=mean_c.dtype).at[post["comps"]].set(mean_c)
-    var = jnp.zeros(n, dtype=var_c.dtype).at[post["comps"]].set(var_c)
-    return mean, var
-
-
-# The training arrays enter as arguments, never as constants of the compiled program: with
-# constants the first predict at Q = 6,000 took 15.8 s and 5.35 GB (issue 14).
-_predict_batch = jax.jit(
-    jax.vmap(_posterior_one, in_axes=(None, 0, None, None)), static_argnums=(2, 3)
-)
-
-
-@functools.partial(jax.jit, static_argnames=("kind",))
-def _noisy_kernel(amp, ls, nz, xs, *, kind):
-    """``K + nz^2 I``, compiled once per ``Q`` (eagerly, the sum cost as much as the factor)."""
-    k = kernel_matrix(amp, ls, xs, xs, kind=kind)
-    return k + nz**2 * jnp.eye(xs.shape[0])  # noise_ is effective: jitter included
-
-
-@jax.jit
-def _chol_alpha(k, y, mu):
-    """Cholesky factor of ``k`` and ``alpha = k^-1 (y - mu)``.
-
-    Compiled apart from :func:`_noisy_kernel`: fused with the kernel, the factor differed from
-    the eager one in the last bits; apart, both are bit for bit the eager operations'.
-    """
-    chol = jnp.linalg.cholesky(k)
-    return chol, cho_solve((chol, True), y - mu)
-
-
-def _factor(amp, ls, nz, xs, y, mu, *, kind):
-    """Cholesky factor of ``K + nz^2 I`` and ``alpha``: two compiled calls per ``Q``."""
-    return _chol_alpha(_noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
-
-
-def _stationary(theta, grad, lo, hi, value, rtol: float = 1e-4) -> bool:
-    """Whether the projected gradient is below ``rtol (1 + |value|)``.
-
-    L-BFGS-B's line search stalls ("ABNORMAL") when the likelihood's rounding noise (about
-    1e-4 nats at Q = 500 on the ACC data, where the kernel matrix is ill-conditioned) exceeds
-    the decrease it looks for. With this test passed, changing any log-hyperparameter by 0.01
-    changes the log-likelihood by less than 1e-6 of its size: converged for any use.
-    """
-    g = np.asarray(grad, float)
-    g = np.where((theta <= lo) & (g > 0), 0.0, g)
-    g = np.where((theta >= hi) & (g < 0), 0.0, g)
-    g = np.where(lo == hi, 0.0, g)
-    return bool(np.isfinite(value) and np.max(np.abs(g)) <= rtol * (1.0 + abs(value)))
-
-
-def _nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
-    """Noise std estimated from nearest-neighbour differences (on at most 1,000 rows)."""
-    rows = rng.choice(len(xs), min(len(xs), 1000), replace=False)
-    xr, yr = xs[rows], y[rows]
-    d2 = np.sum((xr[:, None, :] - xr[None, :, :]) ** 2, -1)
-    np.fill_diagonal(d2, np.inf)
-    diff = yr - yr[np.argmin(d2, 1)]
-    # y_i - y_j ~ N(0, 2 s^2) where f is locally flat; median of a chi^2_1 is 0.4549
-    return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
-
-
 class GaussianProcessModel:
     """n independent GPs, one per learned component of ``omega``.
 
@@ -233,6 +105,14 @@ class GaussianProcessModel:
         likelihood and the posterior use.
     lengthscale_ : array of shape (k, n)
         In the units of ``x``.
+    x_offset_, x_scale_ : arrays of shape (n,)
+        The inputs are standardised as ``(x - x_offset_) / x_scale_`` (mean and std of the
+        training inputs; a zero std is replaced by 1).
+    lengthscale_std_ : array of shape (k, n)
+        Lengthscales of the standardised inputs (``lengthscale_ / x_scale_``): the ones the
+        kernel is evaluated with.
+    y_train_ : array of shape (Q, k)
+        The learned components' targets.
     log_marginal_likelihood_ : array of shape (k,)
         At the fitted hyperparameters, on the data used to fit them.
     n_starts_ : int
@@ -252,6 +132,10 @@ class GaussianProcessModel:
         Cholesky factor of ``K + noise_^2 I`` per component.
     alpha_ : array of shape (k, Q)
         ``(K + noise_^2 I)^-1 (y - mean)``.
+    posterior_ : dict of str to jax.Array
+        The arrays the compiled predictor takes as arguments (standardised training inputs
+        ``xs`` (Q, n), ``offset`` and ``scale`` (n,), ``chol`` (k, Q, Q), ``alpha`` (k, Q),
+        ``amp`` and ``mu`` (k,), ``ls`` (k, n), ``comps`` (k,)), on the device.
     """
 
     def __init__(
@@ -408,7 +292,7 @@ class GaussianProcessModel:
         fits = []
         for j, comp in enumerate(comps):
             fixed = None if noise is None else float(noise[j])
-            fits.append(self._fit_component(xs[idx], y[idx, comp], fixed, rng, comp))
+            fits.append(fit_component(self, xs[idx], y[idx, comp], fixed, rng, comp))
 
         self.n_states_ = n
         self.components_ = comps
@@ -419,8 +303,8 @@ class GaussianProcessModel:
         self.amplitude_ = np.array([f["amplitude"] for f in fits])
         self.noise_ = np.array([f["noise"] for f in fits])
         self.mean_ = np.array([f["mean"] for f in fits])
-        self._lengthscale_std = np.array([f["lengthscale"] for f in fits])
-        self.lengthscale_ = self._lengthscale_std * scale
+        self.lengthscale_std_ = np.array([f["lengthscale"] for f in fits])
+        self.lengthscale_ = self.lengthscale_std_ * scale
         self.log_marginal_likelihood_ = np.array([f["lml"] for f in fits])
         self.n_starts_ = len(fits[0]["start_lmls"])
         self.start_log_marginal_likelihoods_ = np.array([f["start_lmls"] for f in fits])
@@ -542,7 +426,7 @@ class GaussianProcessModel:
         model.amplitude_ = hyper["amplitude"]
         model.noise_ = hyper["noise"]
         model.mean_ = hyper["mean"]
-        model._lengthscale_std = hyper["lengthscale"] / scale
+        model.lengthscale_std_ = hyper["lengthscale"] / scale
         model.lengthscale_ = hyper["lengthscale"]
         model._condition()
         # log p(y) = -1/2 (y - mu)^T alpha - sum log diag L - Q/2 log(2 pi)
@@ -582,143 +466,12 @@ class GaussianProcessModel:
                         stacklevel=3,
                     )
 
-    def _fit_component(self, xs, y, fixed_noise, rng, comp):
-        n = xs.shape[1]
-        sd = float(np.std(y))
-        rms = float(np.sqrt(np.mean(y**2)))
-        sd = sd if sd > 0 else (rms if rms > 0 else 1.0)
-        amp_scale = max(rms, sd) if self.mean == "zero" else sd
-        mean0 = float(np.mean(y)) if self.mean == "constant" else 0.0
-        lo_amp, hi_amp = np.log(1e-6 * amp_scale), np.log(1e3 * amp_scale)
-        lo_noise, hi_noise = np.log(1e-6 * sd), np.log(10 * sd)
-        lo_ls, hi_ls = np.log(1e-3), np.log(1e5)  # long: irrelevant inputs, as in sklearn
-        nn = float(np.clip(_nn_noise(xs, y, rng), 1e-4 * sd, 0.5 * sd))
-        starts = [
-            np.concatenate([[np.log(amp_scale), np.log(0.1 * sd), mean0], np.zeros(n)]),
-            np.concatenate([[np.log(amp_scale), np.log(nn), mean0], np.full(n, np.log(3.0))]),
-        ]
-        for _ in range(self.n_restarts):
-            starts.append(
-                np.concatenate(
-                    [
-                        [
-                            np.log(amp_scale) + rng.uniform(np.log(0.3), np.log(3.0)),
-                            np.log(sd) + rng.uniform(np.log(1e-3), np.log(0.3)),
-                            mean0,
-                        ],
-                        rng.uniform(np.log(0.3), np.log(30.0), n),
-                    ]
-                )
-            )
-        if fixed_noise is not None:
-            noise_bound = (0.0, 0.0)  # unused: the fixed variance enters instead
-            for s in starts:
-                s[1] = 0.0
-        else:
-            noise_bound = (lo_noise, hi_noise)
-        bounds = [
-            (lo_amp, hi_amp),
-            noise_bound,
-            (None, None) if self.mean == "constant" else (0.0, 0.0),
-        ] + [(lo_ls, hi_ls)] * n
-        lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
-        hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
-        args = (
-            jnp.asarray(xs),
-            jnp.asarray(y),
-            jnp.asarray(0.0 if fixed_noise is None else fixed_noise**2),
-            jnp.asarray(fixed_noise is not None),
-            jnp.asarray(float(self.mean == "constant")),
-            jnp.asarray(self.jitter),
-        )
-
-        def fun(t):
-            v, g = _nll_value_and_grad(jnp.asarray(t), *args, kind=self.kernel)
-            return float(v), np.asarray(g, dtype=float)
-
-        results = []
-        for s in starts:
-            s = np.clip(s, lo, hi)
-            if self.max_iter == 0:
-                results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
-                continue
-            with np.errstate(all="ignore"):
-                res = scipy.optimize.minimize(
-                    fun,
-                    s,
-                    jac=True,
-                    method="L-BFGS-B",
-                    bounds=bounds,
-                    options={"maxiter": self.max_iter},
-                )
-            nit = int(res.nit)
-            ok = res.status == 0 or _stationary(res.x, res.jac, lo, hi, res.fun)
-            results.append((float(res.fun), res.x, nit, ok, str(res.message)))
-        values = np.array([r[0] for r in results])
-        finite = np.isfinite(values)
-        if not np.any(finite):
-            raise NumericalError(
-                f"the marginal likelihood of component {comp} is not finite at any of the "
-                f"{len(starts)} starts; the kernel matrix is not positive definite: try "
-                "increasing the noise (noise=) or jitter="
-            )
-        best = int(np.argmin(np.where(finite, values, np.inf)))
-        fun_best, theta, nit, converged, message = results[best]
-        if self.max_iter == 0:
-            warnings.warn(
-                f"max_iter=0: component {comp} keeps the best of {len(starts)} start values; "
-                "the hyperparameters are not fitted",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        elif not converged:
-            warnings.warn(
-                f"the fit of component {comp} did not converge: L-BFGS-B stopped after {nit} "
-                f"iterations ({message}); raise max_iter= or check the data",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        amp, nz, mu, ls = (np.asarray(v) for v in _unpack(jnp.asarray(theta), n))
-        if fixed_noise is not None:
-            nz = np.asarray(fixed_noise)
-        elif self.max_iter > 0 and theta[1] <= lo_noise + 1e-6:
-            warnings.warn(
-                f"the fitted noise of component {comp} is at its lower bound (1e-6 std(y) = "
-                f"{1e-6 * sd:.3g}): the likelihood sees no noise (duplicate rows? an "
-                "interpolating fit?); fix noise= from the sensor's specification",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        noise_eff = float(np.sqrt(nz**2 + self.jitter * amp**2))
-        # a lengthscale at its lower bound matters only where the signal is not negligible
-        if self.max_iter > 0 and np.any(theta[3:] <= lo_ls + 1e-6) and amp > noise_eff:
-            dims = np.flatnonzero(theta[3:] <= lo_ls + 1e-6).tolist()
-            warnings.warn(
-                f"the fitted lengthscale of component {comp} along input(s) {dims} is at its "
-                "lower bound (1e-3 std(x)): the GP treats the rows as unrelated points and "
-                "predicts the prior mean between them (noise=0 or too small on noisy data? too "
-                "few rows?); fit the noise or give the sensor's noise",
-                ConvergenceWarning,
-                stacklevel=3,
-            )
-        return {
-            "amplitude": float(amp),
-            "noise": noise_eff,
-            "mean": float(mu) if self.mean == "constant" else 0.0,
-            "lengthscale": ls,
-            "lml": -fun_best,
-            "start_lmls": np.where(finite, -values, -np.inf),
-            "nit": nit,
-            "converged": converged,
-            "message": message,
-        }
-
     def _condition(self) -> None:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
         chols, alphas = [], []
         for j in range(len(self.components_)):
-            chol, alpha = _factor(
-                self.amplitude_[j], jnp.asarray(self._lengthscale_std[j]), self.noise_[j], xs,
+            chol, alpha = factor(
+                self.amplitude_[j], jnp.asarray(self.lengthscale_std_[j]), self.noise_[j], xs,
                 jnp.asarray(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
             )  # fmt: skip
             if not bool(jnp.all(jnp.isfinite(chol))):
@@ -734,14 +487,14 @@ class GaussianProcessModel:
         alpha_all = jnp.stack(alphas)
         self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
         self.alpha_ = np.asarray(alpha_all)
-        self._posterior = {
+        self.posterior_ = {
             "xs": xs,
             "offset": jnp.asarray(self.x_offset_),
             "scale": jnp.asarray(self.x_scale_),
             "chol": chol_all,
             "alpha": alpha_all,
             "amp": jnp.asarray(self.amplitude_),
-            "ls": jnp.asarray(self._lengthscale_std),
+            "ls": jnp.asarray(self.lengthscale_std_),
             "mu": jnp.asarray(self.mean_),
             "comps": jnp.asarray(self.components_),
         }
@@ -762,10 +515,6 @@ class GaussianProcessModel:
         return np.array(out)
 
     # -------------------------------------------------------------------------- predict
-
-    def _check_fitted(self) -> None:
-        if not hasattr(self, "alpha_"):
-            raise RuntimeError("this GaussianProcessModel is not fitted yet; call fit(x, y) first")
 
     def predict(self, x: Any) -> tuple[jax.Array, jax.Array]:
         """Posterior mean and variance of ``omega`` at states ``x``, eqs. (12), (13).
@@ -789,13 +538,13 @@ class GaussianProcessModel:
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
-        self._check_fitted()
+        check_fitted(self)
         x = jnp.asarray(x, dtype=float)
         if x.ndim == 0 or x.shape[-1] != self.n_states_:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
         check_finite("x", x)
         flat = x.reshape((-1, self.n_states_))
-        mean, var = _predict_batch(self._posterior, flat, self.kernel, self.n_states_)
+        mean, var = predict_batch(self.posterior_, flat, self.kernel, self.n_states_)
         return mean.reshape(x.shape), var.reshape(x.shape)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -806,23 +555,23 @@ class GaussianProcessModel:
         NonFiniteError
             If a concrete ``x`` contains NaN or inf (not checked inside ``jax.jit``).
         """
-        self._check_fitted()
+        check_fitted(self)
         if is_concrete(x):
             check_finite("x", x)
-        mean, var = _posterior_one(self._posterior, x, self.kernel, self.n_states_)
+        mean, var = exact_point(self.posterior_, x, self.kernel, self.n_states_)
         return mean, safe_sqrt(var)  # derivative 0, not NaN, where the std is 0
 
     @property
     def n_states(self) -> int:
         """State dimension (for the :class:`~safestab.robust.UncertaintyModel` protocol)."""
-        self._check_fitted()
+        check_fitted(self)
         return self.n_states_
 
     # ------------------------------------------------------------------------ save/load
 
     def save(self, path: str | Path) -> None:
         """Write the fitted model to a ``.npz`` file (plain arrays and JSON; no pickle)."""
-        self._check_fitted()
+        check_fitted(self)
         meta = {
             "format": _FORMAT,
             "kernel": self.kernel,
@@ -842,7 +591,7 @@ class GaussianProcessModel:
             amplitude=self.amplitude_,
             noise=self.noise_,
             mean=self.mean_,
-            lengthscale_std=self._lengthscale_std,
+            lengthscale_std=self.lengthscale_std_,
             log_marginal_likelihood=self.log_marginal_likelihood_,
         )
 
@@ -871,8 +620,8 @@ class GaussianProcessModel:
             if meta["format"] == _FORMAT_V1:
                 model.noise_ = np.sqrt(model.noise_**2 + model.jitter * model.amplitude_**2)
             model.mean_ = data["mean"]
-            model._lengthscale_std = data["lengthscale_std"]
-            model.lengthscale_ = model._lengthscale_std * model.x_scale_
+            model.lengthscale_std_ = data["lengthscale_std"]
+            model.lengthscale_ = model.lengthscale_std_ * model.x_scale_
             model.log_marginal_likelihood_ = data["log_marginal_likelihood"]
             model.optimizer_status_ = tuple(meta.get("optimizer_status", ()))
         model._condition()

@@ -16,14 +16,6 @@ from .acc_trials import (
     lead_acceleration,
     run_chunk,
 )
-from .gpbatch import (
-    BatchedUncertainty,
-    ExactPosterior,
-    Hyperparameters,
-    InducingCache,
-    condition,
-    inducing_cache,
-)
 from .loop import RECORD_FIELDS, trial_function
 from .report import metrics_document, plot_montecarlo, trials_npz_bytes
 from .runner import BACKENDS, MonteCarloRun, plan_chunks, run_montecarlo, start_ray
@@ -33,19 +25,13 @@ __all__ = [
     "BACKENDS",
     "CONFORMAL_MIN_TRAJECTORIES",
     "RECORD_FIELDS",
-    "BatchedUncertainty",
     "DataSetModel",
-    "ExactPosterior",
-    "Hyperparameters",
-    "InducingCache",
     "MonteCarloRun",
     "MonteCarloSpec",
     "calibration_draw",
     "clopper_pearson",
-    "condition",
     "draw_trials",
     "fit_dataset",
-    "inducing_cache",
     "lead_acceleration",
     "metrics_document",
     "plan_chunks",

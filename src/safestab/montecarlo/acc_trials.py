@@ -22,16 +22,19 @@ import numpy as np
 
 from ..controllers import UniversalController
 from ..errors import InducingPointsWarning, ParameterError
-from ..learning import GaussianProcessModel, beta_lemma2, collect_data, information_gain
-from ..scenarios import ACCScenario, MonteCarloSpec
-from .gpbatch import (
+from ..learning import (
     BatchedUncertainty,
     ExactPosterior,
+    GaussianProcessModel,
     Hyperparameters,
+    beta_lemma2,
+    collect_data,
     condition,
     inducing_cache,
-    one_blas_thread,
+    information_gain,
 )
+from ..learning.batched import one_blas_thread
+from ..scenarios import ACCScenario, MonteCarloSpec
 from .loop import trial_function
 
 __all__ = [

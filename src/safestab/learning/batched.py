@@ -1,20 +1,22 @@
-"""The GP of the Monte Carlo loop, evaluated for a batch of states as matrix products.
+"""GP posteriors evaluated for a batch of states as matrix products, as JAX pytrees.
 
-:func:`condition` conditions a GP with given hyperparameters on a data set (no optimisation;
-:meth:`GaussianProcessModel.from_hyperparameters`), :class:`ExactPosterior` batches its exact
-posterior and :func:`inducing_cache` its :class:`~safestab.learning.FastGP` cache, so that a
-batch of ``B`` states costs, per learned component,
+:func:`condition` conditions a GP with given :class:`Hyperparameters` on a data set (no
+optimisation; :meth:`GaussianProcessModel.from_hyperparameters`), :class:`ExactPosterior`
+batches its exact posterior and :func:`inducing_cache` its :class:`~safestab.learning.FastGP`
+cache, so that a batch of ``B`` states costs, per learned component,
 
 * ``M_c x B`` kernel values (squared distances by exact differences, as FastGP's kernel),
 * one ``(3 M_c, M_c) x (M_c, B)`` product for ``[a; G a; C a]`` (the whole band),
 
 GEMM-shaped work instead of ``B`` small matrix-vector products. The exact posterior is
 batched the same way (a ``(B, Q)`` cross-kernel matrix, one product with ``alpha`` and one
-triangular solve with ``B`` right-hand sides).
+triangular solve with ``B`` right-hand sides). :class:`BatchedUncertainty` wraps either as an
+uncertainty model whose ``jax.vmap`` is the batched evaluation.
 
-Both caches are JAX pytrees of arrays, so a compiled closed loop takes them as arguments (one
-compilation for every data set of the same shapes: the inducing-input counts' buckets) and Ray
-ships them as plain arrays.
+Both caches are JAX pytrees of arrays, so a compiled function takes them as arguments (one
+compilation for every data set of the same shapes: the inducing-input counts' buckets) and
+they travel between processes as plain arrays. The arithmetic is
+``safestab.learning._posterior``'s (``exact_products``, ``band_products``).
 
 Notes
 -----
@@ -25,10 +27,9 @@ FastGP's, not a copy of it) and evaluates FastGP's formula, ``m~ = mu + k . w`` 
 *every* state for every ``beta >= min_beta``, with a rounding allowance on ``r^2`` that covers
 any summation order of the dot products; the batched form only changes that order, so the
 guarantee carries over (tests/test_mc_gp.py checks containment far outside the data and the
-equality with FastGP to rounding). There is no measured widening any more: the widening of
-the earlier cache, calibrated on held-out states, could understate the exact std elsewhere.
-The exact posterior's squared distances are expanded as ``|x|^2 + |z|^2 - 2 x.z`` (a matrix
-product, adding rounding of about ``1e-16 (|x|^2 + |z|^2)`` in units of the lengthscale).
+equality with FastGP to rounding). The exact posterior's squared distances are expanded as
+``|x|^2 + |z|^2 - 2 x.z`` (a matrix product, adding rounding of about
+``1e-16 (|x|^2 + |z|^2)`` in units of the lengthscale).
 """
 
 from __future__ import annotations
@@ -40,7 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..learning import FastGP, GaussianProcessModel
+from ._posterior import band_products, bucket, exact_products
+from .fast import FastGP
+from .gp import GaussianProcessModel
 
 __all__ = [
     "Hyperparameters",
@@ -51,31 +54,6 @@ __all__ = [
     "inducing_cache",
     "one_blas_thread",
 ]
-
-
-def _kernel_from_r2(kind: str, amp: Any, r2: Any) -> Any:
-    """``amp^2 base(r)`` from squared scaled distances, as tinygp's SE and (L2) Matern 5/2."""
-    if kind == "se":
-        return amp**2 * jnp.exp(-0.5 * r2)
-    r = jnp.sqrt(r2)
-    s5 = np.sqrt(5.0)
-    return amp**2 * (1.0 + s5 * r + 5.0 / 3.0 * r2) * jnp.exp(-s5 * r)
-
-
-def _sq_dist(xl: Any, zl: Any, z2: Any) -> Any:
-    """Squared distances (C, B, M) from xl (C, B, n) and zl (C, M, n), as a matrix product."""
-    cross = jnp.einsum("cbn,cmn->cbm", xl, zl)
-    return jnp.maximum(jnp.sum(xl * xl, -1)[..., None] + z2[:, None, :] - 2.0 * cross, 0.0)
-
-
-def _bucket(used: int) -> int:
-    """Inducing inputs kept for a component that uses ``used``: 1, 2, 4, then multiples of 4.
-
-    Data sets whose counts fall in one bucket share the compiled loop (a compilation costs
-    about 10 s); the padding adds at most 60 % to that component's work (5 -> 8), at most a
-    third from 9 inducing inputs up.
-    """
-    return max(used, 1) if used <= 2 else -(-used // 4) * 4
 
 
 def _padded(v: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -181,14 +159,12 @@ class ExactPosterior:
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
         """Posterior mean and standard deviation at states ``x`` of shape (B, n), each (B, n)."""
         xs = (x - self.offset) / self.scale
-        xl = xs[None, :, :] * self.inv_ls[:, None, :]
-        k = _kernel_from_r2(self.kernel, self.amplitude[:, None, None],
-                            _sq_dist(xl, self.xl, self.x2))  # fmt: skip
-        mean = jnp.einsum("cbq,cq->cb", k, self.alpha) + self.mean[:, None]
-        v = jax.scipy.linalg.solve_triangular(self.chol, jnp.swapaxes(k, 1, 2), lower=True)
-        var = jnp.maximum(self.amplitude[:, None] ** 2 - jnp.sum(v * v, 1), 0.0)
+        mean, std = exact_products(
+            xs, self.inv_ls, self.xl, self.x2, self.chol, self.alpha, self.amplitude,
+            self.mean, kind=self.kernel,
+        )  # fmt: skip
         n, comps = self.n_states, self.components
-        return _scatter(mean, comps, n), _scatter(jnp.sqrt(var), comps, n)
+        return _scatter(mean, comps, n), _scatter(std, comps, n)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,11 +173,11 @@ class InducingCache:
 
     Each component keeps its own number of inducing inputs ``M_c`` (the number FastGP chose,
     rounded up to 1, 2, 4 or a multiple of 4 so that data sets share compiled shapes; padded
-    rows are masked out), instead of FastGP's padding of every component to the largest: the stress
-    GP's kinematic components need one inducing input each and its drag component eight, and
-    the padding to eight made two thirds of the kernel values and products zeros (measured:
-    the GP was three quarters of the Monte Carlo loop's time). The rows dropped are padding
-    (zero kernel values, zero weights, zero maps), so the band is FastGP's.
+    rows are masked out), instead of FastGP's padding of every component to the largest: the
+    stress preset's GP needs one inducing input for each kinematic component and eight for its
+    drag, and the padding to eight made two thirds of the kernel values and products zeros
+    (measured: the GP was three quarters of that preset's closed-loop time). The rows dropped
+    are padding (zero kernel values, zero weights, zero maps), so the band is FastGP's.
 
     Attributes
     ----------
@@ -248,7 +224,7 @@ class InducingCache:
         zl, maps_t, weights, mask = [], [], [], []
         for c in range(a["mask"].shape[0]):
             used = int(a["mask"][c].sum())  # FastGP pads at the end
-            m = _bucket(used)
+            m = bucket(used)
             blocks = [a["maps"][c][g * m_all : g * m_all + used, :used] for g in range(3)]
             zl.append(_padded(a["z"][c, :used] * inv_ls[c], (m, a["z"].shape[2])))
             maps_t.append(np.concatenate([_padded(b, (m, m)) for b in blocks], 0).T)
@@ -265,34 +241,19 @@ class InducingCache:
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
         """FastGP's mean and guaranteed std at states ``x`` (B, n), each (B, n).
 
-        The batch is the minor (contiguous) axis of every intermediate, ``(M_c, B)``: the
-        sums over the inducing inputs are then additions of whole rows, fused with the
-        elementwise work, instead of short reductions along the minor axis (measured: 190 ns
-        -> 130 ns per state on one core at ``M = 8``, ``B = 1000``; the reductions over a
-        minor axis of 8 were a tenth of the Monte Carlo loop's time).
+        Per component ``band_products`` of ``safestab.learning._posterior``, with the
+        batch as the minor (contiguous) axis of every intermediate, ``(M_c, B)``.
         """
         xs_t = ((x - self.offset) / self.scale).T  # (n, B)
         means, stds = [], []
         for c in range(len(self.zl)):
-            xl = xs_t * self.inv_ls[c][:, None]  # (n, B)
-            zl = self.zl[c]  # (M_c, n)
-            m = zl.shape[0]
-            # exact differences summed over the n coordinates in order, as FastGP's (tinygp's)
-            # kernel
-            r2 = jnp.square(xl[0][None, :] - zl[:, 0][:, None])
-            for d in range(1, xl.shape[0]):
-                r2 = r2 + jnp.square(xl[d][None, :] - zl[:, d][:, None])
-            k = _kernel_from_r2(self.kernel, self.amplitude[c], r2)
-            k = jnp.where(self.mask[c][:, None] > 0, k, 0.0)  # (M_c, B)
-            all3 = self.maps_t[c].T @ k  # (3 M_c, B): [a; G a; C a]
-            # |a|^2, |G a|^2, |C a|^2 at once: (3, M_c, B) summed over M_c
-            sq = jnp.sum(jnp.square(all3).reshape((3, m, all3.shape[-1])), 1)
-            r2_res = jnp.maximum(self.amplitude[c] ** 2 - sq[0], 0.0) + self.rnd[c]
-            r = jnp.sqrt(r2_res)
-            cross = 2.0 * jnp.sqrt(sq[2]) * self.rho[c] * r
-            var = r2_res + sq[1] + cross  # >= the exact variance (FastGP)
-            stds.append(jnp.sqrt(var) + self.err[c] * r / self.min_beta)
-            means.append(self.weights[c] @ k + self.mean[c])
+            mean, std = band_products(
+                xs_t, self.inv_ls[c], self.zl[c], self.maps_t[c], self.weights[c], self.mask[c],
+                self.amplitude[c], self.mean[c], self.err[c], self.rho[c], self.rnd[c],
+                self.min_beta, kind=self.kernel,
+            )  # fmt: skip
+            stds.append(std)
+            means.append(mean)
         n, comps = self.n_states, self.components
         return _scatter(jnp.stack(means), comps, n), _scatter(jnp.stack(stds), comps, n)
 
@@ -311,8 +272,9 @@ def one_blas_thread() -> Any:
     Measured on this 2-core machine with other jobs running (load average 2.9): a 2000 x 2000
     Cholesky factorisation took 1.14 s with OpenBLAS's two threads and 0.14 s with one (its
     threads wait on each other while the cores are busy elsewhere). One thread also fixes the
-    summation order, so a data set's GP is the same bits in this process and in a Ray worker
-    whatever their thread settings. Several data sets run in parallel as separate tasks.
+    summation order, so a data set's GP is the same bits in this process and in a worker
+    process whatever their thread settings; run several data sets in parallel as separate
+    tasks instead.
     """
     from threadpoolctl import threadpool_limits
 
@@ -335,8 +297,8 @@ def condition(hyper: Hyperparameters, x: Any, y: Any, *, seed: int = 0) -> Gauss
     GaussianProcessModel
         From :meth:`GaussianProcessModel.from_hyperparameters`: the matrix
         ``K + noise^2 I`` a fit with these hyperparameters factorises, one Cholesky
-        factorisation per component instead of a marginal-likelihood optimisation
-        (``hyperparameters = "reuse"`` in a Monte Carlo study).
+        factorisation per component instead of a marginal-likelihood optimisation (one fit's
+        hyperparameters reused on another data set).
     """
     with one_blas_thread():
         return GaussianProcessModel.from_hyperparameters(
@@ -400,9 +362,9 @@ def _mean_std_rule(axis_size, in_batched, cache, x):
 class BatchedUncertainty:
     """An :class:`~safestab.robust.UncertaintyModel` whose batches are matrix products.
 
-    ``mean_std`` takes one state, as controllers expect; under ``jax.vmap`` (a controller's
-    batched step, the Monte Carlo loop) a custom batching rule evaluates the whole batch with
-    the cache's ``mean_std_batch`` instead of mapping the one-state function.
+    ``mean_std`` takes one state, as the protocol asks; under ``jax.vmap`` a custom batching
+    rule evaluates the whole batch with the cache's ``mean_std_batch`` instead of mapping the
+    one-state function.
 
     Parameters
     ----------

@@ -19,9 +19,11 @@ from ._cache import configure_from_environment as _configure_cache  # noqa: E402
 
 _configure_cache()  # JAX's persistent compilation cache (safestab/_cache.py)
 
+from ._version import __version__ as __version__  # noqa: E402
 from .certificates import CBF, CLF, LieTerms, high_order_cbf, lie_terms  # noqa: E402
 from .controllers import (  # noqa: E402
     CBFController,
+    Controller,
     ControlOutput,
     SontagController,
     StepStatus,
@@ -75,10 +77,8 @@ from .robust import (  # noqa: E402
     robust_lie_terms,
     robust_margins,
 )
-from .simulation import Trajectory, rk4_step, simulate  # noqa: E402
+from .simulation import Trajectory, closed_loop, rk4_step, simulate  # noqa: E402
 from .systems import ControlAffineSystem  # noqa: E402
-
-__version__ = "0.1.0"
 
 __all__ = [
     "CBF",
@@ -91,6 +91,7 @@ __all__ = [
     "SafetyFilter",
     "FilterOutput",
     "LieTerms",
+    "Controller",
     "UniversalController",
     "lie_terms",
     "high_order_cbf",
@@ -135,6 +136,7 @@ __all__ = [
     "saturate_safety_first",
     "zeta",
     "Trajectory",
+    "closed_loop",
     "rk4_step",
     "simulate",
     "NativeController",

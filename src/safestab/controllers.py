@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
-from ._numerics import as_scalar, inv_sqrt
+from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, is_concrete, traced_results
 from ._values import ControllerValue
@@ -30,19 +30,22 @@ from .errors import (
 )
 from .formulas import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL, Region
 from .formulas._checks import check_box, check_params
-from .formulas._kernels import (
-    cbf_only,
-    condition_flags,
-    margins,
-    saturate_single,
-    solve_two,
-    sontag,
+from .formulas._kernels import condition_flags, saturate_single
+from .formulas.problem import (
+    CBFFormula,
+    CombinedFormula,
+    Formula,
+    MultiFormula,
+    Problem,
+    RelaxedFormula,
+    SontagFormula,
 )
 from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_lie_terms
 from .systems import ControlAffineSystem
 
 __all__ = [
     "ControlOutput",
+    "Controller",
     "StepStatus",
     "UniversalController",
     "SontagController",
@@ -122,7 +125,60 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
     return ok
 
 
-class UniversalController(ControllerValue):
+class Controller(ControllerValue):
+    """A controller: a system, certificates, a formula object, limits and an uncertainty model.
+
+    The one kind of controller value. :class:`UniversalController` builds it with one CLF,
+    one CBF and a single-pair formula (:class:`~safestab.formulas.problem.CombinedFormula`,
+    ``RelaxedFormula``, ``SontagFormula``, ``CBFFormula``) and returns a
+    :class:`ControlOutput`; :class:`~safestab.SafetyFilter` builds it with any number of
+    CLFs and CBFs and the several-row formula
+    (:class:`~safestab.formulas.problem.MultiFormula`) and returns a
+    :class:`~safestab.FilterOutput`. Both are pytrees whose leaves are their numeric
+    parameters (:meth:`tunables`, :meth:`replace`), run by :func:`~safestab.simulate` and
+    exported by :func:`~safestab.export_c` alike.
+
+    Each step computes the certificates' Lie terms at the state, the GP-robust terms when an
+    uncertainty model is set (Lemma 3), the formula's :class:`~safestab.formulas.problem.Problem`
+    and its solution, the limits and the flags, in one jitted function ``step_fn``.
+    """
+
+    system: ControlAffineSystem
+    formula: Formula
+    params_spec: ParamSpec | None
+    step_fn: Any
+    clfs: tuple[CLF, ...]  #: every CLF (a UniversalController: its one)
+    cbfs: tuple[CBF, ...]  #: every CBF
+
+    @staticmethod
+    def _check_uncertainty(uncertainty: Any, gp_beta: Any, n: int) -> Any:
+        """Check the uncertainty model and return ``gp_beta`` checked (as given without one)."""
+        if uncertainty is None:
+            return gp_beta
+        check_uncertainty_model(uncertainty, n)
+        return check_beta(gp_beta, n)
+
+    def _check_step(self, x: jax.Array, out: Any, strict: bool, p: Any) -> None:
+        """Raise for the step's output as ``step`` documents (subclasses)."""
+        raise NotImplementedError
+
+    def step(self, x: Any, *, params: Any = None, strict: bool = False) -> Any:
+        """The input and its diagnostics at states ``x`` of shape (..., n) (see subclasses)."""
+        check_real("x", x)
+        x = self.system.check_state(x)
+        p = resolve(self.params_spec, params, f"the {self._owner}")
+        out = self.step_fn(x) if p is None else self.step_fn(x, p)
+        self._check_step(x, out, strict, p)
+        return out
+
+    _owner = "controller"
+
+    def __call__(self, x: Any, params: Any = None) -> jax.Array:
+        """The input at states ``x`` of shape (..., n); shape (..., m)."""
+        return self.step(x, params=params).u
+
+
+class UniversalController(Controller):
     """The universal formula bound to a system, a CLF, a CBF and parameters.
 
     A controller is a JAX value (a pytree whose leaves are its numeric parameters, see
@@ -158,13 +214,17 @@ class UniversalController(ControllerValue):
         Confidence scaling ``beta_i`` of the uncertainty model (Lemma 2); default 2.
     parallel_rtol : float
         Tolerance of the parallel test.
-    formula : {"combined", "sontag", "cbf"}
+    formula : {"combined", "sontag", "cbf"} or Formula
         ``"combined"`` (default): the universal formula (Theorems 1-3). ``"sontag"``: Sontag's
         CLF formula alone, eq. (3) (region ``P1``, or ``P4`` where ``b = 0``); ``"cbf"``: the
         CBF formula alone, eq. (6) (region ``P2``, or ``P4`` where ``d = 0``). Both
         certificates are still evaluated, so the flags and ``compatible`` report on both
         conditions, for comparison studies (see :class:`SontagController`,
-        :class:`CBFController`).
+        :class:`CBFController`). Or a formula object of
+        :mod:`safestab.formulas.problem` (``CombinedFormula(parallel_rtol)``,
+        ``RelaxedFormula()`` with ``slack_weight``, ``SontagFormula()``, ``CBFFormula()``):
+        the string is a name for one of them, and the attribute ``formula`` always holds the
+        object.
     params : pytree, optional
         An example of run-time parameters for the controller's own callables: with it,
         callable ``phi`` and ``varphi`` take ``(x, p)``. The system and the certificates
@@ -228,8 +288,7 @@ class UniversalController(ControllerValue):
         cbf_margin: float | None = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
-        if formula not in ("combined", "sontag", "cbf"):
-            raise ParameterError(f"formula must be 'combined', 'sontag' or 'cbf', got {formula!r}")
+        formula_obj = self._formula_object(formula, slack_weight, parallel_rtol)
         if not isinstance(clf, CLF):
             raise InputTypeError(
                 f"clf must be a CLF, got {type(clf).__name__}; for a controller with barriers "
@@ -239,8 +298,6 @@ class UniversalController(ControllerValue):
             raise InputTypeError(
                 f"cbf must be a CBF, got {type(cbf).__name__} (several: SafetyFilter)"
             )
-        if formula != "combined" and slack_weight is not None:
-            raise ParameterError(f"slack_weight applies to the combined formula, not {formula!r}")
         check_params((), kappa=kappa, rho=rho, parallel_rtol=parallel_rtol)
         own_spec = make_spec(params, "the controller")
         for name, weight in (("phi", phi), ("varphi", varphi)):
@@ -288,9 +345,7 @@ class UniversalController(ControllerValue):
             raise DimensionError(
                 f"saturation='safety_first' needs a single-input system, got n_inputs={m}"
             )
-        if uncertainty is not None:
-            check_uncertainty_model(uncertainty, system.n_states)
-            gp_beta = check_beta(gp_beta, system.n_states)
+        gp_beta = self._check_uncertainty(uncertainty, gp_beta, system.n_states)
         self.system = system
         self.clf = clf
         self.cbf = cbf
@@ -309,8 +364,18 @@ class UniversalController(ControllerValue):
         self.saturation = saturation
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta if uncertainty is not None else None
+        if isinstance(formula_obj, CombinedFormula):
+            parallel_rtol = formula_obj.parallel_rtol  # the object's setting, not the default
         self.parallel_rtol = float(parallel_rtol)
-        self.formula = formula
+        #: The formula object (:mod:`safestab.formulas.problem`) that maps the step's problem
+        #: to its input.
+        self.formula: Formula = formula_obj
+        #: The hard combined formula, whose case is Lemma 1's compatibility (``compatible``).
+        self._combined = (
+            formula_obj
+            if isinstance(formula_obj, CombinedFormula)
+            else CombinedFormula(self.parallel_rtol)
+        )
         self.cbf_margin = None if cbf_margin is None else as_scalar(cbf_margin)
         self._remember(UniversalController, init_args)
         self._rebuild()
@@ -325,6 +390,16 @@ class UniversalController(ControllerValue):
 
     _CHILDREN = ("clf", "cbf")
 
+    @property
+    def clfs(self) -> tuple[CLF]:
+        """The controller's CLFs, ``(clf,)``: the same view as a filter's."""
+        return (self.clf,)
+
+    @property
+    def cbfs(self) -> tuple[CBF]:
+        """The controller's CBFs, ``(cbf,)``: the same view as a filter's."""
+        return (self.cbf,)
+
     def _leaf_names(self) -> tuple[str, ...]:
         names = ["kappa", "rho"]
         names += [w for w in ("phi", "varphi") if not callable(self.params[w])]
@@ -333,6 +408,40 @@ class UniversalController(ControllerValue):
         names += ["gp_beta"] if self.uncertainty is not None else []
         names += ["cbf_margin"] if self.cbf_margin is not None else []
         return tuple(names)
+
+    @staticmethod
+    def _formula_object(formula: Any, slack_weight: Any, parallel_rtol: Any) -> Formula:
+        """The formula object for the ``formula`` argument (a name or an object)."""
+        names = {"combined": CombinedFormula, "sontag": SontagFormula, "cbf": CBFFormula}
+        if isinstance(formula, str) and formula in names:
+            if formula != "combined" and slack_weight is not None:
+                raise ParameterError(
+                    f"slack_weight applies to the combined formula, not {formula!r}"
+                )
+            if formula == "combined":
+                if slack_weight is not None:
+                    return RelaxedFormula()
+                check_params((), parallel_rtol=parallel_rtol)
+                return CombinedFormula(float(parallel_rtol))
+            return names[formula]()
+        if isinstance(formula, MultiFormula):
+            raise ParameterError(
+                "MultiFormula (several CLFs and CBFs, limits inside the problem) is the "
+                "SafetyFilter's formula: use SafetyFilter(system, cbfs, clfs=...)"
+            )
+        if isinstance(formula, Formula):
+            relaxed = isinstance(formula, RelaxedFormula)
+            if relaxed != (slack_weight is not None):
+                raise ParameterError(
+                    "RelaxedFormula needs slack_weight, and slack_weight needs RelaxedFormula "
+                    f"(or formula='combined'); got {type(formula).__name__} with "
+                    f"slack_weight={slack_weight!r}"
+                )
+            return formula
+        raise ParameterError(
+            "formula must be 'combined', 'sontag', 'cbf' or a formula object "
+            f"(safestab.formulas.problem), got {formula!r}"
+        )
 
     @staticmethod
     def _limit(name: str, value: Any, m: int) -> Any:
@@ -354,8 +463,8 @@ class UniversalController(ControllerValue):
         return arr.copy()
 
     def __repr__(self) -> str:
-        kind: str = self.formula if self.formula != "combined" else "clf_cbf"
-        kind = "relaxed" if self.slack_weight is not None else kind
+        kinds = {SontagFormula: "sontag", CBFFormula: "cbf", RelaxedFormula: "relaxed"}
+        kind = kinds.get(type(self.formula), "clf_cbf")
         gp = ", GP-robust" if self.uncertainty is not None else ""
         return f"UniversalController({self.system.name}, formula={kind}{gp}, params={self.params})"
 
@@ -368,8 +477,11 @@ class UniversalController(ControllerValue):
         """
         return self._terms_status_point(x, p)[0]
 
-    def _weights_point(self, x: jax.Array, p: Any = None) -> tuple[jax.Array, jax.Array]:
-        """``phi`` and ``varphi`` at one state (constants or functions of the state)."""
+    def weights_point(self, x: jax.Array, p: Any = None) -> tuple[jax.Array, jax.Array]:
+        """``phi`` and ``varphi`` at one state ``x`` (n,): scalars (constants or functions of x).
+
+        ``p``: the run-time parameters (unchecked), when the controller takes them.
+        """
         phi, varphi = self.params["phi"], self.params["varphi"]
         return (
             jnp.asarray(self._phi_of(x, p) if self._phi_of is not None else phi, dtype=float),
@@ -378,9 +490,11 @@ class UniversalController(ControllerValue):
             ),
         )
 
-    def _terms_status_point(self, x: jax.Array, p: Any = None) -> tuple[LieTerms, jax.Array, tuple]:
+    def _terms_status_point(
+        self, x: jax.Array, p: Any = None, given: tuple | None = None
+    ) -> tuple[LieTerms, jax.Array, tuple]:
         terms = lie_terms_point(self.system, self.clf, self.cbf, x, p)
-        weights = self._weights_point(x, p)
+        weights = self.weights_point(x, p)
         S = StepStatus
         model_ok = jnp.where(
             _all_finite(*terms, *weights),
@@ -394,7 +508,7 @@ class UniversalController(ControllerValue):
         )
         status = jnp.where(~_all_finite(x), S.NONFINITE_STATE, model_ok)
         if self.uncertainty is not None:
-            mean, std = self.uncertainty.mean_std(x)
+            mean, std = self.uncertainty.mean_std(x) if given is None else given
             beta = jnp.asarray(self.gp_beta)
             grads = self.clf.grad_of(x, p), self.cbf.grad_of(x, p)
             terms = robust_lie_terms(terms, *grads, mean, std, beta)
@@ -409,32 +523,64 @@ class UniversalController(ControllerValue):
             )
         return terms, status.astype(jnp.int32), weights
 
-    def _step(self, x: jax.Array, p: Any = None) -> ControlOutput:
-        terms, status, (phi, varphi) = over_batch(lambda s: self._terms_status_point(s, p), x)
+    def step_with_uncertainty(
+        self, x: jax.Array, mean: jax.Array, std: jax.Array, p: Any = None
+    ) -> ControlOutput:
+        """The step at one state with the uncertainty model's mean and std there given.
+
+        For a caller that needs the model's values at ``x`` itself too (the Monte Carlo
+        study checks Lemma 2's band at every visited state): the model is then evaluated once
+        per step instead of twice (XLA does not merge the two evaluations; measured, the check
+        doubled the cost of a GP-robust step). Unchecked and jittable, like ``step_fn``.
+
+        Parameters
+        ----------
+        x : array of shape (n,)
+        mean, std : arrays of shape (n,)
+            What ``uncertainty.mean_std(x)`` returns.
+        p : pytree, optional
+            The run-time parameters, when the controller takes them.
+
+        Returns
+        -------
+        ControlOutput
+
+        Raises
+        ------
+        ParameterError
+            If the controller has no uncertainty model.
+        DimensionError
+            If ``x`` is not one state of shape (n,).
+        """
+        if self.uncertainty is None:
+            raise ParameterError(
+                "step_with_uncertainty needs a controller with an uncertainty model"
+            )
+        if jnp.ndim(x) != 1:
+            raise DimensionError(f"x must be one state of shape (n,), got shape {jnp.shape(x)}")
+        return self._step(x, p, (mean, std))
+
+    def _step(self, x: jax.Array, p: Any = None, given: tuple | None = None) -> ControlOutput:
+        terms, status, (phi, varphi) = over_batch(
+            lambda s: self._terms_status_point(s, p, given), x
+        )
         a, b, c, d = terms
         p = self.params
         # a negative weight is reported by the status; the formula runs on 0 meanwhile
         phi, varphi = jnp.maximum(phi, 0.0), jnp.maximum(varphi, 0.0)
-        mg = margins(a, b, c, d, p["kappa"], p["rho"], phi, varphi)
-        mg_flags = mg
-        if self.cbf_margin is not None:
-            # enforce c + d.u >= rho Gamma + margin; report the condition with half of it
-            mg_flags = mg._replace(B=mg.B + 0.5 * self.cbf_margin)
-            mg = mg._replace(B=mg.B + self.cbf_margin)
-        hard = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, parallel_rtol=self.parallel_rtol)
-        if self.formula == "sontag":
-            u0 = sontag(mg.A, b, mg.nb)
-            region0 = jnp.where(mg.nb > 0, Region.P1, Region.P4).astype(jnp.int32)
-            res = hard._replace(u=u0, region=region0, slack=jnp.zeros_like(mg.A))
-        elif self.formula == "cbf":
-            u0 = cbf_only(mg.B, d, mg.nd)
-            region0 = jnp.where(mg.nd > 0, Region.P2, Region.P4).astype(jnp.int32)
-            res = hard._replace(u=u0, region=region0, slack=jnp.zeros_like(mg.A))
-        elif self.slack_weight is None:
-            res = hard
-        else:
-            s = inv_sqrt(self.slack_weight)
-            res = solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, inv_sqrt_slack=s)
+        problem = Problem(
+            a, b, c, d, p["kappa"], p["rho"], phi, varphi,
+            slack_weight=self.slack_weight, cbf_margin=self.cbf_margin,
+        )  # fmt: skip
+        mg = problem.margins()  # the CBF condition enforced (with the margin)
+        # flags: the condition with half the margin (see cbf_margin)
+        mg_flags = (
+            mg
+            if self.cbf_margin is None
+            else problem.replace(cbf_margin=0.5 * self.cbf_margin).margins()
+        )
+        hard = self._combined.solution(problem.replace(slack_weight=None))
+        res = hard if self.formula is self._combined else self.formula.solve(problem)
         u = res.u
         if self.u_min is not None:
             lo, hi = jnp.asarray(self.u_min), jnp.asarray(self.u_max)
@@ -487,7 +633,7 @@ class UniversalController(ControllerValue):
             mean, std = self.uncertainty.mean_std(x)
             parts["uncertainty mean"] = mean
             parts["uncertainty std"] = std
-        phi, varphi = self._weights_point(x, p)
+        phi, varphi = self.weights_point(x, p)
         parts["phi(x)"], parts["varphi(x)"] = phi, varphi
         bad = [name for name, val in parts.items() if not bool(np.all(np.isfinite(val)))]
         if self.uncertainty is not None and bool(np.any(np.asarray(parts["uncertainty std"]) < 0)):
@@ -579,16 +725,10 @@ class UniversalController(ControllerValue):
             With ``strict=True``, if the conditions are incompatible or the CBF condition is
             violated by the applied input.
         """
-        check_real("x", x)
-        x = self.system.check_state(x)
-        p = resolve(self.params_spec, params, "the controller")
-        out = self.step_fn(x) if p is None else self.step_fn(x, p)
-        self._raise_for_status(x, out, strict, p)
-        return out
+        return super().step(x, params=params, strict=strict)
 
-    def __call__(self, x: Any, params: Any = None) -> jax.Array:
-        """The input at states ``x`` of shape (..., n); shape (..., m)."""
-        return self.step(x, params=params).u
+    def _check_step(self, x: jax.Array, out: ControlOutput, strict: bool, p: Any) -> None:
+        self._raise_for_status(x, out, strict, p)
 
 
 class SontagController(UniversalController):

@@ -18,18 +18,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
-from ._numerics import inv_sqrt
-from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
+from ._params import ParamSpec, bind, make_spec, merge_specs, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
-from ._values import ControllerValue
 from .certificates import CBF, CLF
-from .controllers import StepStatus
+from .controllers import Controller, StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_box, check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
-from .formulas.multi import multi_kernel
-from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_margins
+from .formulas.problem import MultiFormula, Problem
+from .robust import UncertaintyModel, robust_margins
 from .systems import ControlAffineSystem
 
 __all__ = ["SafetyFilter", "FilterOutput"]
@@ -133,11 +131,13 @@ def _as_tuple(value: Any, kind: type, name: str) -> tuple:
     return items
 
 
-class SafetyFilter(ControllerValue):
+class SafetyFilter(Controller):
     """Minimally modify a nominal input so that every CBF (and CLF) condition holds.
 
-    Like :class:`~safestab.UniversalController`, a filter is a JAX value whose leaves are its
-    numeric parameters (:meth:`tunables`, :meth:`replace`).
+    A :class:`~safestab.controllers.Controller` with the several-row formula
+    (:class:`~safestab.formulas.problem.MultiFormula`, attribute ``formula``); like
+    :class:`~safestab.UniversalController`, a JAX value whose leaves are its numeric
+    parameters (:meth:`tunables`, :meth:`replace`).
 
     Solves, at each state, ``min 1/2 (u - u_nom)^T H (u - u_nom) + 1/2 m sum chi_j^2`` subject
     to every CBF condition, every CLF condition (with slack ``chi_j`` when ``slack_weight`` is
@@ -253,9 +253,7 @@ class SafetyFilter(ControllerValue):
                 H = Hn
             else:
                 H = jnp.asarray(H, dtype=float)
-        if uncertainty is not None:
-            check_uncertainty_model(uncertainty, n)
-            gp_beta = check_beta(gp_beta, n)
+        gp_beta = self._check_uncertainty(uncertainty, gp_beta, n)
         #: The run-time parameters' structure shared by every function (None: none).
         self.params_spec: ParamSpec | None = merge_specs(
             [system.params_spec, *(c.params_spec for c in self.clfs + self.cbfs), own_spec]
@@ -269,6 +267,8 @@ class SafetyFilter(ControllerValue):
         self.u_min, self.u_max = u_min, u_max
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
+        #: The several-row formula object that solves each step's problem.
+        self.formula = MultiFormula(self.max_iter)
         self._remember(SafetyFilter, init_args)
         self._rebuild()
 
@@ -322,24 +322,30 @@ class SafetyFilter(ControllerValue):
             unc_ok = jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(std))
             status = jnp.where((status == S.OK) & ~unc_ok, S.NONFINITE_UNCERTAINTY, status)
             status = jnp.where((status == S.OK) & jnp.any(std < 0), S.NEGATIVE_STD, status)
-        u_nom = self._u_nom_of(x, p) if self._u_nom_of is not None else None
-        return (a, b, c, d, u_nom), status.astype(jnp.int32)
+        return (a, b, c, d, self.nominal_input(x, p)), status.astype(jnp.int32)
+
+    def nominal_input(self, x: jax.Array, p: Any = None) -> jax.Array | None:
+        """The nominal input ``u_nom`` at one state ``x`` (n,), shape (m,); None without one.
+
+        ``p``: the run-time parameters (unchecked), when the filter takes them.
+        """
+        return self._u_nom_of(x, p) if self._u_nom_of is not None else None
 
     def _step(self, x: jax.Array, p: Any = None) -> FilterOutput:
         (a, b, c, d, u_nom), status = over_batch(lambda s: self._point(s, p), x)
         p = self.params
         batch = x.shape[:-1]
-        inv = None if self.slack_weight is None else inv_sqrt(self.slack_weight)
         lo = hi = None
         if self.u_min is not None:
             m = self.system.n_inputs
             lo = jnp.broadcast_to(jnp.asarray(self.u_min), batch + (m,))
             hi = jnp.broadcast_to(jnp.asarray(self.u_max), batch + (m,))
         H = None if self.H is None else jnp.broadcast_to(jnp.asarray(self.H), batch + self.H.shape)
-        res = multi_kernel(
-            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"], inv, lo, hi, u_nom, H,
-            max_iter=self.max_iter,
+        problem = Problem(
+            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"],
+            slack_weight=self.slack_weight, u_min=lo, u_max=hi, u_nom=u_nom, H=H,
         )  # fmt: skip
+        res = self.formula.solve(problem)
         u = res.u
         ub = u[..., None, :]
         mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
@@ -390,13 +396,9 @@ class SafetyFilter(ControllerValue):
             With ``strict=True``, where a fallback was used, the solver stopped uncertified
             (``ITERATION_LIMIT``, ``UNCERTIFIED``) or a CBF condition is violated.
         """
-        check_real("x", x)
-        x = self.system.check_state(x)
-        p = resolve(self.params_spec, params, "the filter")
-        out = self.step_fn(x) if p is None else self.step_fn(x, p)
-        check_output(out, strict)
-        return out
+        return super().step(x, params=params, strict=strict)
 
-    def __call__(self, x: Any, params: Any = None) -> jax.Array:
-        """The filtered input at states ``x`` of shape (..., n); shape (..., m)."""
-        return self.step(x, params=params).u
+    _owner = "filter"
+
+    def _check_step(self, x: jax.Array, out: FilterOutput, strict: bool, p: Any) -> None:
+        check_output(out, strict)

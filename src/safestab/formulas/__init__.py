@@ -34,6 +34,15 @@ from .certificate import conditions_satisfied, kkt_residuals
 from .compat import compatibility
 from .limits import project_box, saturate_safety_first
 from .multi import MultiResult, MultiStatus, clf_cbf_multi
+from .problem import (
+    CBFFormula,
+    CombinedFormula,
+    Formula,
+    MultiFormula,
+    Problem,
+    RelaxedFormula,
+    SontagFormula,
+)
 from .results import (
     Compatibility,
     CompatibilityCase,
@@ -67,4 +76,11 @@ __all__ = [
     "MultiResult",
     "MultiStatus",
     "clf_cbf_multi",
+    "Problem",
+    "Formula",
+    "SontagFormula",
+    "CBFFormula",
+    "CombinedFormula",
+    "RelaxedFormula",
+    "MultiFormula",
 ]

@@ -5,30 +5,24 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 from ._checks import as_float, check_lie_terms, check_output_finite, check_params
-from ._kernels import DEFAULT_PARALLEL_RTOL, margins, solve_two
+from ._kernels import DEFAULT_PARALLEL_RTOL
+from .problem import CombinedFormula, Problem, RelaxedFormula
 from .results import FormulaResult
 
 __all__ = ["clf_cbf", "clf_cbf_relaxed"]
 
 
-def _result(sol) -> FormulaResult:
-    return FormulaResult(u=sol.u, region=sol.region, multipliers=sol.multipliers, slack=sol.slack)
-
-
 @jax.jit
 def _clf_cbf_jit(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol):
-    mg = margins(a, b, c, d, kappa, rho, phi, varphi)
-    return _result(solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, parallel_rtol=parallel_rtol))
+    return CombinedFormula(parallel_rtol).solve(Problem(a, b, c, d, kappa, rho, phi, varphi))
 
 
 @jax.jit
 def _clf_cbf_relaxed_jit(a, b, c, d, kappa, rho, phi, varphi, slack_weight):
-    mg = margins(a, b, c, d, kappa, rho, phi, varphi)
-    s = 1.0 / jnp.sqrt(jnp.asarray(slack_weight, dtype=float))
-    return _result(solve_two(mg.A, mg.B, b, d, mg.nb, mg.nd, inv_sqrt_slack=s))
+    problem = Problem(a, b, c, d, kappa, rho, phi, varphi, slack_weight=slack_weight)
+    return RelaxedFormula().solve(problem)
 
 
 def _check_result(function: str, res: FormulaResult) -> None:

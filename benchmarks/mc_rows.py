@@ -19,11 +19,8 @@ import numpy as np
 
 from _page import put_block
 from safestab.learning import FastGP, GaussianProcessModel, condition, inducing_cache
-from safestab.montecarlo import (
-    fit_dataset,
-    run_montecarlo,
-    start_ray,
-)
+from safestab.montecarlo import run_montecarlo, start_ray
+from safestab.montecarlo.acc_trials import fit_dataset
 from safestab.scenarios import load_scenario
 
 BEGIN, END = "<!-- montecarlo:begin -->", "<!-- montecarlo:end -->"

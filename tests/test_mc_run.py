@@ -11,16 +11,18 @@ from safestab.errors import ParameterError
 from safestab.learning import BatchedUncertainty, conformal_beta
 from safestab.montecarlo import (
     RECORD_FIELDS,
-    calibration_draw,
-    draw_trials,
-    fit_dataset,
-    lead_acceleration,
     metrics_document,
-    run_chunk,
     run_montecarlo,
     start_ray,
     summarize,
     trial_function,
+)
+from safestab.montecarlo.acc_trials import (
+    calibration_draw,
+    draw_trials,
+    fit_dataset,
+    lead_acceleration,
+    run_chunk,
 )
 from safestab.scenarios import load_scenario
 

@@ -7,38 +7,23 @@ docs/montecarlo.md.
 """
 
 from ..scenarios import MonteCarloSpec
-from .acc_trials import (
-    CONFORMAL_MIN_TRAJECTORIES,
-    DataSetModel,
-    calibration_draw,
-    draw_trials,
-    fit_dataset,
-    lead_acceleration,
-    run_chunk,
-)
-from .loop import RECORD_FIELDS, trial_function
+from .loop import RECORD_FIELDS, StatisticsRecorder, trial_function
 from .report import metrics_document, plot_montecarlo, trials_npz_bytes
-from .runner import BACKENDS, MonteCarloRun, plan_chunks, run_montecarlo, start_ray
-from .stats import clopper_pearson, safe_mask, summarize
+from .runner import BACKENDS, MonteCarloRun, run_montecarlo, start_ray
+from .stats import clopper_pearson, summarize
 
+# The study's plumbing (data sets, trial draws, chunks) stays in its modules:
+# montecarlo.acc_trials, montecarlo.runner, montecarlo.stats.
 __all__ = [
     "BACKENDS",
-    "CONFORMAL_MIN_TRAJECTORIES",
     "RECORD_FIELDS",
-    "DataSetModel",
     "MonteCarloRun",
     "MonteCarloSpec",
-    "calibration_draw",
+    "StatisticsRecorder",
     "clopper_pearson",
-    "draw_trials",
-    "fit_dataset",
-    "lead_acceleration",
     "metrics_document",
-    "plan_chunks",
     "plot_montecarlo",
-    "run_chunk",
     "run_montecarlo",
-    "safe_mask",
     "start_ray",
     "summarize",
     "trial_function",

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import ScenarioError
 from ..formulas.multi import multi_kernel
+from ..simulation import closed_loop
 
 __all__ = ["SwarmScenario", "SwarmRun", "PRESETS", "simulate_swarm", "pair_terms"]
 
@@ -196,13 +197,28 @@ def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
             status = jnp.zeros(sc.n_robots, jnp.int32)
         return u, u_nom, status
 
-    def step(pos, _):
+    def step(t, pos, data):
         u, u_nom, status = control(pos)
-        return pos + sc.dt * u, (pos, u, u_nom, status)
+        return {"u": u, "u_nom": u_nom, "status": status}
 
-    final, (p, u, u_nom, status) = jax.jit(lambda p0: jax.lax.scan(step, p0, None, steps))(
-        jnp.asarray(start)
-    )
-    p = np.concatenate([np.asarray(p), np.asarray(final)[None]], axis=0)
+    def rhs(t, pos, out, data):
+        return out["u"]  # p_i' = u_i, held over the step (RK4 is exact for it)
+
+    run = closed_loop(step, rhs, _SwarmRecorder(), n_steps=steps, dt=sc.dt)
+    p, u, u_nom, status = jax.jit(run)(jnp.asarray(start), None)
     t = sc.dt * np.arange(steps + 1)
-    return SwarmRun(mode, t, p, np.asarray(u), np.asarray(u_nom), np.asarray(status))
+    return SwarmRun(mode, t, np.asarray(p), np.asarray(u), np.asarray(u_nom), np.asarray(status))
+
+
+class _SwarmRecorder:
+    """The swarm's history: positions at t_0 .. t_K, inputs and statuses at t_0 .. t_{K-1}."""
+
+    def init(self, x0: Any, data: Any) -> None:
+        return None
+
+    def update(self, state, k, t, pos, out, data):
+        return None, (pos, out["u"], out["u_nom"], out["status"])
+
+    def finish(self, state, ys, pos_final, out_final, t_final, data):
+        p, u, u_nom, status = ys
+        return jnp.concatenate([p, pos_final[None]], 0), u, u_nom, status

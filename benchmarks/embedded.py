@@ -80,8 +80,8 @@ def float_safety(scenario, which):
     """Float step against float64: errors on the recorded and extreme states, false flags."""
     import safestab as ss
     from safestab.export import NativeController
-    from safestab.export.harness import comparison_scales
     from safestab.export.float_safety import box_test_states, float_safe_controller
+    from safestab.export.harness import comparison_scales
     from safestab.scenarios.export_study import scenario_controller
     from safestab.scenarios.loading import load
 

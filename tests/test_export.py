@@ -28,11 +28,10 @@ from safestab.errors import (
     UnsupportedPrimitiveError,
 )
 from safestab.export import NativeController, compile_native, export_c, export_function
-from safestab.export.harness import compare, comparison_scales
-from safestab.export.harness import HARNESS_FLAGS
-from safestab.scenarios.export_study import export_scenario
+from safestab.export.harness import HARNESS_FLAGS, compare, comparison_scales
 from safestab.learning import FastGP, GaussianProcessModel
 from safestab.scenarios import load_scenario
+from safestab.scenarios.export_study import export_scenario
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")
 

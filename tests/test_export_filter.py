@@ -21,8 +21,7 @@ from jax import lax
 import safestab as ss
 from safestab.errors import InfeasibleError, UnsupportedPrimitiveError
 from safestab.export import NativeController, compile_native, export_c, export_function
-from safestab.export.harness import compare, comparison_scales, write_harness
-from safestab.export.harness import HARNESS_FLAGS
+from safestab.export.harness import HARNESS_FLAGS, compare, comparison_scales, write_harness
 from safestab.formulas import MultiStatus
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")

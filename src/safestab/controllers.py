@@ -158,6 +158,36 @@ class Controller(ControllerValue):
         check_uncertainty_model(uncertainty, n)
         return check_beta(gp_beta, n)
 
+    @classmethod
+    def _check_limits(cls, u_min: Any, u_max: Any, m: int) -> tuple[Any, Any]:
+        """Both limits or neither, each a scalar or shape (m,), ``u_min <= u_max``; as (m,)."""
+        if (u_min is None) != (u_max is None):
+            raise ParameterError("give both u_min and u_max, or neither")
+        if u_min is None:
+            return None, None
+        u_min, u_max = cls._limit("u_min", u_min, m), cls._limit("u_max", u_max, m)
+        check_box(u_min, u_max)
+        return u_min, u_max
+
+    @staticmethod
+    def _limit(name: str, value: Any, m: int) -> Any:
+        check_real(name, value)
+        if not is_concrete(value):
+            if np.ndim(value) not in (0, 1) or np.shape(value) not in ((), (m,)):
+                raise DimensionError(
+                    f"{name} must be a scalar or have shape (n_inputs,) = ({m},), "
+                    f"got shape {np.shape(value)}"
+                )
+            return jnp.broadcast_to(jnp.asarray(value, dtype=float), (m,))
+        arr = np.asarray(value, dtype=float)
+        if arr.ndim == 0:
+            return np.full((m,), float(arr))
+        if arr.shape != (m,):
+            raise DimensionError(
+                f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape {arr.shape}"
+            )
+        return arr.copy()
+
     def _check_step(self, x: jax.Array, out: Any, strict: bool, p: Any) -> None:
         """Raise for the step's output as ``step`` documents (subclasses)."""
         raise NotImplementedError
@@ -331,12 +361,7 @@ class UniversalController(Controller):
             [system.params_spec, clf.params_spec, cbf.params_spec, own_spec]
         )
         m = system.n_inputs
-        if (u_min is None) != (u_max is None):
-            raise ParameterError("give both u_min and u_max, or neither")
-        if u_min is not None:
-            u_min = self._limit("u_min", u_min, m)
-            u_max = self._limit("u_max", u_max, m)
-            check_box(u_min, u_max)
+        u_min, u_max = self._check_limits(u_min, u_max, m)
         if saturation not in ("project", "safety_first"):
             raise ParameterError(
                 f"saturation must be 'project' or 'safety_first', got {saturation!r}"
@@ -442,25 +467,6 @@ class UniversalController(Controller):
             "formula must be 'combined', 'sontag', 'cbf' or a formula object "
             f"(safestab.formulas.problem), got {formula!r}"
         )
-
-    @staticmethod
-    def _limit(name: str, value: Any, m: int) -> Any:
-        check_real(name, value)
-        if not is_concrete(value):
-            if np.ndim(value) not in (0, 1) or np.shape(value) not in ((), (m,)):
-                raise DimensionError(
-                    f"{name} must be a scalar or have shape (n_inputs,) = ({m},), "
-                    f"got shape {np.shape(value)}"
-                )
-            return jnp.broadcast_to(jnp.asarray(value, dtype=float), (m,))
-        arr = np.asarray(value, dtype=float)
-        if arr.ndim == 0:
-            return np.full((m,), float(arr))
-        if arr.shape != (m,):
-            raise DimensionError(
-                f"{name} must be a scalar or have shape (n_inputs,) = ({m},), got shape {arr.shape}"
-            )
-        return arr.copy()
 
     def __repr__(self) -> str:
         kinds = {SontagFormula: "sontag", CBFFormula: "cbf", RelaxedFormula: "relaxed"}

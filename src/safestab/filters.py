@@ -24,7 +24,7 @@ from .certificates import CBF, CLF
 from .controllers import Controller, StepStatus
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
-from .formulas._checks import check_box, check_max_iter, check_params
+from .formulas._checks import check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
 from .formulas.problem import MultiFormula, Problem
 from .robust import UncertaintyModel, robust_margins
@@ -212,18 +212,7 @@ class SafetyFilter(Controller):
         n, m = system.n_states, system.n_inputs
         for cert in self.clfs + self.cbfs:
             cert.check(n)
-        if (u_min is None) != (u_max is None):
-            raise ParameterError("give both u_min and u_max, or neither")
-        if u_min is not None:
-            check_real("u_min", u_min)
-            check_real("u_max", u_max)
-            check_box(u_min, u_max, (m,))
-            if is_concrete(u_min, u_max):
-                u_min = np.broadcast_to(np.asarray(u_min, float), (m,)).copy()
-                u_max = np.broadcast_to(np.asarray(u_max, float), (m,)).copy()
-            else:
-                u_min = jnp.broadcast_to(jnp.asarray(u_min, float), (m,))
-                u_max = jnp.broadcast_to(jnp.asarray(u_max, float), (m,))
+        u_min, u_max = self._check_limits(u_min, u_max, m)
         own_spec = make_spec(params, "the filter")
         u_nom_of: Callable | None = None
         if u_nom is not None and callable(u_nom):

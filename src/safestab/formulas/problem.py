@@ -131,6 +131,24 @@ def _register(cls: type) -> type:
     return cls
 
 
+def _one_condition(u: Any, margin: Any, norm: Any, region: int, which: int) -> FormulaResult:
+    """The result of a one-condition formula: ``u = margin / |v|^2 v`` up to the sign.
+
+    ``which``: the multiplier's index (0 for the CLF, 1 for the CBF); ``region`` where
+    ``|v| > 0``, P4 elsewhere.
+    """
+    on = norm > 0
+    lam = jnp.where(on, margin / jnp.where(on, norm, 1.0) ** 2, 0.0)
+    pair = [jnp.zeros_like(lam), jnp.zeros_like(lam)]
+    pair[which] = lam
+    return FormulaResult(
+        u=u,
+        region=jnp.where(on, region, Region.P4).astype(jnp.int32),
+        multipliers=jnp.stack(pair, -1),
+        slack=jnp.zeros_like(margin),
+    )
+
+
 def _result(sol: Any) -> FormulaResult:
     return FormulaResult(u=sol.u, region=sol.region, multipliers=sol.multipliers, slack=sol.slack)
 
@@ -149,15 +167,7 @@ class SontagFormula(Formula):
         """Sontag's input for ``problem`` (the CBF side is not used)."""
         self._check_fields(problem)
         mg = problem.margins()
-        u = sontag(mg.A, problem.b, mg.nb)
-        on = mg.nb > 0
-        lam = jnp.where(on, mg.A / jnp.where(on, mg.nb, 1.0) ** 2, 0.0)
-        return FormulaResult(
-            u=u,
-            region=jnp.where(on, Region.P1, Region.P4).astype(jnp.int32),
-            multipliers=jnp.stack([lam, jnp.zeros_like(lam)], -1),
-            slack=jnp.zeros_like(mg.A),
-        )
+        return _one_condition(sontag(mg.A, problem.b, mg.nb), mg.A, mg.nb, Region.P1, 0)
 
 
 @_register
@@ -174,15 +184,7 @@ class CBFFormula(Formula):
         """The CBF formula's input for ``problem`` (the CLF side is not used)."""
         self._check_fields(problem)
         mg = problem.margins()
-        u = cbf_only(mg.B, problem.d, mg.nd)
-        on = mg.nd > 0
-        lam = jnp.where(on, mg.B / jnp.where(on, mg.nd, 1.0) ** 2, 0.0)
-        return FormulaResult(
-            u=u,
-            region=jnp.where(on, Region.P2, Region.P4).astype(jnp.int32),
-            multipliers=jnp.stack([jnp.zeros_like(lam), lam], -1),
-            slack=jnp.zeros_like(mg.A),
-        )
+        return _one_condition(cbf_only(mg.B, problem.d, mg.nd), mg.B, mg.nd, Region.P2, 1)
 
 
 @_register

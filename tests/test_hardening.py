@@ -2,6 +2,7 @@
 
 import io
 import re
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +17,7 @@ from safestab import (
     InputTypeError,
     ModelError,
     NonFiniteError,
+    NumericalError,
     ParameterError,
     StepStatus,
     UniversalController,
@@ -25,6 +27,7 @@ from safestab import (
     lie_terms,
     project_box,
     simulate,
+    zeta,
 )
 
 from . import mpref
@@ -406,3 +409,44 @@ def test_ecdf_axis_is_linear_only_near_zero():
     lin = symlog_threshold(np.stack([wide, tight, np.full(200, np.nan)], 1))
     assert np.isclose(lin, np.median(tight) / 10)  # the millimetre curve gets its own decades
     assert symlog_threshold(np.zeros((5, 2))) == 1.0
+
+
+def test_a_none_term_is_named_not_a_raw_jax_error():
+    # found by tests/test_properties.py: c=None passed the check (None meant "no CBF pair")
+    with pytest.raises(InputTypeError, match="c must be a real number or array"):
+        clf_cbf(0.0, np.ones(2), None, np.ones(2), kappa=0, rho=0, phi=0, varphi=0)
+
+
+def test_zeta_names_its_overflow():
+    # sqrt(phi) |b|^2 = 1e600: not representable; once returned inf without an error
+    with pytest.raises(NumericalError, match="zeta: the exact zeta is not representable"):
+        zeta(0.0, np.array([0.0, 1e300]), 1.0)
+    assert float(zeta(0.0, np.array([0.0, 1e100]), 1.0)) == pytest.approx(1e200)
+
+
+def test_lie_terms_name_a_model_that_overflows_at_a_finite_state():
+    # found by tests/test_properties.py: V = |x|^2 at x = 1e300 gave inf terms, no error
+    system, clf, cbf = _integrator()
+    with pytest.raises(NonFiniteError, match=r"the Lie term a is not finite at state index 1"):
+        lie_terms(system, clf, cbf, np.array([[0.5, 0.0], [1e300, 0.0]]))
+
+
+def test_collect_data_counts_must_be_integers():
+    from safestab.learning import collect_data
+
+    system = ControlAffineSystem(lambda x: -x, lambda x: jnp.ones((1, 1)), 1)
+    for bad in (None, 2.5, "20", True):
+        with pytest.raises(ParameterError, match=r"n_samples must be an integer >= 1, got"):
+            collect_data(system, system, x0=(-1.0, 1.0), u_low=-1.0, u_high=1.0, n_samples=bad)
+
+
+def test_gp_predict_refuses_complex_states():
+    # once silently dropped the imaginary part (a NumPy ComplexWarning)
+    from safestab.learning import GaussianProcessModel
+
+    x = np.linspace(-1, 1, 25)[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = GaussianProcessModel().fit(x, np.sin(x) + 0.01 * np.cos(7 * x))
+    with pytest.raises(InputTypeError, match="x must be a real number or array, got dtype complex"):
+        gp.predict(np.zeros((2, 1)) + 1j)

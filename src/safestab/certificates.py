@@ -21,7 +21,7 @@ from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, check_scalar_range, is_concrete
 from ._values import PytreeValue, Template
-from .errors import DimensionError, ParameterError
+from .errors import DimensionError, NonFiniteError, ParameterError
 from .systems import ControlAffineSystem
 
 __all__ = ["CLF", "CBF", "LieTerms", "lie_terms", "high_order_cbf", "RELATIVE_DEGREE_RTOL"]
@@ -527,7 +527,9 @@ def lie_terms(
     DimensionError
         If ``x`` has the wrong last axis, or ``V`` or ``h`` does not return a scalar.
     NonFiniteError
-        If ``x`` contains NaN or inf.
+        If ``x`` contains NaN or inf, or a term is not finite at a finite state (the model
+        or a certificate overflows there); under a JAX transformation the terms are returned
+        as computed.
     ParameterError
         If ``params`` is missing where a function takes parameters, given where none does,
         or of another structure than the declared example (a wrong leaf shape is a
@@ -539,7 +541,19 @@ def lie_terms(
     cbf.check(system.n_states)
     spec = merge_specs([system.params_spec, clf.params_spec, cbf.params_spec])
     p = resolve(spec, params, "lie_terms' system and certificates")
-    return over_batch(lambda s: lie_terms_point(system, clf, cbf, s, p), x)
+    terms = over_batch(lambda s: lie_terms_point(system, clf, cbf, s, p), x)
+    if is_concrete(*terms):
+        xs = np.asarray(x).reshape(-1, x.shape[-1])
+        for name, value in zip("abcd", terms, strict=True):
+            bad = ~np.all(np.isfinite(np.asarray(value).reshape(len(xs), -1)), axis=-1)
+            if np.any(bad):
+                i = int(np.argmax(bad))
+                where = f"state index {i} " if x.ndim > 1 else ""
+                raise NonFiniteError(
+                    f"the Lie term {name} is not finite at {where}(x = {xs[i].tolist()}): f, g, "
+                    "V or h (or a gradient) overflows or is not finite there"
+                )
+    return terms
 
 
 def lie_terms_point(

@@ -29,8 +29,13 @@ __all__ = [
 ]
 
 
+#: ``check_lie_terms``'s default for an absent CBF pair (``None`` given by a caller is checked,
+#: and refused, like any other non-array).
+ABSENT: Any = object()
+
+
 def check_lie_terms(
-    a: Any, b: Any, c: Any = None, d: Any = None, names: tuple[str, ...] = ("a", "b", "c", "d")
+    a: Any, b: Any, c: Any = ABSENT, d: Any = ABSENT, names: tuple[str, ...] = ("a", "b", "c", "d")
 ) -> tuple[int, ...]:
     """Check the Lie terms and return their common batch shape.
 
@@ -48,7 +53,8 @@ def check_lie_terms(
         If a term contains NaN or inf.
     """
     pairs = [(names[0], a, names[1], b)]
-    if c is not None:
+    with_cbf = c is not ABSENT or d is not ABSENT
+    if with_cbf:
         pairs.append((names[2], c, names[3], d))
     arg_names: list[str] = []
     shapes: list[tuple[int, ...]] = []
@@ -60,7 +66,7 @@ def check_lie_terms(
             raise DimensionError(f"{vname} must have shape (..., m), got a scalar")
         arg_names += [sname, vname]
         shapes += [tuple(np.shape(s)), tuple(vshape[:-1])]
-    if c is not None and np.shape(b)[-1] != np.shape(d)[-1]:
+    if with_cbf and np.shape(b)[-1] != np.shape(d)[-1]:
         raise DimensionError(
             f"{names[1]} and {names[3]} must have the same last axis (the input dimension m), "
             f"got {names[1]} shape {np.shape(b)} and {names[3]} shape {np.shape(d)}"

@@ -208,7 +208,11 @@ def _margin_jvp(primals, tangents):
 
 
 def margins(a: Any, b: Any, c: Any, d: Any, kappa: Any, rho: Any, phi: Any, varphi: Any) -> Margins:
-    """The CLF and CBF margins, cancellation-free (``phi |b|^4`` is formed as a square)."""
+    """The CLF and CBF margins, cancellation-free (``phi |b|^4`` is formed as a square).
+
+    The parameters may be numbers, arrays or (from a public function's caller) lists.
+    """
+    kappa, rho, phi, varphi = (jnp.asarray(v, float) for v in (kappa, rho, phi, varphi))
     nb = scaled_norm(b)
     nd = scaled_norm(d)
     shape = jnp.broadcast_shapes(jnp.shape(a), jnp.shape(nb), jnp.shape(kappa), jnp.shape(phi))

@@ -34,11 +34,15 @@ def zeta(a: Any, b: Any, phi: Any) -> Array:
     ------
     InputTypeError, DimensionError, NonFiniteError, ParameterError
         As for :func:`clf_sontag`.
+    NumericalError
+        If the exact value overflows float64 (``sqrt(phi) |b|^2`` above 1.8e308, say).
     """
     batch = check_lie_terms(a, b)
     check_params(batch, phi=phi)
     a, b = as_float(a, b)
-    return margins(a, b, a, b, 0.0, 0.0, phi, 0.0).zeta
+    out = margins(a, b, a, b, 0.0, 0.0, phi, 0.0).zeta
+    check_output_finite("zeta", zeta=out)
+    return out
 
 
 @jax.jit

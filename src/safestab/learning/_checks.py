@@ -33,6 +33,21 @@ def check_seed(name: str, seed: Any) -> int:
     return int(seed)
 
 
+def check_count(name: str, value: Any) -> int:
+    """Return ``value`` as an int after checking it is an integer >= 1 (not a bool or float).
+
+    Raises
+    ------
+    ParameterError
+        Naming the argument and what it received.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        raise ParameterError(
+            f"{name} must be an integer >= 1, got {value!r} of type {type(value).__name__}"
+        )
+    return int(value)
+
+
 def check_fitted(model: Any, attribute: str = "alpha_") -> None:
     """Raise unless ``model`` has the fitted ``attribute`` (scikit-learn's ``check_is_fitted``).
 

@@ -21,7 +21,7 @@ from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, NonFiniteError, ParameterError
 from ..simulation import rk4_step
 from ..systems import ControlAffineSystem
-from ._checks import check_seed
+from ._checks import check_count, check_seed
 
 __all__ = ["Dataset", "collect_data", "EXCITATIONS"]
 
@@ -190,14 +190,12 @@ def collect_data(
             f"true_system has (n, m) = ({true_system.n_states}, {true_system.n_inputs}), "
             f"nominal has ({n}, {m})"
         )
-    if int(n_samples) < 1:
-        raise ParameterError(f"n_samples must be >= 1, got {n_samples!r}")
+    n_samples = check_count("n_samples", n_samples)
     check_scalar_range("rate", rate, lower=0.0, strict_lower=True)
     check_scalar_range("horizon", horizon, lower=0.0, strict_lower=True)
     check_scalar_range("noise_std", noise_std, lower=0.0)
     check_scalar_range("controller_noise", controller_noise, lower=0.0)
-    if int(substeps) < 1:
-        raise ParameterError(f"substeps must be >= 1, got {substeps!r}")
+    substeps = check_count("substeps", substeps)
     unknown = [e for e in excitations if e not in EXCITATIONS]
     if unknown or not excitations:
         raise ParameterError(

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .._validation import check_finite, check_scalar_range
+from .._validation import check_finite, check_real, check_scalar_range
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
 from ._checks import check_fitted
 from ._posterior import (
@@ -394,11 +394,14 @@ class FastGP:
 
         Raises
         ------
+        InputTypeError
+            If ``x`` is bool, complex, a string or not an array.
         DimensionError
             If ``x`` is not of shape (N, n).
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
+        check_real("x", x)
         x = np.asarray(x, float)
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")

@@ -533,12 +533,15 @@ class GaussianProcessModel:
 
         Raises
         ------
+        InputTypeError
+            If ``x`` is bool, complex, a string or not an array.
         DimensionError
             If the last axis of ``x`` is not ``n``.
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
         check_fitted(self)
+        check_real("x", x)
         x = jnp.asarray(x, dtype=float)
         if x.ndim == 0 or x.shape[-1] != self.n_states_:
             raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")

@@ -158,3 +158,31 @@ def test_a_filter_is_the_controller_with_the_several_row_formula():
     np.testing.assert_allclose(
         np.asarray(filt.step(x).u), np.asarray(ctrl.step(x).u), rtol=1e-10, atol=1e-12
     )
+
+
+@pytest.mark.parametrize("formula", [CombinedFormula(), RelaxedFormula()])
+def test_a_formula_certifies_its_result_from_the_problem_alone(formula):
+    # residuals(problem, result) is kkt_residuals without the terms given again; on the
+    # formula's own answer every residual vanishes to rounding of the terms' scale
+    w = 5.0 if isinstance(formula, RelaxedFormula) else None
+    for a, b, c, d, params in _pairs(7):
+        problem = Problem(a, b, c, d, **params, slack_weight=w)
+        res = formula.solve(problem)
+        if int(res.region) == ss.Region.INCOMPATIBLE:
+            continue  # the fallback is not the QP's optimum (test_formulas covers it)
+        mine = formula.residuals(problem, res)
+        theirs = ss.kkt_residuals(a, b, c, d, res, **params, slack_weight=w)
+        fields = list(vars(mine))
+        scale = abs(a) + abs(c) + np.linalg.norm(b) + np.linalg.norm(d) + 1.0
+        for f in fields:  # the same residuals (eager here, jitted there: rounding apart)
+            np.testing.assert_allclose(
+                np.asarray(getattr(mine, f)), np.asarray(getattr(theirs, f)),
+                rtol=1e-12, atol=1e-14 * scale**2,
+            )  # fmt: skip
+        assert max(float(getattr(mine, f)) for f in fields) < 1e-12 * scale**2
+        # with a CBF margin the answer meets the tightened condition; judged without it, the
+        # CBF row holds with room to spare
+        tight = problem.replace(cbf_margin=0.5)
+        res_t = formula.solve(tight)
+        if int(res_t.region) != ss.Region.INCOMPATIBLE:
+            assert float(formula.residuals(tight, res_t).cbf_violation) < 1e-12 * scale**2

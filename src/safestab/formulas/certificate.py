@@ -51,7 +51,10 @@ def kkt_residuals(
     """KKT residuals of ``result`` for the QP behind :func:`clf_cbf` or the relaxed formula.
 
     A point where all residuals vanish (to rounding) is certified optimal without any solver:
-    the QP is strictly convex, so the KKT conditions are sufficient.
+    the QP is strictly convex, so the KKT conditions are sufficient. With the problem as a
+    value, ``CombinedFormula().residuals(problem, result)`` (or ``RelaxedFormula``'s) gives the
+    same residuals, unchecked, without passing the terms again
+    (:mod:`safestab.formulas.problem`).
 
     Parameters
     ----------

@@ -32,9 +32,17 @@ import jax.numpy as jnp
 
 from .._numerics import inv_sqrt
 from ..errors import ParameterError
-from ._kernels import DEFAULT_PARALLEL_RTOL, Margins, cbf_only, margins, solve_two, sontag
+from ._kernels import (
+    DEFAULT_PARALLEL_RTOL,
+    Margins,
+    cbf_only,
+    kkt,
+    margins,
+    solve_two,
+    sontag,
+)
 from .multi import MultiResult, multi_kernel
-from .results import FormulaResult, Region
+from .results import FormulaResult, KKTResiduals, Region
 
 __all__ = [
     "Problem",
@@ -149,6 +157,13 @@ def _one_condition(u: Any, margin: Any, norm: Any, region: int, which: int) -> F
     )
 
 
+def _residuals(problem: Problem, result: FormulaResult, slack_weight: Any) -> KKTResiduals:
+    mg = problem.margins()
+    r = kkt(problem.b, problem.d, mg.A, mg.B, result.u, result.multipliers, result.slack,
+            slack_weight)  # fmt: skip
+    return KKTResiduals(*r)
+
+
 def _result(sol: Any) -> FormulaResult:
     return FormulaResult(u=sol.u, region=sol.region, multipliers=sol.multipliers, slack=sol.slack)
 
@@ -205,6 +220,15 @@ class CombinedFormula(Formula):
         """The QP optimum for ``problem``; region ``INCOMPATIBLE`` where none exists."""
         return _result(self.solution(problem))
 
+    def residuals(self, problem: Problem, result: FormulaResult) -> KKTResiduals:
+        """The KKT residuals of ``result`` for this QP: all 0 (to rounding) certify it optimal.
+
+        Unchecked; :func:`~safestab.formulas.kkt_residuals` is the checked form that takes the
+        terms instead of the problem.
+        """
+        self._check_fields(problem)
+        return _residuals(problem, result, None)
+
     def solution(self, problem: Problem) -> Any:
         """The two-constraint solution with the compatibility case (``.case``) of Lemma 1."""
         self._check_fields(problem)
@@ -231,8 +255,13 @@ class RelaxedFormula(Formula):
         if problem.slack_weight is None:
             raise ParameterError("RelaxedFormula needs the problem's slack_weight")
         mg = problem.margins()
-        s = inv_sqrt(problem.slack_weight)
+        s = inv_sqrt(problem.slack_weight)  # 1 / sqrt(m)
         return _result(solve_two(mg.A, mg.B, problem.b, problem.d, mg.nb, mg.nd, inv_sqrt_slack=s))
+
+    def residuals(self, problem: Problem, result: FormulaResult) -> KKTResiduals:
+        """The KKT residuals of ``result`` for the relaxed QP (its slack included)."""
+        self._check_fields(problem)
+        return _residuals(problem, result, problem.slack_weight)
 
 
 @_register

@@ -205,7 +205,7 @@ class SafetyFilter(Controller):
         self.clfs = _as_tuple(clfs, CLF, "clfs")
         if not self.cbfs:
             raise ParameterError("give at least one CBF")
-        self.max_iter = check_max_iter(max_iter)
+        max_iter = check_max_iter(max_iter)
         check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
@@ -257,7 +257,7 @@ class SafetyFilter(Controller):
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
         #: The several-row formula object that solves each step's problem.
-        self.formula = MultiFormula(self.max_iter)
+        self.formula = MultiFormula(max_iter)
         self._remember(SafetyFilter, init_args)
         self._rebuild()
 
@@ -312,6 +312,11 @@ class SafetyFilter(Controller):
             status = jnp.where((status == S.OK) & ~unc_ok, S.NONFINITE_UNCERTAINTY, status)
             status = jnp.where((status == S.OK) & jnp.any(std < 0), S.NEGATIVE_STD, status)
         return (a, b, c, d, self.nominal_input(x, p)), status.astype(jnp.int32)
+
+    @property
+    def max_iter(self) -> int | None:
+        """The solver's iteration bound per phase (the formula's; None: from the size)."""
+        return self.formula.max_iter
 
     def nominal_input(self, x: jax.Array, p: Any = None) -> jax.Array | None:
         """The nominal input ``u_nom`` at one state ``x`` (n,), shape (m,); None without one.

@@ -31,7 +31,6 @@ __all__ = [
     "Trajectory",
     "TrajectoryRecorder",
     "closed_loop",
-    "materialized",
     "rk4_step",
     "simulate",
 ]
@@ -175,7 +174,7 @@ class Recorder(Protocol):
         ...
 
 
-def materialized(value: jax.Array, k: jax.Array) -> jax.Array:
+def _materialized(value: jax.Array, k: jax.Array) -> jax.Array:
     """``value``, computed once into a buffer: its consumers read it instead of recomputing it.
 
     XLA's CPU fusion copies cheap producers (the RK4 combination of the step's next state)
@@ -226,7 +225,7 @@ def closed_loop(
     -----
     The controller's output at ``x_k`` comes in the scan's carry: computed at the end of the
     previous iteration (before the loop for ``k = 0``) from the stored next state
-    (:func:`materialized`). Computed at the top of the body instead, XLA fused the tail of the
+    (``_materialized``). Computed at the top of the body instead, XLA fused the tail of the
     closed form into each of its consumers (the four RK4 stages, per state component),
     evaluating it a dozen times per step (measured: a third of the loop's time).
     """
@@ -237,7 +236,7 @@ def closed_loop(
             t = k * dt
             state, y = recorder.update(state, k, t, x, out, data)
             x_next = rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt)
-            x_next = materialized(x_next, k)
+            x_next = _materialized(x_next, k)
             return (x_next, step((k + 1) * dt, x_next, data), state), y
 
         out0 = step(jnp.asarray(0.0), x0, data)

@@ -112,6 +112,10 @@ jax.tree_util.register_dataclass(
 )
 
 
+#: The problem's optional fields (None when absent): each formula names those it reads.
+_OPTIONAL = tuple(f.name for f in dataclasses.fields(Problem) if f.default is None)
+
+
 class Formula:
     """A closed form over a :class:`Problem`; subclasses hold only static settings."""
 
@@ -123,8 +127,7 @@ class Formula:
         raise NotImplementedError
 
     def _check_fields(self, problem: Problem) -> None:
-        optional = ("slack_weight", "cbf_margin", "u_min", "u_max", "u_nom", "H")
-        extra = [f for f in optional if getattr(problem, f) is not None and f not in self.uses]
+        extra = [f for f in _OPTIONAL if getattr(problem, f) is not None and f not in self.uses]
         if extra:
             raise ParameterError(
                 f"{type(self).__name__} does not use {', '.join(extra)}; "

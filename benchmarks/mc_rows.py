@@ -20,7 +20,7 @@ import numpy as np
 from _page import put_block
 from safestab.learning import FastGP, GaussianProcessModel, condition, inducing_cache
 from safestab.montecarlo import run_montecarlo, start_ray
-from safestab.montecarlo.acc_trials import fit_dataset
+from safestab.montecarlo.trials import fit_dataset
 from safestab.scenarios import load_scenario
 
 BEGIN, END = "<!-- montecarlo:begin -->", "<!-- montecarlo:end -->"
@@ -77,7 +77,7 @@ def bench_montecarlo(trials: int, ray_trials: int, batch: int = 4096) -> dict:
                     "n_steps": int(round(sc.t_final / sc.dt))}  # fmt: skip
     print("Monte Carlo: one data set (collect, fit, cache) ...", flush=True)
     t0 = time.perf_counter()
-    model = fit_dataset(sc, spec, 0, 0)
+    model = fit_dataset(sc.trial_study(spec), 0, 0)
     out["first_dataset_seconds"] = time.perf_counter() - t0
 
     # refit by conditioning with reused hyperparameters (Q = 2000, n = 3)

@@ -17,18 +17,14 @@ from safestab.montecarlo import (
     summarize,
     trial_function,
 )
-from safestab.montecarlo.acc_trials import (
-    calibration_draw,
-    draw_trials,
-    fit_dataset,
-    lead_acceleration,
-    run_chunk,
-)
+from safestab.montecarlo.trials import calibration_draw, dataset_draw, fit_dataset, run_chunk
 from safestab.scenarios import load_scenario
+from safestab.scenarios.trials import lead_acceleration
 
 # tiny: 60 GP samples, 0.3 s horizon (30 steps), two controllers; the point is the machinery
 SC = load_scenario("stress").replace(n_samples=60, hyper_subset=30, t_final=0.3)
 SPEC = SC.montecarlo.replace(controllers=("mismatched model", "GP-robust"), chunk_size=5)
+STUDY = SC.trial_study(SPEC)
 N, K = 10, 2
 
 
@@ -69,7 +65,7 @@ def test_identical_for_any_chunk_size(local_run):
     # the same data sets, the trials of data set 0 in chunks of 2 instead of 5
     spec = SPEC.replace(chunk_size=2)
     idx = np.arange(0, N, K)
-    rows = [run_chunk(SC, spec, local_run.datasets[0], 3, idx[i : i + 2], pad_to=2)
+    rows = [run_chunk(SC.trial_study(spec), local_run.datasets[0], 3, idx[i : i + 2], pad_to=2)
             for i in range(0, idx.size, 2)]  # fmt: skip
     for key in RECORD_FIELDS:
         got = np.concatenate([r[key] for r in rows])
@@ -95,11 +91,11 @@ def test_identical_for_any_number_of_workers(local_run, local_run_3n):
 
 
 def test_trial_draws_depend_on_seed_and_index_only():
-    x_all, p_all = draw_trials(SC, SPEC, 7, np.arange(20))
-    x_some, p_some = draw_trials(SC, SPEC, 7, np.array([13, 2]))
+    x_all, p_all = STUDY.draw_trials(7, np.arange(20))
+    x_some, p_some = STUDY.draw_trials(7, np.array([13, 2]))
     assert np.array_equal(np.asarray(x_all)[[13, 2]], np.asarray(x_some))
     assert np.array_equal(np.asarray(p_all["acc"])[[13, 2]], np.asarray(p_some["acc"]))
-    x_other, _ = draw_trials(SC, SPEC, 8, np.arange(20))
+    x_other, _ = STUDY.draw_trials(8, np.arange(20))
     assert not np.array_equal(np.asarray(x_all), np.asarray(x_other))
     lo, hi = np.array(SPEC.initial_low), np.array(SPEC.initial_high)
     assert np.all((np.asarray(x_all) >= lo) & (np.asarray(x_all) <= hi))
@@ -135,7 +131,7 @@ def test_fixed_trial_reproduces_the_simulator():
     # controller equals ss.simulate's (an independent code path) on the same closed loop
     spec = SPEC.replace(initial_distribution="fixed", lead_kind="fixed")
     sc = SC.replace(t_final=3.0)
-    x0, params = draw_trials(sc, spec, 0, np.arange(1))
+    x0, params = sc.trial_study(spec).draw_trials(0, np.arange(1))
     clf, cbf = sc.certificates()
     p = dict(kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
              slack_weight=sc.slack_weight)  # fmt: skip
@@ -158,14 +154,13 @@ def test_conformal_beta_is_calibrated_on_a_separate_draw(local_run):
     sc = SC  # the data sets' collection is compiled already (local_run)
     spec = SPEC.replace(controllers=("GP-robust", "GP-robust conformal"), delta=0.05)
     hyper = local_run.datasets[0].hyper  # conditioning only, no fit
-    model = fit_dataset(sc, spec, 3, 1, hyper)
-    cal = calibration_draw(sc, spec, 3, 1)
+    study = sc.trial_study(spec)
+    model = fit_dataset(study, 3, 1, hyper)
+    cal = calibration_draw(study, 3, 1)
     assert len(np.unique(cal.trajectory)) == 100  # max(100, ceil(1 / 0.05))
-    assert not np.array_equal(calibration_draw(sc, spec, 3, 0).x, cal.x)
+    assert not np.array_equal(calibration_draw(study, 3, 0).x, cal.x)
     # no calibration state is a row of the data set (fitting or held out)
-    from safestab.montecarlo.acc_trials import dataset_draw
-
-    data = dataset_draw(sc, spec, 3, 1)
+    data = dataset_draw(study, 3, 1)
     assert len(data) == sc.n_samples + max(50, sc.n_samples // 4)
     rows = {tuple(r) for r in np.round(data.x, 12)}
     assert not any(tuple(r) in rows for r in np.round(cal.x, 12))

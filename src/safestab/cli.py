@@ -542,7 +542,9 @@ def _print_embedded(console: Any, rep: Any) -> None:
 @app.command("mc")
 def mc(
     scenario: str = typer.Option(
-        "stress", help="A preset or a TOML file with a \\[montecarlo] table."
+        "stress",
+        help="A preset ('paper', 'stress', 'stress-ood', 'obstacle') or a TOML file "
+        "(its \\[montecarlo] table, if any, sets the trials).",
     ),
     trials: int | None = typer.Option(None, help="Number of trials N (default: the file's)."),
     datasets: int | None = typer.Option(None, help="Independent data sets K (default: file's)."),
@@ -579,13 +581,14 @@ def mc(
     from . import montecarlo
     from ._io import bytes_writer, ensure_writable_dir, figure_writer, json_writer, write_all
     from .errors import ParameterError
-    from .scenarios import load_scenario
+    from .scenarios import load
 
     def check_inputs():
-        sc = load_scenario(scenario)
+        sc = load(scenario)
         spec = sc.montecarlo or montecarlo.MonteCarloSpec()
         if chunk_size is not None:
             spec = spec.replace(chunk_size=chunk_size)  # checked like the file
+        sc.trial_study(spec)  # the spec's vectors against the scenario's states
         if backend not in montecarlo.BACKENDS:
             raise ParameterError(f"--backend must be one of {montecarlo.BACKENDS}, got {backend!r}")
         for name, value in (("--trials", trials), ("--datasets", datasets), ("--workers", workers)):
@@ -661,7 +664,8 @@ def mc_table(name: str, summary: dict):
     table.add_column("controller", justify="left", overflow="fold", max_width=12)
     for col in ("safe", "CBF true every step", "Lemma-2 per trial"):
         table.add_column(col + "\n\\[95% CI]", justify="right", overflow="fold", min_width=16)
-    table.add_column("min h 1%-q \\[m]", justify="right", overflow="fold", max_width=10)
+    unit = summary.get("h_unit", "")
+    table.add_column(f"min h 1%-q \\[{unit}]", justify="right", overflow="fold", max_width=10)
 
     def rate(entry):
         if entry is None:
@@ -670,7 +674,7 @@ def mc_table(name: str, summary: dict):
         return f"{entry['rate']:.4f}\n[{lo:.4f}, {hi:.4f}]"
 
     for controller, e in summary["controllers"].items():
-        q = e["min_h_quantiles_m"]["0.01"]
+        q = e["min_h_quantiles"]["0.01"]
         q_text = "-" if q is None else f"{q:.3f}"
         l2 = rate(e.get("lemma2_every_state"))
         table.add_row(controller, rate(e["safe"]), rate(e["cbf_true_every_step"]), l2, q_text)

@@ -13,7 +13,8 @@ from .runner import BACKENDS, MonteCarloRun, run_montecarlo, start_ray
 from .stats import clopper_pearson, summarize
 
 # The study's plumbing (data sets, trial draws, chunks) stays in its modules:
-# montecarlo.acc_trials, montecarlo.runner, montecarlo.stats.
+# montecarlo.trials, montecarlo.runner, montecarlo.stats; the protocol a scenario
+# provides is montecarlo.protocol.TrialStudy.
 __all__ = [
     "BACKENDS",
     "RECORD_FIELDS",

@@ -35,6 +35,7 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
             "rkhs_norm": spec.rkhs_norm,
             "initial_distribution": spec.initial_distribution,
             "lead_kind": spec.lead_kind,
+            "h_unit": run.study.h_unit,
             "t_final_s": run.scenario.t_final,
             "dt_s": run.scenario.dt,
             "n_samples": run.scenario.n_samples,
@@ -71,9 +72,9 @@ def trials_npz_bytes(run: MonteCarloRun) -> bytes:
 
 
 def symlog_threshold(min_h: np.ndarray) -> float:
-    """The linear range of the ECDF's symmetric log axis (m).
+    """The linear range of the ECDF's symmetric log axis (the unit of h).
 
-    The smallest controller's median ``|min h|`` over ten: 1e-9 m at least, and 1 m when every
+    The smallest controller's median ``|min h|`` over ten: 1e-9 at least, and 1 when every
     value is zero or not finite. ``min_h`` has shape (N, C), trials by controllers.
     """
     medians = []
@@ -111,12 +112,13 @@ def plot_montecarlo(run: MonteCarloRun, ax: Any = None) -> Any:
             ax[0].step(h, np.arange(1, h.size + 1) / run.records["min_h"].shape[0],
                        where="post", label=name)  # fmt: skip
     ax[0].axvline(0.0, color="k", lw=1, ls="--", label="h = 0")
-    # min h spans decades (the Lemma-2 controller keeps tens of metres, the others millimetres
-    # or less): a symmetric log axis, linear within the smallest controller's typical
+    # min h spans decades (the ACC's Lemma-2 controller keeps tens of metres, the others
+    # millimetres or less): a symmetric log axis, linear within the smallest controller's typical
     # distance from 0, so the curves near h = 0 are told apart and signs stay visible
     lin = symlog_threshold(run.records["min_h"])
     ax[0].set_xscale("symlog", linthresh=lin)
-    ax[0].set_xlabel(f"min over the run of h (m; linear within +-{lin:.1g}, log beyond)")
+    unit = run.study.h_unit
+    ax[0].set_xlabel(f"min over the run of h ({unit}; linear within +-{lin:.1g}, log beyond)")
     ax[0].set_ylabel("fraction of trials (ECDF)")
     ax[0].set_title(f"{run.scenario.name}: {summary['trials']} trials, "
                     f"{summary['datasets']} data sets")  # fmt: skip

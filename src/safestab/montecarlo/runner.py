@@ -3,7 +3,7 @@
 The work is a list of tasks: one per data set (collect data, fit or condition the GP) and one
 per chunk of trials of a data set. The local backend runs them in this process; the Ray
 backend sends them to a cluster as Ray tasks. Both call the same pure functions
-(:mod:`safestab.montecarlo.acc_trials`) with the same chunk shapes, so their results are
+(:mod:`safestab.montecarlo.trials`) with the same chunk shapes, so their results are
 identical, bit for bit, and so are results for any ``chunk_size``.
 """
 
@@ -20,15 +20,16 @@ from typing import Any
 import numpy as np
 
 from ..errors import InducingPointsWarning, ParameterError
-from ..scenarios import ACCScenario, MonteCarloSpec
-from .acc_trials import (
+from ..scenarios import MonteCarloSpec
+from .loop import RECORD_FIELDS
+from .protocol import TrialStudy
+from .trials import (
     DataSetModel,
     compile_chunk,
     conformal_beta_function,
     fit_dataset,
     run_chunk,
 )
-from .loop import RECORD_FIELDS
 
 __all__ = ["BACKENDS", "MonteCarloRun", "plan_chunks", "run_montecarlo", "start_ray"]
 
@@ -43,7 +44,10 @@ class MonteCarloRun:
 
     Attributes
     ----------
-    scenario : ACCScenario
+    scenario : object
+        The scenario (ACC, obstacle or any with ``trial_study``).
+    study : TrialStudy
+        The scenario's trial study for ``spec`` (what the trials ran).
     spec : MonteCarloSpec
     seed : int
     controllers : tuple of str
@@ -57,7 +61,8 @@ class MonteCarloRun:
         Wall-clock seconds: ``"datasets"``, ``"trials"``, ``"total"``.
     """
 
-    scenario: ACCScenario
+    scenario: Any
+    study: TrialStudy
     spec: MonteCarloSpec
     seed: int
     controllers: tuple[str, ...]
@@ -81,8 +86,12 @@ def plan_chunks(n_trials: int, n_datasets: int, chunk_size: int) -> list[tuple[i
 def _check(
     scenario: Any, spec: Any, trials: int, datasets: int, seed: int, backend: str, workers: Any
 ) -> None:
-    if not isinstance(scenario, ACCScenario):
-        raise ParameterError(f"scenario must be an ACCScenario, got {type(scenario).__name__}")
+    if not callable(getattr(scenario, "trial_study", None)):
+        raise ParameterError(
+            "scenario must provide trial_study(spec) (the Monte Carlo protocol, "
+            "safestab.montecarlo.protocol.TrialStudy: the ACC and obstacle scenarios do), got "
+            f"{type(scenario).__name__}"
+        )
     if not isinstance(spec, MonteCarloSpec):
         raise ParameterError(f"spec must be a MonteCarloSpec, got {type(spec).__name__}")
     for name, value, low in (("trials", trials, 1), ("datasets", datasets, 1), ("seed", seed, 0)):
@@ -110,7 +119,7 @@ def _check(
 
 
 def run_montecarlo(
-    scenario: ACCScenario,
+    scenario: Any,
     *,
     trials: int | None = None,
     datasets: int | None = None,
@@ -126,7 +135,9 @@ def run_montecarlo(
 
     Parameters
     ----------
-    scenario : ACCScenario
+    scenario : ACCScenario, ObstacleScenario or any scenario with ``trial_study(spec)``
+        Its trial study (:class:`~safestab.montecarlo.protocol.TrialStudy`) gives the
+        systems, certificates, data collection and trial draws.
     trials, datasets : int, optional
         ``N`` and ``K``; default from the spec.
     seed : int
@@ -164,12 +175,18 @@ def run_montecarlo(
     ImportError
         For ``backend="ray"`` without Ray installed (``pip install "safestab[ray]"``).
     """
-    spec = spec or scenario.montecarlo or MonteCarloSpec()
+    spec = spec or getattr(scenario, "montecarlo", None) or MonteCarloSpec()
     trials = spec.trials if trials is None else trials
     datasets = spec.datasets if datasets is None else datasets
     if chunk_size is not None:
         spec = spec.replace(chunk_size=chunk_size)
     _check(scenario, spec, trials, datasets, seed, backend, workers)
+    study = scenario.trial_study(spec)
+    if not isinstance(study, TrialStudy):
+        raise ParameterError(
+            f"{type(scenario).__name__}.trial_study(spec) must return a TrialStudy "
+            f"(safestab.montecarlo.protocol), got {type(study).__name__}"
+        )
     chunks = plan_chunks(trials, datasets, spec.chunk_size)
     pad = min(spec.chunk_size, -(-trials // datasets))
     report = progress or (lambda done, total: None)
@@ -177,12 +194,10 @@ def run_montecarlo(
     if backend == "local":
         if workers is None:
             workers = 2 if (os.cpu_count() or 1) >= 2 else 1
-        models, results, t_data = _local(
-            scenario, spec, seed, datasets, chunks, pad, report, int(workers)
-        )
+        models, results, t_data = _local(study, seed, datasets, chunks, pad, report, int(workers))
     else:
         models, results, t_data = _ray(
-            scenario, spec, seed, datasets, chunks, pad, report, address,
+            study, seed, datasets, chunks, pad, report, address,
             None if workers is None else int(workers),
         )  # fmt: skip
     t_total = time.perf_counter() - t0
@@ -201,24 +216,24 @@ def run_montecarlo(
         for k in RECORD_FIELDS:
             records[k][idx] = res[k]
     return MonteCarloRun(
-        scenario=scenario, spec=spec, seed=seed, controllers=tuple(spec.controllers),
+        scenario=scenario, study=study, spec=spec, seed=seed, controllers=tuple(spec.controllers),
         records=records, dataset_index=np.arange(trials) % datasets, datasets=models,
         backend=backend,
         timings={"datasets": t_data, "trials": t_total - t_data, "total": t_total},
     )  # fmt: skip
 
 
-def _local(scenario, spec, seed, datasets, chunks, pad, report, workers):
+def _local(study, seed, datasets, chunks, pad, report, workers):
     t0 = time.perf_counter()
-    first = fit_dataset(scenario, spec, seed, 0)
-    hyper = first.hyper if spec.hyperparameters == "reuse" else None
-    models = [first] + [fit_dataset(scenario, spec, seed, j, hyper) for j in range(1, datasets)]
+    first = fit_dataset(study, seed, 0)
+    hyper = first.hyper if study.spec.hyperparameters == "reuse" else None
+    models = [first] + [fit_dataset(study, seed, j, hyper) for j in range(1, datasets)]
     t_data = time.perf_counter() - t0
-    results = _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report)
+    results = _run_chunks(study, seed, chunks, models, pad, workers, report)
     return models, results, t_data
 
 
-def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
+def _run_chunks(study, seed, chunks, models, pad, workers, report):
     """The records of each of ``chunks``, in order, ``workers`` chunks at once in threads.
 
     ``chunks`` holds ``(data set, indices)`` pairs; ``models[j]`` is data set ``j``'s model.
@@ -226,7 +241,7 @@ def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
 
     def run(k: int) -> dict[str, np.ndarray]:
         j, idx = chunks[k]
-        return run_chunk(scenario, spec, models[j], seed, idx, pad_to=pad)
+        return run_chunk(study, models[j], seed, idx, pad_to=pad)
 
     if workers == 1 or len(chunks) == 1:
         results: list[Any] = []
@@ -237,7 +252,7 @@ def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
     # compile the loop first (in this thread), so every chunk, the first included, can run
     # in the threads; a data set whose cache has other shapes compiles on its first chunk
     j0, idx0 = chunks[0]
-    compile_chunk(scenario, spec, models[j0], seed, idx0, pad_to=pad)
+    compile_chunk(study, models[j0], seed, idx0, pad_to=pad)
     results = [None] * len(chunks)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = {pool.submit(run, k): k for k in range(len(chunks))}
@@ -247,14 +262,14 @@ def _run_chunks(scenario, spec, seed, chunks, models, pad, workers, report):
     return results
 
 
-def _chunk_group(scenario, spec, seed, pad, workers, group, sets, *models):
+def _chunk_group(study, seed, pad, workers, group, sets, *models):
     """One Ray task: the chunks ``group`` in ``workers`` threads of the worker process.
 
     ``models[i]`` is the model of data set ``sets[i]`` (Ray resolves object references passed
     as arguments, not inside a list).
     """
     by_set = dict(zip(sets, models, strict=True))
-    return _run_chunks(scenario, spec, seed, group, by_set, pad, workers, lambda d, t: None)
+    return _run_chunks(study, seed, group, by_set, pad, workers, lambda d, t: None)
 
 
 def start_ray(
@@ -307,7 +322,7 @@ def _node_cpus(ray: Any) -> list[int]:
     return [c for c in cpus if c > 0]
 
 
-def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
+def _ray(study, seed, datasets, chunks, pad, report, address, workers):
     ray = start_ray(address)
     cpus = _node_cpus(ray)
     if workers is None:
@@ -322,12 +337,12 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
     fit_task = ray.remote(fit_dataset)
     group_task = ray.remote(_chunk_group)
     t0 = time.perf_counter()
-    first = fit_task.remote(scenario, spec, seed, 0)
-    if spec.hyperparameters == "reuse":
+    first = fit_task.remote(study, seed, 0)
+    if study.spec.hyperparameters == "reuse":
         hyper_ref = ray.remote(lambda m: m.hyper).remote(first)
-        rest = [fit_task.remote(scenario, spec, seed, j, hyper_ref) for j in range(1, datasets)]
+        rest = [fit_task.remote(study, seed, j, hyper_ref) for j in range(1, datasets)]
     else:
-        rest = [fit_task.remote(scenario, spec, seed, j) for j in range(1, datasets)]
+        rest = [fit_task.remote(study, seed, j) for j in range(1, datasets)]
     model_refs = [first] + rest
     # A task runs `workers` chunks at once in threads: the loop is compiled once per task's
     # process (a worker reused for later tasks keeps it), where one task per chunk compiled it
@@ -340,7 +355,7 @@ def _ray(scenario, spec, seed, datasets, chunks, pad, report, address, workers):
         sets = sorted({j for j, _ in group})
         task = group_task.options(num_cpus=len(ks))  # the last group may be smaller
         refs = [model_refs[j] for j in sets]
-        pending[task.remote(scenario, spec, seed, pad, len(ks), group, sets, *refs)] = ks
+        pending[task.remote(study, seed, pad, len(ks), group, sets, *refs)] = ks
     models = ray.get(model_refs)  # the chunks already submitted run as their data sets finish
     t_data = time.perf_counter() - t0
     results: list[Any] = [None] * len(chunks)

@@ -83,8 +83,9 @@ def summarize(run: MonteCarloRun) -> dict[str, Any]:
         Per controller: ``safe`` (min h >= 0 and every step OK), ``cbf_true_every_step``,
         ``lemma2_every_state`` (GP controllers; per trial), ``lemma2_per_dataset`` (the
         event over every visited state of every trial of a data set), ``non_finite_trials``,
-        ``min_h`` quantiles, mean time with h < 0, CLF statistics and incompatible steps; and
-        ``claimed_probability`` = ``(1 - delta)^n`` for ``n`` learned components.
+        ``min_h`` quantiles (``h_unit``), mean time with h < 0, CLF statistics and
+        incompatible steps; and ``claimed_probability`` = ``(1 - delta)^n`` for ``n`` learned
+        components.
     """
     rec = run.records
     n = rec["min_h"].shape[0]
@@ -94,6 +95,7 @@ def summarize(run: MonteCarloRun) -> dict[str, Any]:
         "trials": n,
         "datasets": len(run.datasets),
         "claimed_probability": joint_probability(run.spec.delta, n_comp),
+        "h_unit": run.study.h_unit,
         "controllers": {},
     }
     for c, name in enumerate(run.controllers):
@@ -103,7 +105,7 @@ def summarize(run: MonteCarloRun) -> dict[str, Any]:
             "safe": _rate(int(safe[:, c].sum()), n),
             "cbf_true_every_step": _rate(int(np.sum(rec["cbf_true_violations"][:, c] == 0)), n),
             "non_finite_trials": int(np.sum(rec["first_bad_status"][:, c] != StepStatus.OK)),
-            "min_h_quantiles_m": {
+            "min_h_quantiles": {
                 q: float(np.quantile(min_h[finite], float(q))) if finite.any() else math.nan
                 for q in ("0.0", "0.001", "0.01", "0.5")
             },

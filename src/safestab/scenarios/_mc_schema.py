@@ -44,21 +44,14 @@ def _controllers(path: str, value: Any, source: str) -> tuple[str, ...]:
     return tuple(value)
 
 
-def _vector3_or_none(path: str, value: Any, source: str) -> tuple[float, ...] | None:
-    expected = "an array of 3 finite numbers (v_f m/s, v_l m/s, D m)"
+def _vector_or_none(path: str, value: Any, source: str) -> tuple[float, ...] | None:
+    """A non-empty array of finite numbers (its length is the scenario's: :func:`check_values`)."""
     if value is None:
         return None
-    if not isinstance(value, list | tuple) or len(value) != 3:
-        raise fail(source, path, expected, value)
+    if not isinstance(value, list | tuple) or not value:
+        raise fail(source, path, "an array of finite numbers, one per state", value)
     check = real(-_BIG)
     return tuple(check(f"{path}[{i}]", v, source) for i, v in enumerate(value))
-
-
-def _nonneg3(path: str, value: Any, source: str) -> tuple[float, ...] | None:
-    out = _vector3_or_none(path, value, source)
-    if out is not None and min(out) < 0:
-        raise fail(source, path, "an array of 3 finite numbers >= 0 (standard deviations)", value)
-    return out
 
 
 def _optional_real(low: float, high: float = _BIG):
@@ -84,10 +77,10 @@ MC_FIELDS: dict[str, tuple[Any, Any]] = {
     "delta": (real(_SMALL, 1.0 - 1e-12), 0.01),
     "rkhs_norm": (real(0.0), 1.0),
     "initial.distribution": (choice(("fixed", "box", "normal")), "fixed"),
-    "initial.low": (_vector3_or_none, None),
-    "initial.high": (_vector3_or_none, None),
-    "initial.mean": (_vector3_or_none, None),
-    "initial.std": (_nonneg3, None),
+    "initial.low": (_vector_or_none, None),
+    "initial.high": (_vector_or_none, None),
+    "initial.mean": (_vector_or_none, None),
+    "initial.std": (_vector_or_none, None),
     "lead.kind": (choice(("fixed", "random")), "fixed"),
     "lead.segments": (integer(1, MAX_SEGMENTS), 6),
     "lead.duration_min": (real(_SMALL), 5.0),
@@ -167,8 +160,13 @@ class MonteCarloSpec:
         return dataclasses.replace(self, **changes)
 
 
-def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
+def check_values(
+    flat: Mapping[str, Any], source: str, states: tuple[int, str] | None = None
+) -> dict[str, Any]:
     """Check every present key of the table and the conditions between keys.
+
+    ``states = (n, labels)``, where the scenario is known, asks each ``initial.*`` vector
+    for ``n`` entries (``labels`` names them in the message).
 
     Raises
     ------
@@ -179,11 +177,27 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
     for key, (check, _) in MC_FIELDS.items():
         if key in flat:
             out[key] = check(f"montecarlo.{key}", flat[key], source)
+    n, labels = states if states is not None else (None, "")
+    count = "finite numbers" if n is None else f"{n} finite numbers"
+    for key in ("initial.low", "initial.high", "initial.mean", "initial.std"):
+        if n is not None and out.get(key) is not None and len(out[key]) != n:
+            raise fail(source, f"montecarlo.{key}", f"an array of {count} ({labels})", flat[key])
+    if out.get("initial.std") is not None and min(out["initial.std"]) < 0:
+        expected = f"an array of {count} >= 0 (standard deviations)"
+        raise fail(source, "montecarlo.initial.std", expected, flat["initial.std"])
     dist = out.get("initial.distribution", "fixed")
     for key in _NEEDS.get(dist, ()):
         if out.get(key) is None:
             raise ScenarioError(
                 f"{source}: montecarlo.{key} is required with initial.distribution = {dist!r}"
+            )
+    pairs = (("initial.low", "initial.high"), ("initial.mean", "initial.std"))
+    for a_key, b_key in pairs:
+        a, b = out.get(a_key), out.get(b_key)
+        if a is not None and b is not None and len(a) != len(b):
+            raise ScenarioError(
+                f"{source}: montecarlo.{a_key} and montecarlo.{b_key} must have the same length "
+                f"(one entry per state), got {len(a)} and {len(b)}"
             )
     if dist == "box":
         for i, (a, b) in enumerate(zip(out["initial.low"], out["initial.high"], strict=True)):
@@ -201,8 +215,17 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
     return out
 
 
-def check_montecarlo(table: Any, source: str) -> MonteCarloSpec:
+def check_montecarlo(
+    table: Any,
+    source: str,
+    states: tuple[int, str] = (3, "v_f m/s, v_l m/s, D m"),
+    subtables: tuple[str, ...] = ("initial", "lead"),
+) -> MonteCarloSpec:
     """Check a parsed ``[montecarlo]`` table and build the spec (missing keys take defaults).
+
+    ``states = (n, labels)``: the scenario's state dimension and the names of its components
+    (the ``initial.*`` vectors have ``n`` entries); ``subtables``: the sub-tables the scenario
+    takes (the obstacle has no ``lead``). The defaults are the ACC's.
 
     Raises
     ------
@@ -212,7 +235,7 @@ def check_montecarlo(table: Any, source: str) -> MonteCarloSpec:
     if not isinstance(table, Mapping):
         raise fail(source, "montecarlo", "a table", table)
     flat: dict[str, Any] = {}
-    subtables = {"initial", "lead"}
+    fields = {k for k in MC_FIELDS if "." not in k or k.split(".")[0] in subtables}
     for key, value in table.items():
         if key in subtables:
             if not isinstance(value, Mapping):
@@ -225,13 +248,13 @@ def check_montecarlo(table: Any, source: str) -> MonteCarloSpec:
                         + ", ".join(known)
                     )
                 flat[f"{key}.{sub}"] = v
-        elif key in MC_FIELDS:
+        elif key in fields:
             flat[key] = value
         else:
-            known = sorted({k.split(".")[0] for k in MC_FIELDS})
+            known = sorted({k.split(".")[0] for k in fields})
             raise ScenarioError(
                 f"{source}: unknown key {key!r} in [montecarlo]; expected one of "
                 + ", ".join(known)
             )
-    values = check_values(flat, source)
+    values = check_values(flat, source, states)
     return MonteCarloSpec(**{k.replace(".", "_"): v for k, v in values.items()})

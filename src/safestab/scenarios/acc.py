@@ -29,6 +29,7 @@ from ..systems import ControlAffineSystem
 from ._acc_schema import FIELDS, LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._schema import apply_overrides, read_document
+from .trials import ACCTrials
 
 __all__ = [
     "ACCScenario", "MonteCarloSpec", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits",
@@ -193,6 +194,13 @@ class ACCScenario:
         d0, d1, d2 = dt.f0 - dn.f0, dt.f1 - dn.f1, dt.f2 - dn.f2
         w = -(d0 + d1 * vf + d2 * vf**2) / self.mass
         return jnp.stack([w, jnp.zeros_like(w), jnp.zeros_like(w)], -1)
+
+    def trial_study(self, spec: MonteCarloSpec | None = None) -> Any:
+        """The Monte Carlo trial study of this scenario (:class:`~.trials.ACCTrials`).
+
+        ``spec`` defaults to the scenario's ``[montecarlo]`` table, else the defaults.
+        """
+        return ACCTrials(self, spec or self.montecarlo or MonteCarloSpec())
 
     @property
     def x0(self) -> tuple[float, float, float]:

@@ -31,8 +31,10 @@ import numpy as np
 from ..certificates import CBF, CLF, LieTerms
 from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
+from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._obstacle_schema import FIELDS, KIND, check_structure, check_values
 from ._schema import apply_overrides, read_document
+from .trials import ObstacleTrials
 
 __all__ = ["ObstacleScenario", "load_obstacle_scenario", "PRESETS"]
 
@@ -153,11 +155,18 @@ class ObstacleScenario:
     hyper_subset: int
     n_inducing: int  # 0: exact GP in the controller
     seed: int
+    #: The optional ``[montecarlo]`` table (trial distributions); ``None`` when absent.
+    montecarlo: MonteCarloSpec | None = None
 
     def __post_init__(self) -> None:
         flat = {key: getattr(self, attr) for attr, key in _KEYS.items()}
         flat.update(name=self.name, kind=KIND)
         check_values(flat, f"scenario {self.name!r}")
+        if self.montecarlo is not None and not isinstance(self.montecarlo, MonteCarloSpec):
+            raise ScenarioError(
+                f"scenario {self.name!r}: montecarlo must be a MonteCarloSpec or None, got "
+                f"{type(self.montecarlo).__name__}"
+            )
 
     def replace(self, **changes: Any) -> ObstacleScenario:
         """A copy with some fields changed, checked like a loaded file.
@@ -240,6 +249,14 @@ class ObstacleScenario:
         lim = self.input_limit
         return [-lim, -lim], [lim, lim]
 
+    def trial_study(self, spec: MonteCarloSpec | None = None) -> Any:
+        """The Monte Carlo trial study of this scenario (:class:`~.trials.ObstacleTrials`).
+
+        ``spec`` defaults to the scenario's ``[montecarlo]`` table, else the defaults; the
+        compared controllers run with the input limits.
+        """
+        return ObstacleTrials(self, spec or self.montecarlo or MonteCarloSpec())
+
     # -- grids ----------------------------------------------------------------------------
 
     def start_states(self) -> np.ndarray:
@@ -310,6 +327,7 @@ def load_obstacle_scenario(
     """
     doc, name, source = read_document(name_or_path, PRESETS, __package__)
     source = apply_overrides(doc, overrides or {}, source)
+    table = doc.pop("montecarlo", None)  # optional; checked after the required tables
     flat = check_structure(doc, source)
     if "name" not in flat:
         try:
@@ -319,4 +337,11 @@ def load_obstacle_scenario(
                 f'{exc} (the file has no name key, so its stem was used; add name = "...")'
             ) from None
     v = check_values(flat, source)
-    return ObstacleScenario(name=v["name"], **{attr: v[key] for attr, key in _KEYS.items()})
+    spec = (
+        None
+        if table is None
+        else check_montecarlo(table, source, states=(2, "x1 m, x2 m"), subtables=("initial",))
+    )
+    return ObstacleScenario(
+        name=v["name"], montecarlo=spec, **{attr: v[key] for attr, key in _KEYS.items()}
+    )

@@ -1,12 +1,14 @@
-"""The ACC Monte Carlo study's pieces: trial draws, data sets, controllers, chunks.
+"""The Monte Carlo study's pieces for any scenario: data sets, controllers, chunks.
 
-Every piece is a pure function of its arguments (the scenario, the seed, trial indices and a
-fitted data set), so the local and the Ray backend call the same functions and get the same
-bits.
+Every piece is a pure function of its arguments (the trial study of
+:mod:`~safestab.montecarlo.protocol`, the seed, trial indices and a fitted data set), so the
+local and the Ray backend call the same functions and get the same bits. The scenario's side
+(its systems, how it collects data, how a trial draws its initial state and exogenous data)
+is the study's: :mod:`safestab.scenarios.trials` for the ACC and the obstacle.
 
-Randomness: trial ``i`` draws its initial state and lead profile from
-``jax.random.fold_in(PRNGKey(seed), i)`` alone; data set ``j`` collects its data with the seed
-``SeedSequence([seed, j])``. Trial ``i`` uses data set ``i mod K``.
+Randomness: trial ``i`` draws its initial state and per-trial data (the ACC's lead profile)
+from ``jax.random.fold_in(PRNGKey(seed), i)`` alone; data set ``j`` collects its data with the
+seed ``SeedSequence([seed, j])``. Trial ``i`` uses data set ``i mod K``.
 """
 
 from __future__ import annotations
@@ -28,23 +30,22 @@ from ..learning import (
     GaussianProcessModel,
     Hyperparameters,
     beta_lemma2,
-    collect_data,
     condition,
     inducing_cache,
     information_gain,
 )
 from ..learning.batched import one_blas_thread
-from ..scenarios import ACCScenario, MonteCarloSpec
 from .loop import trial_function
+from .protocol import TrialStudy
 
 __all__ = [
     "CONFORMAL_MIN_TRAJECTORIES",
     "DataSetModel",
     "calibration_draw",
+    "compile_chunk",
     "conformal_beta_function",
-    "draw_trials",
+    "dataset_draw",
     "fit_dataset",
-    "lead_acceleration",
     "run_chunk",
 ]
 
@@ -66,75 +67,6 @@ def conformal_beta_function() -> Any:
     import safestab.learning as learning
 
     return getattr(learning, "conformal_beta", None)
-
-
-def draw_trials(
-    scenario: ACCScenario, spec: MonteCarloSpec, seed: int, indices: Any
-) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Initial states and lead profiles of the trials ``indices``, from ``(seed, i)`` alone.
-
-    Parameters
-    ----------
-    scenario, spec : the study's settings
-    seed : int
-    indices : int array of shape (B,)
-
-    Returns
-    -------
-    x0 : array of shape (B, 3)
-    params : dict
-        ``"ends"`` (B, S): segment end times, s; ``"acc"`` (B, S): lead accelerations, m/s^2.
-    """
-    return _draw_fn(scenario, spec)(jnp.asarray(seed, jnp.uint32), jnp.asarray(indices))
-
-
-@functools.lru_cache(maxsize=8)
-def _draw_fn(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
-    profile = np.asarray(scenario.lead_profile, float).reshape(-1, 2)
-    g = scenario.gravity
-
-    def one(seed, i):
-        key = jax.random.fold_in(jax.random.PRNGKey(seed), i)
-        k_x, k_d, k_a = jax.random.split(key, 3)
-        if spec.initial_distribution == "box":
-            low, high = jnp.asarray(spec.initial_low), jnp.asarray(spec.initial_high)
-            x0 = jax.random.uniform(k_x, (3,), minval=low, maxval=high)
-        elif spec.initial_distribution == "normal":
-            std = jnp.asarray(spec.initial_std)
-            x0 = jnp.asarray(spec.initial_mean) + std * jax.random.normal(k_x, (3,))
-        else:
-            x0 = jnp.asarray(scenario.x0, float)
-        if spec.lead_kind == "random":
-            s = spec.lead_segments
-            durations = jax.random.uniform(
-                k_d, (s,), minval=spec.lead_duration_min, maxval=spec.lead_duration_max
-            )
-            acc = jax.random.uniform(
-                k_a, (s,), minval=-spec.lead_decel_max * g, maxval=spec.lead_accel_max * g
-            )
-            ends = jnp.cumsum(durations)
-        else:
-            ends, acc = jnp.asarray(profile[:, 0]), jnp.asarray(profile[:, 1])
-        return x0, {"ends": ends, "acc": acc}
-
-    return jax.jit(jax.vmap(one, in_axes=(None, 0)))
-
-
-def lead_acceleration(t: jax.Array, x: jax.Array, params: dict[str, jax.Array]) -> jax.Array:
-    """``e(t, x) = (0, a_L, 0)``: the segment containing ``t``, 0 after the last.
-
-    Segments are ``t <= ends[0]``, then ``(ends[j-1], ends[j]]`` (the scenario file's
-    convention). A lead that has stopped (``v_l <= 0``) does not brake further: it stops
-    rather than reverses (a choice; docs/montecarlo.md).
-    """
-    ends, acc = params["ends"], params["acc"]
-    # the segment index is the number of ends before t (ends increase: the scenario file's
-    # profile is validated so, random ones are sums of positive durations); a count fuses
-    # with the rest, where searchsorted was a while loop per RK4 stage
-    j = jnp.sum(ends < t)
-    a = jnp.where(j < ends.shape[0], acc[jnp.minimum(j, ends.shape[0] - 1)], 0.0)
-    a = jnp.where((x[1] <= 0.0) & (a < 0.0), 0.0, a)
-    return jnp.array([0.0, 1.0, 0.0]) * a
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,19 +97,7 @@ class DataSetModel:
     cache_warnings: tuple[str, ...] = ()
 
 
-def _collect(scenario: ACCScenario, spec: MonteCarloSpec, n_samples: int, seed: int) -> Any:
-    """``collect_data`` with the scenario's true and nominal ACC and excitation settings."""
-    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
-    noise = scenario.noise_std if spec.noise_std is None else spec.noise_std
-    return collect_data(
-        scenario.system("true"), scenario.system("nominal"),
-        x0=(scenario.x0_low, scenario.x0_high), u_low=-span, u_high=span,
-        n_samples=n_samples, rate=scenario.sample_rate, horizon=scenario.sample_horizon,
-        noise_std=noise, seed=seed,
-    )  # fmt: skip
-
-
-def calibration_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, index: int) -> Any:
+def calibration_draw(study: TrialStudy, seed: int, index: int) -> Any:
     """The conformal calibration states of data set ``index``: fresh trajectories.
 
     Drawn with the seed ``SeedSequence([seed, index, 1])``, a stream independent of the data
@@ -191,15 +111,14 @@ def calibration_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, ind
     Dataset
         With ``trajectory`` labels.
     """
-    per_traj = max(1, int(round(scenario.sample_horizon * scenario.sample_rate)))
-    n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / spec.delta)))
+    per_traj, stride = study.calibration_shape()
+    n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / study.spec.delta)))
     cal_seed = int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
-    cal = _collect(scenario, spec, n_traj * per_traj, cal_seed)
-    stride = max(1, int(round(scenario.sample_rate)))
+    cal = study.collect(n_traj * per_traj, cal_seed)
     return cal.take(np.arange(0, len(cal), stride))
 
 
-def dataset_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, index: int) -> Any:
+def dataset_draw(study: TrialStudy, seed: int, index: int) -> Any:
     """The rows of data set ``index``: ``Q`` fitting rows, then ``max(50, Q // 4)`` held out.
 
     Drawn with the seed ``SeedSequence([seed, index])`` (:func:`fit_dataset` fits on it).
@@ -209,13 +128,12 @@ def dataset_draw(scenario: ACCScenario, spec: MonteCarloSpec, seed: int, index: 
     Dataset
     """
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
-    q = scenario.n_samples
-    return _collect(scenario, spec, q + max(50, q // 4), data_seed)
+    q = study.gp_settings()["n_samples"]
+    return study.collect(q + max(50, q // 4), data_seed)
 
 
 def fit_dataset(
-    scenario: ACCScenario,
-    spec: MonteCarloSpec,
+    study: TrialStudy,
     seed: int,
     index: int,
     hyper: Hyperparameters | None = None,
@@ -229,17 +147,18 @@ def fit_dataset(
     for, is calibrated on a third, independent draw (:func:`calibration_draw`).
     """
     with one_blas_thread():  # faster on a busy machine, and the same bits in any worker
-        return _fit_dataset(scenario, spec, seed, index, hyper)
+        return _fit_dataset(study, seed, index, hyper)
 
 
-def _fit_dataset(scenario, spec, seed, index, hyper):
+def _fit_dataset(study, seed, index, hyper):
+    spec, gp_settings = study.spec, study.gp_settings()
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
-    q = scenario.n_samples
-    data = dataset_draw(scenario, spec, seed, index)
+    q = gp_settings["n_samples"]
+    data = dataset_draw(study, seed, index)
     x, y, x_test = data.x[:q], data.y[:q], data.x[q:]
     if hyper is None:
-        gp = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
-        gp.fit(x, y, hyper_subset=min(scenario.hyper_subset, q), seed=data_seed)
+        gp = GaussianProcessModel(kernel=gp_settings["kernel"])
+        gp.fit(x, y, hyper_subset=min(gp_settings["hyper_subset"], q), seed=data_seed)
         hyper = Hyperparameters.from_model(gp)
     else:
         gp = condition(hyper, x, y, seed=data_seed)
@@ -253,7 +172,7 @@ def _fit_dataset(scenario, spec, seed, index, hyper):
 
     betas = {
         "GP mean": per_state(0.0),
-        "GP-robust": per_state(scenario.gp_beta),
+        "GP-robust": per_state(gp_settings["gp_beta"]),
         "GP-robust Lemma 2": per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
     }
     with warnings.catch_warnings(record=True) as caught:
@@ -278,13 +197,13 @@ def _fit_dataset(scenario, spec, seed, index, hyper):
                 "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
                 "(issue 14), which this installation does not provide"
             )
-        cal = calibration_draw(scenario, spec, seed, index)
-        omega_cal = np.asarray(scenario.omega(cal.x))
+        cal = calibration_draw(study, seed, index)
+        omega_cal = np.asarray(study.omega(cal.x))
         report = conformal(
             BatchedUncertainty(cache), cal.x, omega_cal, spec.delta, groups=cal.trajectory
         )
         betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
-    omega_test = np.asarray(scenario.omega(x_test))
+    omega_test = np.asarray(study.omega(x_test))
     mean, std = (np.asarray(v) for v in batch(jnp.asarray(x_test)))
     coverage = {
         name: float(np.mean(np.all(np.abs(omega_test - mean) <= b * std, axis=1)))
@@ -295,19 +214,15 @@ def _fit_dataset(scenario, spec, seed, index, hyper):
 
 
 @functools.lru_cache(maxsize=8)
-def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
+def _compiled_chunk(study: TrialStudy) -> Any:
     """The jitted chunk runner; cached per process so each worker compiles once per shape."""
-    true_sys, nominal = scenario.system("true"), scenario.system("nominal")
-    clf, cbf = scenario.certificates()
-    u_min, u_max = scenario.input_limits()
-    common: dict[str, Any] = dict(
-        kappa=scenario.kappa, rho=scenario.rho, phi=scenario.phi, varphi=scenario.varphi,
-        slack_weight=scenario.slack_weight, u_min=u_min, u_max=u_max,
-    )  # fmt: skip
-    n_steps = int(round(scenario.t_final / scenario.dt))
+    spec = study.spec
+    true_sys, nominal = study.systems()
+    clf, cbf = study.certificates()
+    common = study.controller_options()
 
     def omega(x, params):
-        return scenario.omega(x)
+        return study.omega(x)
 
     def chunk(cache, betas, x0, params):
         model = BatchedUncertainty(cache)
@@ -328,8 +243,8 @@ def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
                 )
                 checks.append((model, beta))
         run = trial_function(
-            ctrls, plant=true_sys, n_steps=n_steps, dt=scenario.dt,
-            exogenous=lead_acceleration, omega=omega, lemma2=checks,
+            ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
+            exogenous=study.exogenous, omega=omega, lemma2=checks,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 
@@ -337,8 +252,7 @@ def _compiled_chunk(scenario: ACCScenario, spec: MonteCarloSpec) -> Any:
 
 
 def run_chunk(
-    scenario: ACCScenario,
-    spec: MonteCarloSpec,
+    study: TrialStudy,
     model: DataSetModel,
     seed: int,
     indices: Any,
@@ -359,14 +273,13 @@ def run_chunk(
         The records of :data:`~safestab.montecarlo.loop.RECORD_FIELDS`.
     """
     b = np.size(indices)
-    args = _chunk_args(scenario, spec, model, seed, indices, pad_to)
-    out = _compiled_chunk(scenario, spec)(*args)
+    args = _chunk_args(study, model, seed, indices, pad_to)
+    out = _compiled_chunk(study)(*args)
     return {k: np.asarray(v)[:b] for k, v in out.items()}
 
 
 def compile_chunk(
-    scenario: ACCScenario,
-    spec: MonteCarloSpec,
+    study: TrialStudy,
     model: DataSetModel,
     seed: int,
     indices: Any,
@@ -377,16 +290,14 @@ def compile_chunk(
     Later chunks of the same shapes reuse the compiled loop, so they can all start at once
     (the local backend's threads) instead of waiting for a first chunk that compiles.
     """
-    _compiled_chunk(scenario, spec).lower(
-        *_chunk_args(scenario, spec, model, seed, indices, pad_to)
-    ).compile()
+    _compiled_chunk(study).lower(*_chunk_args(study, model, seed, indices, pad_to)).compile()
 
 
-def _chunk_args(scenario, spec, model, seed, indices, pad_to):
+def _chunk_args(study, model, seed, indices, pad_to):
     idx = np.asarray(indices, dtype=np.int64)
     b = idx.size
     if pad_to is not None and pad_to > b:
         idx = np.concatenate([idx, np.full(pad_to - b, idx[0])])
-    x0, params = draw_trials(scenario, spec, seed, idx)
-    betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in spec.controllers}
+    x0, params = study.draw_trials(seed, idx)
+    betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in study.spec.controllers}
     return model.cache, betas, x0, params

@@ -1,0 +1,186 @@
+"""Monte Carlo for any scenario: the trial-study protocol, the obstacle's study, and a third
+scenario written in this file against the protocol alone."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import safestab as ss
+from safestab.errors import ParameterError, ScenarioError
+from safestab.learning import collect_data
+from safestab.montecarlo import RECORD_FIELDS, run_montecarlo, summarize, trial_function
+from safestab.montecarlo.protocol import TrialStudy
+from safestab.scenarios import MonteCarloSpec, load
+
+# a 4 x 1 start grid (all outside the obstacle), 1 s at 50 Hz, a small GP
+OBSTACLE = load(
+    "obstacle",
+    overrides={"starts.n_x1": 4, "starts.n_x2": 1, "simulation.t_final": 1.0,
+               "learning.n_samples": 60, "learning.hyper_subset": 30},
+)  # fmt: skip
+SPEC = MonteCarloSpec(controllers=("true model", "GP-robust"), chunk_size=4, trials=6)
+
+
+def test_obstacle_trials_reproduce_the_simulator():
+    """The fixed distribution visits the start grid in order; each trial's records equal
+    ss.simulate's on the same closed loop (the true-model controller with the limits)."""
+    study = OBSTACLE.trial_study(SPEC)
+    assert isinstance(study, TrialStudy) and study.h_unit == "m^2"
+    starts = OBSTACLE.start_states()
+    x0, params = study.draw_trials(0, np.arange(5))
+    np.testing.assert_array_equal(np.asarray(x0), starts[np.arange(5) % len(starts)])
+    true_sys, _ = study.systems()
+    clf, cbf = study.certificates()
+    ctrl = ss.UniversalController(true_sys, clf, cbf, **study.controller_options())
+    run = trial_function([ctrl], plant=true_sys, n_steps=study.n_steps, dt=study.dt)
+    rec = jax.jit(jax.vmap(run))(x0[:3], params)
+    for i in range(3):
+        traj = ss.simulate(ctrl, starts[i], t_final=OBSTACLE.t_final, dt=OBSTACLE.dt,
+                           plant=true_sys)  # fmt: skip
+        assert float(rec["min_h"][i, 0]) == pytest.approx(float(np.min(traj.h)), abs=1e-9)
+        assert float(rec["final_V"][i, 0]) == pytest.approx(float(traj.V[-1]), rel=1e-9)
+        assert np.max(np.abs(traj.u)) <= OBSTACLE.input_limit  # the limits are applied
+
+
+def test_obstacle_box_draws_and_spec_checks():
+    spec = SPEC.replace(initial_distribution="box", initial_low=(-8.0, -1.0),
+                        initial_high=(-6.0, 1.0))  # fmt: skip
+    x0, _ = OBSTACLE.trial_study(spec).draw_trials(1, np.arange(50))
+    x0 = np.asarray(x0)
+    assert x0.shape == (50, 2) and np.all((x0 >= [-8, -1]) & (x0 <= [-6, 1]))
+    with pytest.raises(ParameterError, match=r"initial.low must have 2 entries \(x1 m, x2 m\)"):
+        OBSTACLE.trial_study(SPEC.replace(initial_distribution="box",
+                                          initial_low=(0.0, 0.0, 0.0),
+                                          initial_high=(1.0, 1.0, 1.0)))  # fmt: skip
+    with pytest.raises(ParameterError, match=r"lead.kind must be 'fixed' for the obstacle"):
+        OBSTACLE.trial_study(SPEC.replace(lead_kind="random"))
+    with pytest.raises(ScenarioError, match=r"initial.low and montecarlo.initial.high must have"):
+        SPEC.replace(initial_distribution="box", initial_low=(0.0,), initial_high=(1.0, 2.0))
+
+
+def _obstacle_file(tmp_path, table):
+    from importlib import resources
+
+    base = resources.files("safestab.scenarios").joinpath("obstacle.toml").read_text()
+    path = tmp_path / "o.toml"
+    path.write_text(base + "\n" + table)
+    return path
+
+
+def test_obstacle_file_takes_a_montecarlo_table(tmp_path):
+    sc = load(
+        _obstacle_file(
+            tmp_path,
+            "[montecarlo]\ntrials = 7\n[montecarlo.initial]\n"
+            "distribution = 'box'\nlow = [-8.0, -1.0]\nhigh = [-6.0, 1.0]\n",
+        )
+    )
+    assert sc.montecarlo.trials == 7 and sc.montecarlo.initial_low == (-8.0, -1.0)
+    with pytest.raises(ScenarioError, match=r"montecarlo.initial.low must be an array of 2"):
+        load(_obstacle_file(tmp_path, "[montecarlo.initial]\nlow = [1.0, 2.0, 3.0]\n"))
+    with pytest.raises(ScenarioError, match=r"unknown key 'lead' in \[montecarlo\]"):
+        load(_obstacle_file(tmp_path, "[montecarlo.lead]\nkind = 'random'\n"))
+
+
+def test_obstacle_study_runs_end_to_end():
+    run = run_montecarlo(OBSTACLE, spec=SPEC, trials=6, datasets=1, seed=1)
+    assert run.records["min_h"].shape == (6, 2) and set(run.records) == set(RECORD_FIELDS)
+    summary = summarize(run)
+    assert summary["h_unit"] == "m^2"
+    # trials i and i + 4 start at the same grid point (4 starts): the same records
+    for key in RECORD_FIELDS:
+        np.testing.assert_array_equal(run.records[key][:2], run.records[key][4:6])
+    assert run.records["lemma2_violations"][0, 0] == -1  # the true model has no GP
+
+
+# -- a third scenario, written against the protocol only --------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ScalarTrials:
+    """x' = -x + u + omega(x), omega = 0.5 sin(x); nominal without omega; h = 4 - x^2."""
+
+    spec: MonteCarloSpec
+    name: str = "scalar"
+    n_states: int = 1
+    n_steps: int = 20
+    dt: float = 0.05
+    h_unit: str = "m^2"
+    exogenous: Any = None
+
+    def systems(self):
+        g = lambda x: jnp.ones((1, 1))  # noqa: E731
+        true = ss.ControlAffineSystem(lambda x: -x + 0.5 * jnp.sin(x), g, 1)
+        return true, ss.ControlAffineSystem(lambda x: -x, g, 1)
+
+    def certificates(self):
+        return ss.CLF(lambda x: x[0] ** 2, lam=1.0), ss.CBF(lambda x: 4.0 - x[0] ** 2, beta=2.0)
+
+    def controller_options(self):
+        return dict(kappa=0.1, rho=0.1, phi=0.01, varphi=0.01)
+
+    def omega(self, x):
+        return 0.5 * jnp.sin(jnp.asarray(x))
+
+    def gp_settings(self):
+        return dict(n_samples=40, kernel="se", hyper_subset=40, gp_beta=2.0)
+
+    def calibration_shape(self):
+        return 5, 1
+
+    def collect(self, n_samples, seed):
+        true, nominal = self.systems()
+        return collect_data(true, nominal, x0=([-1.9], [1.9]), u_low=-1.0, u_high=1.0,
+                            n_samples=n_samples, rate=10.0, horizon=0.5, noise_std=0.01,
+                            seed=seed)  # fmt: skip
+
+    def draw_trials(self, seed, indices):
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(seed), i))(
+            jnp.asarray(indices)
+        )
+        x0 = jax.vmap(lambda k: jax.random.uniform(k, (1,), minval=-1.5, maxval=1.5))(keys)
+        return x0, {}
+
+
+@dataclasses.dataclass(frozen=True)
+class ScalarScenario:
+    name: str = "scalar"
+    montecarlo: Any = None
+
+    def trial_study(self, spec):
+        return ScalarTrials(spec)
+
+
+def test_a_third_scenario_plugs_in_through_the_protocol():
+    spec = MonteCarloSpec(controllers=("true model", "mismatched model", "GP-robust"),
+                          chunk_size=8)  # fmt: skip
+    run = run_montecarlo(ScalarScenario(), spec=spec, trials=8, datasets=1, seed=0)
+    assert run.records["min_h"].shape == (8, 3)
+    # independent check of one trial: the true-model controller by ss.simulate
+    study = run.study
+    x0, _ = study.draw_trials(0, np.arange(8))
+    true, _ = study.systems()
+    ctrl = ss.UniversalController(true, *study.certificates(), **study.controller_options())
+    traj = ss.simulate(ctrl, np.asarray(x0[5]), t_final=1.0, dt=0.05, plant=true)
+    assert run.records["min_h"][5, 0] == pytest.approx(float(np.min(traj.h)), abs=1e-9)
+
+
+def test_a_scenario_without_the_protocol_is_refused_before_work():
+    with pytest.raises(ParameterError, match=r"scenario must provide trial_study\(spec\)"):
+        run_montecarlo(object(), spec=SPEC, trials=2)
+
+    @dataclasses.dataclass(frozen=True)
+    class Wrong:
+        name: str = "wrong"
+
+        def trial_study(self, spec):
+            return object()
+
+    with pytest.raises(ParameterError, match=r"must return a TrialStudy"):
+        run_montecarlo(Wrong(), spec=SPEC, trials=2)

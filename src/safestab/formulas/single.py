@@ -1,4 +1,8 @@
-"""Single-certificate formulas: Sontag's CLF formula, eq. (3), and the CBF formula, eq. (6)."""
+"""Single-certificate formulas: Sontag's CLF formula, eq. (3), and the CBF formula, eq. (6).
+
+The checked public functions; each solves through its formula object
+(:class:`~safestab.formulas.problem.SontagFormula`, :class:`~.problem.CBFFormula`).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,8 @@ from typing import Any
 import jax
 
 from ._checks import as_float, check_lie_terms, check_output_finite, check_params
-from ._kernels import cbf_only, margins, sontag
+from ._kernels import margins
+from .problem import CBFFormula, Problem, SontagFormula
 
 __all__ = ["zeta", "clf_sontag", "cbf_universal"]
 
@@ -47,8 +52,9 @@ def zeta(a: Any, b: Any, phi: Any) -> Array:
 
 @jax.jit
 def _clf_sontag_jit(a, b, kappa, phi):
-    mg = margins(a, b, 0.0, b, kappa, 0.0, phi, 0.0)
-    return sontag(mg.A, b, mg.nb)
+    # the CBF side is unused: c = 0 and d = b only give the margins' CBF half valid shapes
+    problem = Problem(a, b, 0.0, b, kappa=kappa, rho=0.0, phi=phi, varphi=0.0)
+    return SontagFormula().solve(problem).u
 
 
 def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> Array:
@@ -105,8 +111,9 @@ def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> Array:
 
 @jax.jit
 def _cbf_universal_jit(c, d, rho, varphi):
-    mg = margins(0.0, d, c, d, 0.0, rho, 0.0, varphi)
-    return cbf_only(mg.B, d, mg.nd)
+    # the CLF side is unused: a = 0 and b = d only give the margins' CLF half valid shapes
+    problem = Problem(0.0, d, c, d, kappa=0.0, rho=rho, phi=0.0, varphi=varphi)
+    return CBFFormula().solve(problem).u
 
 
 def cbf_universal(c: Any, d: Any, *, rho: Any, varphi: Any) -> Array:

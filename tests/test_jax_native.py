@@ -401,6 +401,46 @@ def test_controller_is_a_value_jit_vmap_grad():
         ctrl.replace(kappa=-1.0)
 
 
+def test_controllers_built_alike_share_one_compilation_and_others_do_not():
+    """Equal static parts (system, certificates, formula, options) give equal tree structures:
+    a user's jit compiles once for controllers built alike and for replace() with new numbers;
+    a different static part (formula, saturation, system, a slack weight) compiles anew, and
+    every output equals that controller's own eager step."""
+    system, clf, cbf = _plant()
+    traces = []
+
+    @jax.jit
+    def u_of(c, x):
+        traces.append(1)
+        return c.step_fn(x).u
+
+    base = ss.UniversalController(system, clf, cbf, **K, u_min=-5.0, u_max=5.0)
+    alike = [
+        base,
+        ss.UniversalController(system, clf, cbf, **K, u_min=-5.0, u_max=5.0),
+        base.replace(kappa=2.0),
+        base.replace(rho=0.9, u_min=-1.0, u_max=1.0),
+    ]
+    x = jnp.array([1.5, -0.5])
+    for c in alike:
+        np.testing.assert_array_equal(np.asarray(u_of(c, x)), np.asarray(c.step(x).u))
+    assert len(traces) == 1
+    other_system = ss.ControlAffineSystem(system.f, system.g, system.n_states)
+    others = [
+        base.replace(formula="sontag"),
+        base.replace(saturation="safety_first")
+        if system.n_inputs == 1
+        else base.replace(u_min=None, u_max=None),
+        ss.UniversalController(other_system, clf, cbf, **K, u_min=-5.0, u_max=5.0),
+        base.replace(slack_weight=3.0),
+    ]
+    for c in others:
+        np.testing.assert_array_equal(np.asarray(u_of(c, x)), np.asarray(c.step(x).u))
+    assert len(traces) == 1 + len(others)
+    # the outputs differ where the static parts say they should (the test can fail)
+    assert not np.array_equal(np.asarray(u_of(others[0], x)), np.asarray(u_of(base, x)))
+
+
 def test_state_gradient_through_f_g_v_h_matches_high_precision_differences():
     """du/dx of the controller (through f, g, V, h and their autodiff gradients) against
     central differences of the same controller written out by hand in 80 digits."""

@@ -17,30 +17,60 @@ without checks, as JAX requires.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from typing import Any
 
 import jax
 
-__all__ = ["PytreeValue", "ControllerValue", "Template"]
+__all__ = ["PytreeValue", "ControllerValue", "Template", "static_key"]
+
+
+def static_key(value: Any) -> Any:
+    """A hashable stand-in for a static (non-leaf) constructor argument.
+
+    Numbers, strings, ``None`` and frozen dataclasses (the formula objects) by value,
+    sequences element by element, anything else (a system, a certificate, a GP, a callable)
+    by identity: the :class:`Template` that holds the key also holds the object, so the
+    identity cannot be reused while the key exists.
+    """
+    if value is None or isinstance(value, bool | int | float | str):
+        return (type(value).__name__, value)
+    if isinstance(value, tuple | list):
+        return (type(value).__name__, tuple(static_key(v) for v in value))
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        if value.__dataclass_params__.frozen:  # type: ignore[attr-defined]
+            try:
+                return ("value", type(value), hash(value), value)
+            except TypeError:  # a field that is not hashable: by identity below
+                pass
+    return ("id", id(value))
 
 
 class Template:
-    """The static part of a value's pytree: the object it was built as.
+    """The static part of a value's pytree: the object it was built as, and its key.
 
-    Compared by identity, so every copy of one controller or certificate shares one tree
-    structure (and one compiled function in a user's ``jit``).
+    Without a key (certificates) it is compared by identity, so every copy of one object
+    shares one tree structure. A controller's key is its class, its leaf names and its
+    static constructor arguments (:func:`static_key`): two controllers built alike, or one
+    and its :meth:`~ControllerValue.replace` with new numbers, have equal tree structures,
+    so a user's ``jax.jit`` that takes them as arguments compiles once for both.
     """
 
-    __slots__ = ("obj",)
+    __slots__ = ("obj", "key")
 
-    def __init__(self, obj: Any) -> None:
+    def __init__(self, obj: Any, key: Any = None) -> None:
         self.obj = obj
+        self.key = key
 
     def __hash__(self) -> int:
-        return id(self.obj)
+        return id(self.obj) if self.key is None else hash(self.key)
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, Template) and other.obj is self.obj
+        if not isinstance(other, Template):
+            return False
+        if self.key is None or other.key is None:
+            return other.obj is self.obj
+        return self.key == other.key
 
 
 class PytreeValue:
@@ -70,7 +100,13 @@ class ControllerValue(PytreeValue):
     def _remember(self, init: type, kwargs: dict) -> None:
         """Keep the constructor (``init``) and its arguments, for :meth:`replace`."""
         self._init, self._kwargs = init, dict(kwargs)
-        self._template = Template(self)
+        leaves = self._leaf_names()
+        statics = tuple(
+            (name, static_key(value))
+            for name, value in sorted(self._kwargs.items())
+            if name not in leaves
+        )
+        self._template = Template(self, (type(self), leaves, statics))
 
     # -- to be provided by subclasses ---------------------------------------------------
     def _leaf_names(self) -> tuple[str, ...]:

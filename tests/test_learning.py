@@ -189,6 +189,33 @@ def test_sklearn_adapter_matches_builtin(toy_data):
         np.testing.assert_allclose(s_ad[:, 0], s_sk, rtol=1e-5, atol=1e-6)
 
 
+def test_sklearn_adapter_honours_normalize_y_white_noise_and_own_training_sets():
+    """normalize_y folded into the posterior factors, a WhiteKernel as noise, and components
+    trained on different inputs: the adapter's mean and latent std equal scikit-learn's."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
+
+    rng = np.random.default_rng(7)
+    regs, y_std = {}, {}
+    for comp, base in ((0, RBF([0.8, 1.3, 1.0])), (2, Matern(0.9, nu=2.5))):
+        x = rng.uniform(-2, 2, size=(40 + 10 * comp, 3))
+        y = 50.0 + 20.0 * np.sin(x[:, 0]) * np.cos(x[:, 2]) + 0.1 * rng.normal(size=len(x))
+        kernel = ConstantKernel(1.5) * base + WhiteKernel(0.01)
+        regs[comp] = GaussianProcessRegressor(kernel, normalize_y=True, optimizer=None).fit(x, y)
+        y_std[comp] = np.std(y)  # normalize_y's scale
+    adapter = SklearnGPAdapter(regs, n_states=3)
+    xq = rng.uniform(-2, 2, size=(25, 3))
+    m_ad, s_ad = (np.asarray(v) for v in jax_vmap_mean_std(adapter, xq))
+    assert np.all(m_ad[:, 1] == 0) and np.all(s_ad[:, 1] == 0)  # not learned
+    for comp, reg in regs.items():
+        # sklearn's std includes the WhiteKernel's noise; the adapter's is the latent one
+        m_sk, cov = reg.predict(xq, return_cov=True)
+        white = reg.kernel_.k2.noise_level * y_std[comp] ** 2
+        latent = np.sqrt(np.maximum(np.diag(cov) - white, 0.0))
+        np.testing.assert_allclose(m_ad[:, comp], m_sk, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(s_ad[:, comp], latent, rtol=1e-5, atol=1e-6)
+
+
 def jax_vmap_mean_std(model, x):
     import jax
 

@@ -1,7 +1,11 @@
 """Use fitted scikit-learn ``GaussianProcessRegressor`` models as the uncertainty model.
 
 The adapter reads the fitted kernel, training inputs and Cholesky factor of each regressor
-and re-implements its latent posterior in JAX, so a controller built on it is jittable.
+and evaluates its latent posterior with the package's one posterior module
+(:func:`safestab.learning._posterior.exact_point`, the exact GP's own arithmetic), so a
+controller built on it is jittable. scikit-learn's ``normalize_y`` is folded into the factors:
+with ``y = s y' + m``, the posterior of ``y`` is that of a GP with amplitude ``s a``, Cholesky
+factor ``s L``, weights ``alpha / s`` and constant mean ``m``.
 """
 
 from __future__ import annotations
@@ -12,9 +16,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
 
 from ..errors import DimensionError
+from ._posterior import exact_point
 
 __all__ = ["SklearnGPAdapter"]
 
@@ -87,24 +91,25 @@ class SklearnGPAdapter:
             y_mean = float(np.ravel(getattr(reg, "_y_train_mean", 0.0))[0])
             y_std = float(np.ravel(getattr(reg, "_y_train_std", 1.0))[0])
             ls = np.broadcast_to(ls, (self.n_states,))
-            parts.append((kind, amp2, ls, x_train, np.ravel(reg.alpha_), reg.L_, y_mean, y_std))
+            post = {
+                "xs": x_train,
+                "offset": np.zeros(self.n_states),
+                "scale": np.ones(self.n_states),
+                "chol": (y_std * np.asarray(reg.L_, float))[None],
+                "alpha": (np.ravel(reg.alpha_) / y_std)[None],
+                "amp": np.array([np.sqrt(amp2) * y_std]),
+                "mu": np.array([y_mean]),
+                "ls": np.asarray(ls, float)[None],
+                "comps": np.array([comp]),
+            }
+            parts.append((kind, post))
         self._parts = parts
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and standard deviation of ``omega`` at one state (n,), jittable."""
         mean = jnp.zeros(self.n_states)
         var = jnp.zeros(self.n_states)
-        for comp, (kind, amp2, ls, xt, alpha, chol, y_mean, y_std) in zip(
-            self.components_, self._parts, strict=True
-        ):
-            r = (jnp.asarray(xt) - x) / jnp.asarray(ls)
-            d2 = jnp.sum(r * r, -1)
-            if kind == "se":
-                k = amp2 * jnp.exp(-0.5 * d2)
-            else:
-                s = jnp.sqrt(5.0 * d2)
-                k = amp2 * (1 + s + 5.0 * d2 / 3.0) * jnp.exp(-s)
-            v = solve_triangular(jnp.asarray(chol), k, lower=True)
-            mean = mean.at[comp].set(y_std * (k @ jnp.asarray(alpha)) + y_mean)
-            var = var.at[comp].set(y_std**2 * jnp.maximum(amp2 - v @ v, 0.0))
+        for kind, post in self._parts:  # one component each (their training sets may differ)
+            m, v = exact_point(post, x, kind, self.n_states)
+            mean, var = mean + m, var + v
         return mean, jnp.sqrt(var)

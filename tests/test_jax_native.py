@@ -440,6 +440,22 @@ def test_controllers_built_alike_share_one_compilation_and_others_do_not():
     # the outputs differ where the static parts say they should (the test can fail)
     assert not np.array_equal(np.asarray(u_of(others[0], x)), np.asarray(u_of(base, x)))
 
+    # a value JAX rebuilt keeps its own numbers through replace(), though its tree structure
+    # was first made from another controller
+    ident = jax.jit(lambda c: c)
+    ident(base)
+    rebuilt = ident(base.replace(kappa=3.0))
+    assert float(rebuilt.replace(rho=0.3).tunables()["kappa"]) == 3.0
+    doubled = jax.tree_util.tree_map(lambda v: 2 * v, base)
+    assert float(doubled.replace(rho=0.3).tunables()["kappa"]) == 2 * K["kappa"]
+
+    # a subclass defined outside the package is keyed by identity (its own state is unknown)
+    class Mine(ss.UniversalController):
+        pass
+
+    mine = [Mine(system, clf, cbf, **K), Mine(system, clf, cbf, **K)]
+    assert jax.tree_util.tree_structure(mine[0]) != jax.tree_util.tree_structure(mine[1])
+
 
 def test_state_gradient_through_f_g_v_h_matches_high_precision_differences():
     """du/dx of the controller (through f, g, V, h and their autodiff gradients) against

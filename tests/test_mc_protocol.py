@@ -8,13 +8,21 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
 import safestab as ss
 from safestab.errors import ParameterError, ScenarioError
 from safestab.learning import collect_data
-from safestab.montecarlo import RECORD_FIELDS, run_montecarlo, summarize, trial_function
+from safestab.montecarlo import (
+    RECORD_FIELDS,
+    metrics_document,
+    plot_montecarlo,
+    run_montecarlo,
+    summarize,
+    trial_function,
+)
 from safestab.montecarlo.protocol import TrialStudy
 from safestab.scenarios import MonteCarloSpec, load
 
@@ -111,6 +119,7 @@ class ScalarTrials:
     n_states: int = 1
     n_steps: int = 20
     dt: float = 0.05
+    t_final: float = 1.0
     h_unit: str = "m^2"
     exogenous: Any = None
 
@@ -162,6 +171,10 @@ def test_a_third_scenario_plugs_in_through_the_protocol():
                           chunk_size=8)  # fmt: skip
     run = run_montecarlo(ScalarScenario(), spec=spec, trials=8, datasets=1, seed=0)
     assert run.records["min_h"].shape == (8, 3)
+    doc = metrics_document(run)  # the outputs read the study, not the scenario
+    assert doc["scenario"] == "scalar" and doc["settings"]["n_samples"] == 40
+    assert doc["summary"]["h_unit"] == "m^2"
+    plt.close(plot_montecarlo(run))
     # independent check of one trial: the true-model controller by ss.simulate
     study = run.study
     x0, _ = study.draw_trials(0, np.arange(8))
@@ -184,3 +197,13 @@ def test_a_scenario_without_the_protocol_is_refused_before_work():
 
     with pytest.raises(ParameterError, match=r"must return a TrialStudy"):
         run_montecarlo(Wrong(), spec=SPEC, trials=2)
+
+    @dataclasses.dataclass(frozen=True)
+    class OwnSpec:
+        name: str = "own"
+
+        def trial_study(self, spec):
+            return ScalarTrials(spec.replace(chunk_size=3))
+
+    with pytest.raises(ParameterError, match=r"must keep the spec it was given"):
+        run_montecarlo(OwnSpec(), spec=SPEC, trials=2)

@@ -49,11 +49,13 @@ def static_key(value: Any) -> Any:
 class Template:
     """The static part of a value's pytree: the object it was built as, and its key.
 
-    Without a key (certificates) it is compared by identity, so every copy of one object
-    shares one tree structure. A controller's key is its class, its leaf names and its
-    static constructor arguments (:func:`static_key`): two controllers built alike, or one
-    and its :meth:`~ControllerValue.replace` with new numbers, have equal tree structures,
-    so a user's ``jax.jit`` that takes them as arguments compiles once for both.
+    Without a key (certificates, and subclasses defined outside safestab, whose state the
+    constructor arguments may not show) it is compared by identity, so every copy of one
+    object shares one tree structure. A controller's key is its class, its leaf names and
+    its static constructor arguments (:func:`static_key`): two controllers built alike, or
+    one and its :meth:`~ControllerValue.replace` with new numbers, have equal tree
+    structures, so a user's ``jax.jit`` that takes them as arguments compiles once for both.
+    Controllers are values: an attribute set after construction is not part of the key.
     """
 
     __slots__ = ("obj", "key")
@@ -100,6 +102,10 @@ class ControllerValue(PytreeValue):
     def _remember(self, init: type, kwargs: dict) -> None:
         """Keep the constructor (``init``) and its arguments, for :meth:`replace`."""
         self._init, self._kwargs = init, dict(kwargs)
+        if not type(self).__module__.startswith("safestab."):
+            # a user's subclass may keep state its constructor arguments do not show
+            self._template = Template(self)
+            return
         leaves = self._leaf_names()
         statics = tuple(
             (name, static_key(value))
@@ -138,8 +144,12 @@ class ControllerValue(PytreeValue):
         model, say); the numeric ones may be traced, so
         ``jax.grad(lambda k: cost(ctrl.replace(kappa=k)))`` and ``jax.vmap`` over them work.
         """
+        # the current leaves and certificates, not the constructor's arguments: a value that
+        # JAX rebuilt (from a jitted function, a tree_map or a vmap) carries the arguments of
+        # the controller its tree structure was first made from
+        current = {**self.tunables(), **{name: getattr(self, name) for name in self._CHILDREN}}
         new = object.__new__(type(self))
-        self._init.__init__(new, **{**self._kwargs, **changes})
+        self._init.__init__(new, **{**self._kwargs, **current, **changes})
         return new
 
     # -- pytree -------------------------------------------------------------------------

@@ -25,8 +25,8 @@ class TrialStudy(Protocol):
         The study's settings (counts, controllers, GP, delta, initial distribution).
     n_states, n_steps : int
         State dimension ``n``; closed-loop steps per trial.
-    dt : float
-        Step, s.
+    dt, t_final : float
+        Step and horizon, s (``n_steps = round(t_final / dt)``).
     h_unit : str
         Unit of the CBF ``h``, for the summary and the figure.
     exogenous : callable or None
@@ -38,6 +38,7 @@ class TrialStudy(Protocol):
     n_states: int
     n_steps: int
     dt: float
+    t_final: float
     h_unit: str
     exogenous: Any
 

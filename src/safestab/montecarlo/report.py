@@ -20,9 +20,9 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
     Non-finite numbers become ``null``; ``status`` is ``"ok"`` or ``"non-finite"`` and
     ``non_finite`` maps the JSON Pointer of each replaced value to what it was.
     """
-    spec = run.spec
+    spec, study = run.spec, run.study
     doc = {
-        "scenario": run.scenario.name,
+        "scenario": study.name,
         "settings": {
             "seed": run.seed,
             "trials": int(run.records["min_h"].shape[0]),
@@ -36,9 +36,9 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
             "initial_distribution": spec.initial_distribution,
             "lead_kind": spec.lead_kind,
             "h_unit": run.study.h_unit,
-            "t_final_s": run.scenario.t_final,
-            "dt_s": run.scenario.dt,
-            "n_samples": run.scenario.n_samples,
+            "t_final_s": study.t_final,
+            "dt_s": study.dt,
+            "n_samples": study.gp_settings()["n_samples"],
         },
         "summary": summarize(run),
         "datasets": [
@@ -120,7 +120,7 @@ def plot_montecarlo(run: MonteCarloRun, ax: Any = None) -> Any:
     unit = run.study.h_unit
     ax[0].set_xlabel(f"min over the run of h ({unit}; linear within +-{lin:.1g}, log beyond)")
     ax[0].set_ylabel("fraction of trials (ECDF)")
-    ax[0].set_title(f"{run.scenario.name}: {summary['trials']} trials, "
+    ax[0].set_title(f"{run.study.name}: {summary['trials']} trials, "
                     f"{summary['datasets']} data sets")  # fmt: skip
     ax[0].legend(fontsize=8)
     kinds = (("safe", "safe (min h >= 0)"), ("cbf_true_every_step", "CBF cond. (true) every step"),

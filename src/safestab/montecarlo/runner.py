@@ -187,6 +187,11 @@ def run_montecarlo(
             f"{type(scenario).__name__}.trial_study(spec) must return a TrialStudy "
             f"(safestab.montecarlo.protocol), got {type(study).__name__}"
         )
+    if study.spec != spec:
+        raise ParameterError(
+            f"{type(scenario).__name__}.trial_study(spec) must keep the spec it was given "
+            "(the runner plans the chunks and the record columns from it)"
+        )
     chunks = plan_chunks(trials, datasets, spec.chunk_size)
     pad = min(spec.chunk_size, -(-trials // datasets))
     report = progress or (lambda done, total: None)

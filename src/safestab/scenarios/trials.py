@@ -88,6 +88,11 @@ class ScenarioTrials:
         """Step, s."""
         return self.scenario.dt
 
+    @property
+    def t_final(self) -> float:
+        """Horizon, s."""
+        return self.scenario.t_final
+
     def systems(self) -> tuple[Any, Any]:
         """``(true, nominal)`` control-affine systems."""
         return self.scenario.system("true"), self.scenario.system("nominal")

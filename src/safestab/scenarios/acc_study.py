@@ -17,7 +17,6 @@ from ..learning import (
     Dataset,
     GaussianProcessModel,
     calibration,
-    collect_data,
     conformal_beta,
 )
 from ..simulation import Trajectory, simulate
@@ -150,20 +149,9 @@ def collect_study_data(
     """
     seed = scenario.seed if seed is None else int(seed)
     q = scenario.n_samples if n_samples is None else int(n_samples)
-    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
     n_test = max(50, q // 4)
-    data = collect_data(
-        scenario.system("true"),
-        scenario.system("nominal"),
-        x0=(scenario.x0_low, scenario.x0_high),
-        u_low=-span,
-        u_high=span,
-        n_samples=q + n_test,
-        rate=scenario.sample_rate,
-        horizon=scenario.sample_horizon,
-        noise_std=scenario.noise_std,
-        seed=seed,
-    )
+    # the scenario's excitation, as its Monte Carlo data sets collect it
+    data = scenario.trial_study().collect(q + n_test, seed)
     return data.take(np.arange(q)), data.take(np.arange(q, q + n_test))
 
 
@@ -198,16 +186,7 @@ def study_controllers(
     """
     true_sys, nominal = scenario.system("true"), scenario.system("nominal")
     clf, cbf = scenario.certificates()
-    u_min, u_max = scenario.input_limits()
-    common: dict[str, Any] = dict(
-        kappa=scenario.kappa,
-        rho=scenario.rho,
-        phi=scenario.phi,
-        varphi=scenario.varphi,
-        slack_weight=scenario.slack_weight,
-        u_min=u_min,
-        u_max=u_max,
-    )
+    common = scenario.trial_study().controller_options()  # those of the Monte Carlo trials
     out = {
         "true model": UniversalController(true_sys, clf, cbf, **common),
         "mismatched model": UniversalController(nominal, clf, cbf, **common),
@@ -275,9 +254,7 @@ def run_study(
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
-    span = scenario.excitation_limit * scenario.mass * scenario.gravity / scenario.input_scale
-    nominal = scenario.system("nominal")
-    conformal = _conformal_check(scenario, gp, true_sys, nominal, span, seed, test)
+    conformal = _conformal_check(scenario, gp, seed, test)
     timings["conformal_beta"] = conformal.pop("seconds")
 
     controllers = study_controllers(scenario, gp)
@@ -310,24 +287,14 @@ def run_study(
     return StudyResult(scenario, train, gp, calib, trajectories, metrics, timings, conformal)
 
 
-def _conformal_check(scenario, gp, true_sys, nominal, span, seed, test) -> dict[str, Any]:
+def _conformal_check(scenario, gp, seed, test) -> dict[str, Any]:
     """Per-trajectory split conformal beta on fresh trajectories, and both betas' coverage."""
     import time
 
     t0 = time.perf_counter()
     per_traj = int(round(scenario.sample_horizon * scenario.sample_rate))
-    cal = collect_data(
-        true_sys,
-        nominal,
-        x0=(scenario.x0_low, scenario.x0_high),
-        u_low=-span,
-        u_high=span,
-        n_samples=_CONFORMAL_TRAJECTORIES * per_traj,
-        rate=scenario.sample_rate,
-        horizon=scenario.sample_horizon,
-        noise_std=scenario.noise_std,
-        seed=(seed + 2**31) % 2**32,  # an independent stream: trajectories not used to fit
-    )
+    # an independent stream: trajectories not used to fit
+    cal = scenario.trial_study().collect(_CONFORMAL_TRAJECTORIES * per_traj, (seed + 2**31) % 2**32)
     stride = max(1, int(round(_CONFORMAL_STRIDE_S * scenario.sample_rate)))
     cal = cal.take(np.arange(0, len(cal), stride))
     omega_cal = np.asarray(scenario.omega(cal.x))

@@ -29,7 +29,7 @@ from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
-from ..learning import FastGP, GaussianProcessModel, collect_data
+from ..learning import FastGP, GaussianProcessModel
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import ObstacleScenario
@@ -402,24 +402,12 @@ def fit_obstacle_gp(
     """
     timings = {} if timings is None else timings
     report = report or (lambda msg, frac: None)
-    true_sys, nominal = sc.system("true"), sc.system("nominal")
     t0 = time.perf_counter()
     q = sc.n_samples
     n_test = max(50, q // 4)
     n_check = n_test if sc.n_inducing > 0 else 0
-    span = sc.excitation_limit
-    data = collect_data(
-        true_sys,
-        nominal,
-        x0=(sc.x0_low, sc.x0_high),
-        u_low=-span,
-        u_high=span,
-        n_samples=q + n_test + n_check,
-        rate=sc.sample_rate,
-        horizon=sc.sample_horizon,
-        noise_std=sc.noise_std,
-        seed=sc.seed,
-    )
+    # the scenario's excitation, as its Monte Carlo data sets collect it
+    data = sc.trial_study().collect(q + n_test + n_check, sc.seed)
     timings["collect_data"] = time.perf_counter() - t0
 
     report(f"fitting the GP (Q = {q}, n = 2)", 0.1)

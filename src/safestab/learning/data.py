@@ -10,6 +10,7 @@ exogenous term ``e(t)``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -236,6 +237,49 @@ def collect_data(
         "phase": jax.random.uniform(k_ph, (n_traj, m), maxval=2 * np.pi),
         "noise": jax.random.normal(k_noise, (n_traj, per_traj, m)),
     }
+    run = _trajectories(
+        true_system, exogenous, controller, m, per_traj, substeps, period, h,
+        float(controller_noise), tuple(low.tolist()), tuple(high.tolist()),
+    )  # fmt: skip
+    xs, us, xdots, ts, x_next = run(x0s, params)
+    if derivative == "finite_difference":
+        xdots = (x_next - xs) / period
+    flat = [
+        np.asarray(a).reshape((n_traj * per_traj,) + a.shape[2:])[:n_samples]
+        for a in (xs, us, xdots, ts)
+    ]
+    x, u, xdot, t = flat
+    traj = np.repeat(np.arange(n_traj), per_traj)[:n_samples]
+    bad = ~(np.isfinite(x).all(1) & np.isfinite(xdot).all(1))
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise NonFiniteError(
+            f"collect_data: {int(bad.sum())} of {len(x)} samples are not finite (the first in "
+            f"trajectory {int(traj[first])} at t = {float(t[first]):g} s): the true system "
+            "diverged under the excitation; shorten horizon, narrow x0 or the input range"
+        )
+    f_nom = np.asarray(nominal.drift(jnp.asarray(x)))
+    g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
+    e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
+    y = xdot - f_nom - np.einsum("qij,qj->qi", g_nom, u) - e
+    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
+        np.asarray(noise_std, float), (n,)
+    )
+    return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t, trajectory=traj)
+
+
+@functools.lru_cache(maxsize=16)
+def _trajectories(
+    true_system, exogenous, controller, m, per_traj, substeps, period, h, controller_noise,
+    low, high,
+):  # fmt: skip
+    """The jitted, vmapped excitation trajectories of :func:`collect_data`.
+
+    Built once per system, excitation settings and input range (systems and callables by
+    identity), so a study that collects many data sets with the same objects traces and
+    compiles once instead of once per data set.
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
     mid, half = jnp.asarray((low + high) / 2), jnp.asarray((high - low) / 2)
     ctrl = controller if controller is not None else (lambda x: jnp.zeros(m))
 
@@ -264,28 +308,4 @@ def collect_data(
         _, rec = jax.lax.scan(sample, x0_, jnp.arange(per_traj))
         return rec
 
-    xs, us, xdots, ts, x_next = jax.jit(jax.vmap(trajectory))(x0s, params)
-    if derivative == "finite_difference":
-        xdots = (x_next - xs) / period
-    flat = [
-        np.asarray(a).reshape((n_traj * per_traj,) + a.shape[2:])[:n_samples]
-        for a in (xs, us, xdots, ts)
-    ]
-    x, u, xdot, t = flat
-    traj = np.repeat(np.arange(n_traj), per_traj)[:n_samples]
-    bad = ~(np.isfinite(x).all(1) & np.isfinite(xdot).all(1))
-    if bad.any():
-        first = int(np.argmax(bad))
-        raise NonFiniteError(
-            f"collect_data: {int(bad.sum())} of {len(x)} samples are not finite (the first in "
-            f"trajectory {int(traj[first])} at t = {float(t[first]):g} s): the true system "
-            "diverged under the excitation; shorten horizon, narrow x0 or the input range"
-        )
-    f_nom = np.asarray(nominal.drift(jnp.asarray(x)))
-    g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
-    e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
-    y = xdot - f_nom - np.einsum("qij,qj->qi", g_nom, u) - e
-    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
-        np.asarray(noise_std, float), (n,)
-    )
-    return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t, trajectory=traj)
+    return jax.jit(jax.vmap(trajectory))

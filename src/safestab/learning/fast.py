@@ -152,6 +152,10 @@ class FastGP:
         Components with a signal far above the noise are governed by ``pivot_tol`` as
         before. For any choice of inducing inputs the band is proven to contain the exact
         band.
+    warn : bool
+        Issue the :class:`InducingPointsWarning` (default). False only records its messages
+        in ``width_warnings_``: for callers in threads, where ``warnings.catch_warnings`` is
+        not safe (it swaps process-wide state).
 
     Attributes
     ----------
@@ -163,6 +167,8 @@ class FastGP:
         ``E``: the RKHS norm bounding ``|m - m~| <= E r(x)`` (rounding allowance included).
     inflation_at_training_ : array of shape (k,)
         Fraction of training inputs where ``sigma~ > INFLATION_WARN * noise_``.
+    width_warnings_ : tuple of str
+        The messages of the :class:`InducingPointsWarning` (empty when the band is tight).
 
     Warns
     -----
@@ -185,6 +191,7 @@ class FastGP:
         min_beta: float = 1.0,
         pivot_tol: float = 1e-10,
         noise_tol: float = 0.1,
+        warn: bool = True,
     ) -> None:
         check_fitted(model)
         if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
@@ -287,6 +294,7 @@ class FastGP:
         comps = list(model.components_)
         ratio = (np.asarray(sd_c) + np.asarray(merr) / self.min_beta) / model.noise_
         self.inflation_at_training_ = np.mean(ratio > INFLATION_WARN, axis=0)
+        notes = []
         for j, (comp, frac) in enumerate(zip(comps, self.inflation_at_training_, strict=True)):
             if frac > 0.01:
                 floor = np.sqrt(rnds[j]) * (1.0 + errs[j] / self.min_beta)
@@ -298,14 +306,15 @@ class FastGP:
                     if limited
                     else "increase n_inducing"
                 )
-                warnings.warn(
+                notes.append(
                     f"FastGP with n_inducing={n_inducing}: for component {comp}, at "
                     f"{frac:.0%} of the training inputs the cache's std exceeds "
                     f"{INFLATION_WARN:g} times the noise std, which bounds the exact posterior "
-                    f"std there: the cache's band is needlessly wide; {remedy}",
-                    InducingPointsWarning,
-                    stacklevel=2,
+                    f"std there: the cache's band is needlessly wide; {remedy}"
                 )
+        self.width_warnings_ = tuple(notes)
+        for note in notes if warn else ():
+            warnings.warn(note, InducingPointsWarning, stacklevel=2)
 
     #: Rounding allowance per query for a lower working precision (``for_precision``).
     work_unit = 0.0

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InducingPointsWarning, ParameterError
+from ..learning.batched import one_blas_thread
 from ..scenarios import MonteCarloSpec
 from .loop import RECORD_FIELDS
 from .protocol import TrialStudy
@@ -130,6 +131,7 @@ def run_montecarlo(
     address: str | None = None,
     progress: Progress | None = None,
     workers: int | None = None,
+    dataset_progress: Progress | None = None,
 ) -> MonteCarloRun:
     """Run ``trials`` closed loops of every controller over ``datasets`` fitted GPs.
 
@@ -152,6 +154,8 @@ def run_montecarlo(
     progress : callable, optional
         ``progress(chunks_done, chunks_total)``: after each chunk (local backend), after each
         task's ``workers`` chunks (Ray).
+    dataset_progress : callable, optional
+        ``dataset_progress(sets_done, sets_total)``: after each fitted data set.
     workers : int, optional
         Chunks run at once in threads of one process (XLA releases the GIL); the loop is
         compiled first, then every chunk runs in the threads. Local backend: threads of this
@@ -195,14 +199,17 @@ def run_montecarlo(
     chunks = plan_chunks(trials, datasets, spec.chunk_size)
     pad = min(spec.chunk_size, -(-trials // datasets))
     report = progress or (lambda done, total: None)
+    report_sets = dataset_progress or (lambda done, total: None)
     t0 = time.perf_counter()
     if backend == "local":
         if workers is None:
             workers = 2 if (os.cpu_count() or 1) >= 2 else 1
-        models, results, t_data = _local(study, seed, datasets, chunks, pad, report, int(workers))
+        models, results, t_data = _local(
+            study, seed, datasets, chunks, pad, report, report_sets, int(workers)
+        )
     else:
         models, results, t_data = _ray(
-            study, seed, datasets, chunks, pad, report, address,
+            study, seed, datasets, chunks, pad, report, report_sets, address,
             None if workers is None else int(workers),
         )  # fmt: skip
     t_total = time.perf_counter() - t0
@@ -228,14 +235,39 @@ def run_montecarlo(
     )  # fmt: skip
 
 
-def _local(study, seed, datasets, chunks, pad, report, workers):
+def _local(study, seed, datasets, chunks, pad, report, report_sets, workers):
     t0 = time.perf_counter()
-    first = fit_dataset(study, seed, 0)
-    hyper = first.hyper if study.spec.hyperparameters == "reuse" else None
-    models = [first] + [fit_dataset(study, seed, j, hyper) for j in range(1, datasets)]
+    # one BLAS thread for the whole phase (threadpoolctl's limit is process-wide: set once
+    # here, it is not undone by one thread's fit_dataset while another's runs)
+    with one_blas_thread():
+        first = fit_dataset(study, seed, 0)
+        report_sets(1, datasets)
+        hyper = first.hyper if study.spec.hyperparameters == "reuse" else None
+        models = [first, *_in_threads(
+            lambda j: fit_dataset(study, seed, j, hyper), range(1, datasets), workers,
+            lambda done: report_sets(done + 1, datasets),
+        )]  # fmt: skip
     t_data = time.perf_counter() - t0
     results = _run_chunks(study, seed, chunks, models, pad, workers, report)
     return models, results, t_data
+
+
+def _in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callable) -> list:
+    """``[fn(i) for i in items]``, ``workers`` at once in threads; ``done(count)`` as each ends."""
+    items = list(items)
+    if workers == 1 or len(items) <= 1:
+        out = []
+        for k, item in enumerate(items):
+            out.append(fn(item))
+            done(k + 1)
+        return out
+    results: list[Any] = [None] * len(items)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
+        for count, fut in enumerate(as_completed(futures), 1):
+            results[futures[fut]] = fut.result()
+            done(count)
+    return results
 
 
 def _run_chunks(study, seed, chunks, models, pad, workers, report):
@@ -244,27 +276,18 @@ def _run_chunks(study, seed, chunks, models, pad, workers, report):
     ``chunks`` holds ``(data set, indices)`` pairs; ``models[j]`` is data set ``j``'s model.
     """
 
-    def run(k: int) -> dict[str, np.ndarray]:
-        j, idx = chunks[k]
+    def run(chunk: tuple[int, np.ndarray]) -> dict[str, np.ndarray]:
+        j, idx = chunk
         return run_chunk(study, models[j], seed, idx, pad_to=pad)
 
-    if workers == 1 or len(chunks) == 1:
-        results: list[Any] = []
-        for k in range(len(chunks)):
-            results.append(run(k))
-            report(k + 1, len(chunks))
-        return results
-    # compile the loop first (in this thread), so every chunk, the first included, can run
-    # in the threads; a data set whose cache has other shapes compiles on its first chunk
-    j0, idx0 = chunks[0]
-    compile_chunk(study, models[j0], seed, idx0, pad_to=pad)
-    results = [None] * len(chunks)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(run, k): k for k in range(len(chunks))}
-        for done, fut in enumerate(as_completed(futures), 1):
-            results[futures[fut]] = fut.result()
-            report(done, len(chunks))
-    return results
+    if workers > 1 and len(chunks) > 1:
+        # compile the loop first (in this thread), so every chunk, the first included, can
+        # run in the threads; a data set whose cache has other shapes compiles on its first
+        # chunk
+        j0, idx0 = chunks[0]
+        compile_chunk(study, models[j0], seed, idx0, pad_to=pad)
+    total = len(chunks)
+    return _in_threads(run, chunks, workers, lambda done: report(done, total))
 
 
 def _chunk_group(study, seed, pad, workers, group, sets, *models):
@@ -327,7 +350,7 @@ def _node_cpus(ray: Any) -> list[int]:
     return [c for c in cpus if c > 0]
 
 
-def _ray(study, seed, datasets, chunks, pad, report, address, workers):
+def _ray(study, seed, datasets, chunks, pad, report, report_sets, address, workers):
     ray = start_ray(address)
     cpus = _node_cpus(ray)
     if workers is None:
@@ -361,7 +384,10 @@ def _ray(study, seed, datasets, chunks, pad, report, address, workers):
         task = group_task.options(num_cpus=len(ks))  # the last group may be smaller
         refs = [model_refs[j] for j in sets]
         pending[task.remote(study, seed, pad, len(ks), group, sets, *refs)] = ks
-    models = ray.get(model_refs)  # the chunks already submitted run as their data sets finish
+    models = []
+    for j, ref in enumerate(model_refs):  # the chunks already submitted run as sets finish
+        models.append(ray.get(ref))
+        report_sets(j + 1, datasets)
     t_data = time.perf_counter() - t0
     results: list[Any] = [None] * len(chunks)
     done = 0

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import warnings
 from typing import Any
 
 import jax
@@ -23,18 +22,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..controllers import UniversalController
-from ..errors import InducingPointsWarning, ParameterError
+from ..errors import ParameterError
 from ..learning import (
     BatchedUncertainty,
     ExactPosterior,
+    FastGP,
     GaussianProcessModel,
     Hyperparameters,
     beta_lemma2,
     condition,
-    inducing_cache,
     information_gain,
 )
-from ..learning.batched import one_blas_thread
+from ..learning.batched import InducingCache, one_blas_thread
 from .loop import trial_function
 from .protocol import TrialStudy
 
@@ -175,21 +174,17 @@ def _fit_dataset(study, seed, index, hyper):
         "GP-robust": per_state(gp_settings["gp_beta"]),
         "GP-robust Lemma 2": per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
     }
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", InducingPointsWarning)
-        cache: Any = (
-            inducing_cache(gp, spec.n_inducing)
-            if spec.gp == "fast"
-            else ExactPosterior.from_model(gp)
-        )
-    notes = []
-    for w in caught:  # a needlessly wide band is recorded with the data set (and reported)
-        if issubclass(w.category, InducingPointsWarning):
-            notes.append(str(w.message))
-        else:
-            warnings.warn(w.message, w.category, stacklevel=2)
+    notes: tuple[str, ...] = ()
+    if spec.gp == "fast":
+        # warn=False: the messages are kept with the data set (and reported once by the
+        # runner); warnings.catch_warnings would swap process-wide state under the runner's
+        # threads
+        fast = FastGP(gp, spec.n_inducing, warn=False)
+        cache: Any = InducingCache.from_fastgp(fast)
+        notes = fast.width_warnings_
+    else:
+        cache = ExactPosterior.from_model(gp)
     del gp  # the (k, Q, Q) factor is not shipped with the data set
-    batch = jax.jit(cache.mean_std_batch)
     if "GP-robust conformal" in spec.controllers:
         conformal = conformal_beta_function()
         if conformal is None:
@@ -204,18 +199,17 @@ def _fit_dataset(study, seed, index, hyper):
         )
         betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
     omega_test = np.asarray(study.omega(x_test))
-    mean, std = (np.asarray(v) for v in batch(jnp.asarray(x_test)))
+    mean, std = (np.asarray(v) for v in _mean_std(cache, jnp.asarray(x_test)))
     coverage = {
         name: float(np.mean(np.all(np.abs(omega_test - mean) <= b * std, axis=1)))
         for name, b in betas.items()
     }
     cache = jax.tree_util.tree_map(np.asarray, cache)
-    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, tuple(notes))
+    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes)
 
 
-@functools.lru_cache(maxsize=8)
-def _compiled_chunk(study: TrialStudy) -> Any:
-    """The jitted chunk runner; cached per process so each worker compiles once per shape."""
+def _chunk_body(study: TrialStudy) -> Any:
+    """The (unjitted) trials of one data set: ``(cache, betas, x0 (B, n), params) -> records``."""
     spec = study.spec
     true_sys, nominal = study.systems()
     clf, cbf = study.certificates()
@@ -248,7 +242,19 @@ def _compiled_chunk(study: TrialStudy) -> Any:
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 
-    return jax.jit(chunk)
+    return chunk
+
+
+@jax.jit
+def _mean_std(cache: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A cache's batched mean and std, compiled once per cache shape (not once per data set)."""
+    return cache.mean_std_batch(x)
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled_chunk(study: TrialStudy) -> Any:
+    """The jitted chunk runner; cached per process so each worker compiles once per shape."""
+    return jax.jit(_chunk_body(study))
 
 
 def run_chunk(
@@ -293,11 +299,16 @@ def compile_chunk(
     _compiled_chunk(study).lower(*_chunk_args(study, model, seed, indices, pad_to)).compile()
 
 
-def _chunk_args(study, model, seed, indices, pad_to):
+def _padded(indices: Any, size: int | None) -> np.ndarray:
+    """``indices`` as int64, padded to ``size`` with copies of the first."""
     idx = np.asarray(indices, dtype=np.int64)
-    b = idx.size
-    if pad_to is not None and pad_to > b:
-        idx = np.concatenate([idx, np.full(pad_to - b, idx[0])])
+    if size is not None and size > idx.size:
+        idx = np.concatenate([idx, np.full(size - idx.size, idx[0])])
+    return idx
+
+
+def _chunk_args(study, model, seed, indices, pad_to):
+    idx = _padded(indices, pad_to)
     x0, params = study.draw_trials(seed, idx)
     betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in study.spec.controllers}
     return model.cache, betas, x0, params

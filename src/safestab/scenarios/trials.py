@@ -94,8 +94,17 @@ class ScenarioTrials:
         return self.scenario.t_final
 
     def systems(self) -> tuple[Any, Any]:
-        """``(true, nominal)`` control-affine systems."""
+        """``(true, nominal)`` control-affine systems (the same objects at every call)."""
+        return self._systems
+
+    @functools.cached_property
+    def _systems(self) -> tuple[Any, Any]:
+        # built once per study: the compiled data collection is cached per system object
         return self.scenario.system("true"), self.scenario.system("nominal")
+
+    def __getstate__(self) -> dict[str, Any]:
+        # a copy (a Ray worker's) builds its own systems
+        return {k: v for k, v in self.__dict__.items() if k != "_systems"}
 
     def certificates(self) -> tuple[Any, Any]:
         """``(clf, cbf)``."""
@@ -138,7 +147,7 @@ class ScenarioTrials:
         span = self.excitation_span()
         noise = sc.noise_std if self.spec.noise_std is None else self.spec.noise_std
         return collect_data(
-            sc.system("true"), sc.system("nominal"),
+            *self.systems(),
             x0=(sc.x0_low, sc.x0_high), u_low=-span, u_high=span,
             n_samples=n_samples, rate=sc.sample_rate, horizon=sc.sample_horizon,
             noise_std=noise, seed=seed,

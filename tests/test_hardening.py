@@ -384,11 +384,13 @@ def test_mc_table_fits_an_80_column_terminal():
 
     entry = {"rate": 0.99987, "ci95": [0.99961, 1.0]}
     names = ("true model", "mismatched model", "GP mean", "GP-robust", "GP-robust Lemma 2")
+    claim = {"claimed_probability": 0.9703, "unit": "data set"}
     summary = {
-        "trials": 10000, "datasets": 1, "claimed_probability": 0.98,
+        "trials": 10000, "datasets": 1000,
         "controllers": {
-            n: {"safe": entry, "cbf_true_every_step": entry, "lemma2_every_state": None,
-                "min_h_quantiles": {"0.01": 12.345}}
+            n: {"safe": entry, "safe_per_dataset": entry, "lemma2_per_dataset": entry,
+                "min_h_quantiles": {"0.01": 12.345},
+                "guarantee": claim if "Lemma" in n else None}
             for n in names
         },
     }  # fmt: skip
@@ -397,7 +399,8 @@ def test_mc_table_fits_an_80_column_terminal():
     text = console.export_text()
     assert "…" not in text  # nothing cut
     assert max(len(line) for line in text.splitlines()) <= 80
-    assert text.count("[0.9996, 1.0000]") == 10  # every interval whole (names may wrap)
+    assert text.count("[1.000, 1.000]") == 15  # every interval whole (names may wrap)
+    assert text.count("0.9703") == 1  # the claim only where the beta carries one
     assert "mismatched" in text and "Lemma 2" in text
 
 

@@ -1,11 +1,13 @@
 """Ready-made problems with parameter presets."""
 
+from ._mc_schema import CONTROLLERS, check_controllers
 from ._schema import LIMITS, ScenarioLimits
 from .acc import PRESETS, ACCScenario, MonteCarloSpec, load_scenario
 from .loading import KINDS, load, parse_override, scenario_kind
 from .obstacle import ObstacleScenario, load_obstacle_scenario
 
 __all__ = [
+    "CONTROLLERS",
     "KINDS",
     "LIMITS",
     "PRESETS",
@@ -13,6 +15,7 @@ __all__ = [
     "MonteCarloSpec",
     "ObstacleScenario",
     "ScenarioLimits",
+    "check_controllers",
     "load",
     "load_obstacle_scenario",
     "load_scenario",

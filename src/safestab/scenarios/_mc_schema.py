@@ -15,7 +15,7 @@ from typing import Any
 from ..errors import ScenarioError
 from ._schema import LIMITS, choice, fail, integer, real
 
-__all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_montecarlo"]
+__all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_controllers", "check_montecarlo"]
 
 #: The controllers a Monte Carlo study can compare, in the order they are reported.
 #: ``"GP-robust conformal"`` needs a conformal beta from :mod:`safestab.learning` (issue 14).
@@ -32,7 +32,8 @@ MAX_TRIALS, MAX_DATASETS, MAX_SEGMENTS = 100_000_000, 10_000, 1000
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
 
 
-def _controllers(path: str, value: Any, source: str) -> tuple[str, ...]:
+def check_controllers(path: str, value: Any, source: str) -> tuple[str, ...]:
+    """The controllers ``value`` (names from :data:`CONTROLLERS`), or a ScenarioError."""
     expected = "a non-empty array of distinct names from " + ", ".join(map(repr, CONTROLLERS))
     if not isinstance(value, list | tuple) or not value:
         raise fail(source, path, expected, value)
@@ -70,7 +71,7 @@ MC_FIELDS: dict[str, tuple[Any, Any]] = {
     "datasets": (integer(1, MAX_DATASETS), 1),
     "hyperparameters": (choice(("refit", "reuse")), "reuse"),
     "noise_std": (_optional_real(0.0), None),
-    "controllers": (_controllers, CONTROLLERS[:5]),
+    "controllers": (check_controllers, CONTROLLERS[:5]),
     "gp": (choice(("fast", "exact")), "fast"),
     "n_inducing": (integer(1, 1024), 32),
     "chunk_size": (integer(1, 1_000_000), 1000),

@@ -5,7 +5,9 @@ Run ``python benchmarks/gp_coverage.py --seeds 0 1 2 3 4 5 6 7 8 9``; prints a M
 from 500 rows), calibrate the per-trajectory conformal beta (delta = 0.05) on 40 fresh
 trajectories, and check both betas on 40 further fresh trajectories (states every 1 s):
 the fraction of states inside the band, and the fraction of trajectories inside it at every
-checked state (what the per-trajectory guarantee is about).
+checked state (what the per-trajectory guarantee is about). "Inside" is the joint event over
+every learned component, ``max_i |omega_i - m_i| / sigma_i <= beta``: the event the conformal
+beta is calibrated on (an earlier version scored component 0 only, a weaker event).
 """
 
 from __future__ import annotations
@@ -50,14 +52,18 @@ def one_seed(sc, seed):
     fresh = trajectories(sc, (seed + 3 * 2**30) % 2**32, N_TRAJ, span)
     omega = np.asarray(sc.omega(fresh.x))
     mean, var = gp.predict(fresh.x)
-    score = (np.abs(omega - np.asarray(mean)) / np.sqrt(np.asarray(var)))[:, 0]
+    # the joint event over the learned components, the one conformal_beta calibrates (its
+    # score is the largest of the components' scores)
+    comps = list(gp.components_)
+    ratio = np.abs(omega - np.asarray(mean))[:, comps] / np.sqrt(np.asarray(var))[:, comps]
+    score = ratio.max(axis=1)
     out = {"seed": seed, "fit_s": fit_s, "beta_conformal": beta_c}
     for key, beta in (("chosen", sc.gp_beta), ("conformal", beta_c)):
         inside = score <= beta
         per_traj = [inside[fresh.trajectory == t].all() for t in np.unique(fresh.trajectory)]
         out[f"state_coverage_{key}"] = float(inside.mean())
         out[f"trajectory_coverage_{key}"] = float(np.mean(per_traj))
-        out[f"calibration_{key}"] = calibration(gp, fresh.x, omega, beta).per_component[0]
+        out[f"calibration_{key}"] = calibration(gp, fresh.x, omega, beta).per_component.tolist()
     out["max_score"] = float(score.max())
     return out
 
@@ -71,7 +77,7 @@ def main():
     rows = []
     print(
         "| seed | conformal beta | states in band, beta = 2 | conformal | trajectories "
-        "entirely in band, beta = 2 | conformal | max abs(omega - m)/sigma |"
+        "entirely in band, beta = 2 | conformal | max over components of abs(omega - m)/sigma |"
     )
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for seed in args.seeds:

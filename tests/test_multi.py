@@ -9,6 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
+import safestab as ss
 from safestab import (
     DimensionError,
     MultiStatus,
@@ -254,3 +255,42 @@ def test_safety_filter_matches_the_formula_and_keeps_every_barrier():
     assert np.allclose(np.asarray(out.u), np.asarray(ref.u), rtol=1e-13, atol=1e-14)
     solved = np.asarray(out.formula_status) == MultiStatus.SOLVED
     assert solved.sum() >= 30 and np.all(np.asarray(out.cbf_satisfied)[solved])
+
+
+def test_status_ok_is_not_a_safety_certificate_where_the_box_and_the_cbf_conflict():
+    """The review: status OK with slack 0 where the input box and the CBF conflict. The
+    filter's ``safety_certified`` must be False exactly where no input in the box meets the
+    CBF condition, computed here by hand: c + d u >= rho Gamma, Gamma = sqrt(c^2 + varphi
+    d^4), for the one-input ACC at the box's two ends."""
+    from safestab.scenarios import load_scenario
+
+    sc = load_scenario("paper")
+    system = sc.system("true")
+    clf, cbf = sc.certificates()
+    mg = sc.mass * sc.gravity / sc.input_scale
+    lo, hi = -0.3 * mg, 0.25 * mg
+    filt = ss.SafetyFilter(
+        system, cbf, clfs=clf, u_min=lo, u_max=hi, kappa=sc.kappa, rho=sc.rho, phi=sc.phi,
+        varphi=sc.varphi,
+    )  # fmt: skip
+    x = np.random.default_rng(0).uniform([5, 5, 1], [35, 35, 150], size=(2000, 3))
+    out = filt.step(x)
+    terms = ss.lie_terms(system, clf, cbf, x)
+    c, d = np.asarray(terms.c), np.asarray(terms.d)[:, 0]
+    need = sc.rho * np.sqrt(c**2 + sc.varphi * d**4)
+    best = np.maximum(c + d * lo, c + d * hi)  # the best CBF value the box allows
+    scale = np.abs(c) + np.abs(d) * hi + need  # the condition's own magnitudes
+    clear = np.abs(best - need) > 1e-9 * scale  # away from the feasibility boundary
+    feasible = best >= need
+    assert np.all(np.asarray(out.status) == ss.StepStatus.OK)  # an input everywhere
+    assert 100 < np.sum(~feasible) < 1900  # both kinds of state are drawn
+    certified = np.asarray(out.safety_certified)
+    np.testing.assert_array_equal(certified[clear], feasible[clear])
+    fstat = np.asarray(out.formula_status)
+    assert np.all(fstat[clear & ~feasible] == MultiStatus.CBF_RELAXED)
+    # the single-pair controller with the same box says the same
+    ctrl = ss.UniversalController(
+        system, clf, cbf, kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
+        slack_weight=10.0, u_min=lo, u_max=hi,
+    )  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(ctrl.step(x).safety_certified)[clear], feasible[clear])

@@ -94,7 +94,9 @@ class ControlOutput:
     slack : array of shape (...,)
         The CLF slack of the relaxed formula (0 otherwise).
     status : int array of shape (...,)
-        A :class:`StepStatus` per state.
+        A :class:`StepStatus` per state. ``OK`` says that an input was computed (finite
+        state, model and input); it does not say that the input meets the CBF condition
+        (input limits can forbid it): read :attr:`safety_certified`.
     terms : LieTerms
         The terms the formula used (GP-robust ones when an uncertainty model is given).
     """
@@ -108,6 +110,16 @@ class ControlOutput:
     slack: jax.Array
     status: jax.Array
     terms: LieTerms
+
+    @property
+    def safety_certified(self) -> jax.Array:
+        """Bool array (...,): an input was computed and it meets the CBF condition.
+
+        False where ``status`` is not OK, and where the applied input (after limits) breaks
+        the CBF condition, judged against the condition's own magnitudes (where the limits
+        and the barrier conflict, say).
+        """
+        return (self.status == StepStatus.OK) & self.cbf_satisfied
 
 
 jax.tree_util.register_dataclass(

@@ -42,14 +42,17 @@ class FilterOutput:
     u : array of shape (..., m)
         The input (NaN where ``status`` is not OK).
     status : int array of shape (...,)
-        A :class:`~safestab.controllers.StepStatus`.
+        A :class:`~safestab.controllers.StepStatus`: ``OK`` says that an input was computed
+        (finite state, model and input), not that it meets the barriers: where the input
+        limits and a CBF conflict the status is ``OK`` and the input is the limits' best
+        compromise (``formula_status`` ``CBF_RELAXED``). Read :attr:`safety_certified`.
     formula_status : int array of shape (...,)
         A :class:`~safestab.formulas.MultiStatus`: solved, or which fallback was used.
     active : bool array of shape (..., rows)
         Active rows (CLFs, CBFs, upper limits, lower limits).
     multipliers : array of shape (..., rows)
     slack : array of shape (..., p)
-        CLF slacks.
+        CLF slacks (a relaxed CBF shows in ``formula_status`` and ``cbf_satisfied``).
     cbf_satisfied : bool array of shape (..., k)
         Per CBF, judged against the condition's own magnitudes.
     clf_satisfied : bool array of shape (..., p)
@@ -64,6 +67,22 @@ class FilterOutput:
     slack: jax.Array
     cbf_satisfied: jax.Array
     clf_satisfied: jax.Array
+
+    @property
+    def safety_certified(self) -> jax.Array:
+        """Bool array (...,): the input is certified to keep every barrier and limit.
+
+        True exactly where ``status`` is OK, the solver's KKT certificate holds for the whole
+        problem or for its CBF-and-limits part (``formula_status`` ``SOLVED`` or
+        ``CLF_DROPPED``) and every CBF condition holds at ``u``, judged against its own
+        magnitudes. False where the limits and a CBF conflict (``CBF_RELAXED``), where the
+        solver stopped uncertified, and where the step failed. (A property, not a field: the
+        exported C step's outputs are unchanged.)
+        """
+        solved = (self.formula_status == MultiStatus.SOLVED) | (
+            self.formula_status == MultiStatus.CLF_DROPPED
+        )
+        return (self.status == StepStatus.OK) & solved & jnp.all(self.cbf_satisfied, -1)
 
 
 jax.tree_util.register_dataclass(

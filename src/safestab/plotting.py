@@ -215,7 +215,9 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
     sc, maps = result.scenario, result.maps
     _, settings = _run_keys(result)
     if axes is None:
-        fig, axes = plt.subplots(1, 2, figsize=(13, 4.6), constrained_layout=True)
+        # 5.4 in high: two equal-aspect panels of the 12 m x 8 m plane, their titles and
+        # x labels (at 4.6 in the layout could not fit them and cut the x label off)
+        fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), constrained_layout=True)
     else:
         fig = axes[0].figure
     region_colors = ["black", "#9ecae1", "#fdae6b", "#c7a0d8", "#d9d9d9"]  # INCOMPATIBLE, P1..P4

@@ -152,3 +152,47 @@ def test_sphinx_comment_docstrings(tmp_path: Path) -> None:
     assert roles.comment_docstring(pkg["Colour"]["RED"]) == "like a rose"
     assert roles.comment_docstring(pkg["Colour"]["BLUE"]) is None
     assert roles.comment_docstring(pkg["Colour"]) is None  # only attributes
+
+
+# -- reproduce-docs -------------------------------------------------------------------------
+
+reproduce_docs = _load("reproduce_docs")
+
+
+def test_every_generated_block_in_the_docs_is_written_by_a_step():
+    found = {}
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        for name in reproduce_docs.blocks(page.read_text()):
+            assert name not in found, f"block {name} in {found.get(name)} and {page}"
+            found[name] = page
+    produced = {b for names in reproduce_docs.PRODUCES.values() for b in names}
+    assert set(found) == produced
+    assert set(reproduce_docs.PRODUCES) == set(reproduce_docs.STEPS)
+
+
+def test_replace_block_rewrites_only_the_named_block():
+    text = (
+        "a\n<!-- generated: one -->\nold 1\n<!-- end generated -->\nb\n"
+        "<!-- generated: two -->\nold 2\n<!-- end generated -->\n"
+    )
+    out = reproduce_docs.replace_block(text, "two", "new\n")
+    assert reproduce_docs.blocks(out) == {"one": "old 1\n", "two": "new\n"}
+    assert out.startswith("a\n<!-- generated: one -->\nold 1\n")
+    with pytest.raises(KeyError, match="three"):
+        reproduce_docs.replace_block(text, "three", "x\n")
+
+
+def test_obstacle_table_from_a_metrics_document():
+    stuck = [{"end_flag_compatible": False, "end_verdict_compatible": False},
+             {"end_flag_compatible": True, "end_verdict_compatible": False}]  # fmt: skip
+    doc = {"runs": {
+        "true model / no limits": {"outcomes": {"converged": 70, "stuck": 2, "unsafe": 0,
+                                                "moving": 0}, "stuck": stuck,
+                                   "min_h_m2": 0.0199937},
+        "mismatched model / input limits": {"outcomes": {"converged": 66, "stuck": 0,
+                                                         "unsafe": 6, "moving": 0},
+                                            "stuck": [], "min_h_m2": -0.2314722},
+    }}  # fmt: skip
+    lines = reproduce_docs.obstacle_table(doc).splitlines()
+    assert lines[2] == "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 1 / 2 |"
+    assert lines[3] == "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | - |"

@@ -114,7 +114,10 @@ def test_cli_smoke(tmp_path):
         "acc_stress.pdf",
         "acc_stress.png",
         "acc_stress_metrics.json",
+        "acc_stress_run.json",  # the run record (command, seed, version, files)
     ]  # fmt: skip  (no temporaries or probe files left behind)
+    record = json.loads((out / "acc_stress_run.json").read_text())
+    assert record["files"] == sorted(p.name for p in out.iterdir())
     assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-corrected"}
     for m in doc["controllers"].values():
         for key in (

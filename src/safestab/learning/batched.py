@@ -314,7 +314,6 @@ def inducing_cache(
     *,
     min_beta: float = 1.0,
     pivot_tol: float = 1e-10,
-    warn: bool = True,
 ) -> InducingCache:
     """FastGP's cache of a fitted model, batched: its band contains the exact band everywhere.
 
@@ -326,9 +325,6 @@ def inducing_cache(
     min_beta, pivot_tol : float
         As for :class:`~safestab.learning.FastGP` (the band contains the exact band for every
         ``beta >= min_beta``).
-    warn : bool
-        False records the warnings' messages in the cache's ``width_warnings`` instead of
-        issuing them (:class:`~safestab.learning.FastGP`'s ``warn``).
 
     Returns
     -------
@@ -340,7 +336,7 @@ def inducing_cache(
         As :class:`~safestab.learning.FastGP`, when the band is needlessly wide.
     """
     with one_blas_thread():
-        fast = FastGP(model, n_inducing, min_beta=min_beta, pivot_tol=pivot_tol, warn=warn)
+        fast = FastGP(model, n_inducing, min_beta=min_beta, pivot_tol=pivot_tol)
     return InducingCache.from_fastgp(fast)
 
 

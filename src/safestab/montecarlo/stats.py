@@ -161,7 +161,8 @@ def _per_trial(event: np.ndarray, dataset_index: np.ndarray, n_sets: int) -> dic
         return {**_rate(k, n), "interval": "Clopper-Pearson (one trial per data set)"}
     if n_sets == 1:
         return {**_rate(k, n), "interval": "Clopper-Pearson, conditional on the one data set"}
-    fractions = np.array([event[dataset_index == j].mean() for j in range(n_sets)])
+    held, trials = _set_counts(event, dataset_index, n_sets)
+    fractions = held / trials
     return {
         "count": k, "trials": n, "rate": k / n,
         "ci95": list(empirical_bernstein(fractions)),
@@ -171,12 +172,23 @@ def _per_trial(event: np.ndarray, dataset_index: np.ndarray, n_sets: int) -> dic
 
 def _per_dataset(event: np.ndarray, dataset_index: np.ndarray, n_sets: int) -> dict[str, Any]:
     """Data sets whose every trial had ``event``, with the exact interval over data sets."""
-    held = [bool(np.all(event[dataset_index == j])) for j in range(n_sets)]
-    low, high = clopper_pearson(int(sum(held)), n_sets)
+    held, trials = _set_counts(event, dataset_index, n_sets)
+    count = int(np.sum(held == trials))
+    low, high = clopper_pearson(count, n_sets)
     return {
-        "count": int(sum(held)), "datasets": n_sets, "rate": sum(held) / n_sets,
+        "count": count, "datasets": n_sets, "rate": count / n_sets,
         "ci95": [low, high], "interval": "Clopper-Pearson over data sets",
     }  # fmt: skip
+
+
+def _set_counts(event: np.ndarray, dataset_index: np.ndarray, n_sets: int) -> Any:
+    """Per data set: the trials with ``event`` and all its trials, two arrays of shape (K,).
+
+    One pass over the trials (``bincount``), where a mask per data set cost K passes (10
+    million comparisons per rate at K = 1,000 and N = 10,000).
+    """
+    held = np.bincount(dataset_index, weights=event.astype(float), minlength=n_sets)
+    return held, np.bincount(dataset_index, minlength=n_sets).astype(float)
 
 
 def _guarantee(name: str, entry: dict[str, Any], delta: float, n_comp: int) -> Any:
@@ -184,14 +196,15 @@ def _guarantee(name: str, entry: dict[str, Any], delta: float, n_comp: int) -> A
     if name not in GUARANTEES:
         return None
     g = GUARANTEES[name]
-    claimed = joint_probability(delta, n_comp) if g["unit"] == "data set" else 1.0 - delta
-    measured = entry["safe_per_dataset"] if g["unit"] == "data set" else entry["safe"]
-    ci = measured["ci95"]
+    per_set = g["unit"] == "data set"
+    claimed = joint_probability(delta, n_comp) if per_set else 1.0 - delta
+    key = "safe_per_dataset" if per_set else "safe"
+    measured = entry[key]
     return {
         **g,
         "claimed_probability": claimed,
-        "measured_by": "safe_per_dataset" if g["unit"] == "data set" else "safe",
-        "consistent": None if ci is None else bool(ci[1] >= claimed),
+        "measured_by": key,
+        "consistent": bool(measured["ci95"][1] >= claimed),
         "excess_over_claim": measured["rate"] - claimed,
     }
 

@@ -208,8 +208,9 @@ def _fit_dataset(study, seed, index, hyper):
     return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes)
 
 
-def _chunk_body(study: TrialStudy) -> Any:
-    """The (unjitted) trials of one data set: ``(cache, betas, x0 (B, n), params) -> records``."""
+@functools.lru_cache(maxsize=8)
+def _compiled_chunk(study: TrialStudy) -> Any:
+    """The jitted chunk runner; cached per process so each worker compiles once per shape."""
     spec = study.spec
     true_sys, nominal = study.systems()
     clf, cbf = study.certificates()
@@ -242,19 +243,13 @@ def _chunk_body(study: TrialStudy) -> Any:
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 
-    return chunk
+    return jax.jit(chunk)
 
 
 @jax.jit
 def _mean_std(cache: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A cache's batched mean and std, compiled once per cache shape (not once per data set)."""
     return cache.mean_std_batch(x)
-
-
-@functools.lru_cache(maxsize=8)
-def _compiled_chunk(study: TrialStudy) -> Any:
-    """The jitted chunk runner; cached per process so each worker compiles once per shape."""
-    return jax.jit(_chunk_body(study))
 
 
 def run_chunk(
@@ -299,16 +294,11 @@ def compile_chunk(
     _compiled_chunk(study).lower(*_chunk_args(study, model, seed, indices, pad_to)).compile()
 
 
-def _padded(indices: Any, size: int | None) -> np.ndarray:
-    """``indices`` as int64, padded to ``size`` with copies of the first."""
-    idx = np.asarray(indices, dtype=np.int64)
-    if size is not None and size > idx.size:
-        idx = np.concatenate([idx, np.full(size - idx.size, idx[0])])
-    return idx
-
-
 def _chunk_args(study, model, seed, indices, pad_to):
-    idx = _padded(indices, pad_to)
+    idx = np.asarray(indices, dtype=np.int64)
+    b = idx.size
+    if pad_to is not None and pad_to > b:
+        idx = np.concatenate([idx, np.full(pad_to - b, idx[0])])
     x0, params = study.draw_trials(seed, idx)
     betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in study.spec.controllers}
     return model.cache, betas, x0, params

@@ -246,6 +246,8 @@ def test_cli_mc_checks_inputs_before_work(tmp_path):
         (["--workers", "0"], "--workers must be >= 1, got 0"),
         (["--chunk-size", "0"], "montecarlo.chunk_size must be an integer"),
         (["--seed", "-1"], r"--seed must be in \[0, 2\*\*32 - 1\]"),
+        (["--controllers", "true model,bogus"], r"--controllers\[1\] must be one of"),
+        (["--controllers", "GP mean,GP mean"], r"--controllers must be .* appears twice"),
     ]
     for args, match in bad:
         res = runner.invoke(app, ["mc", *args, "--out", str(tmp_path / "o")])

@@ -55,14 +55,20 @@ def _save(fig, path: Path) -> None:
 # -- the ACC study, through the command line --------------------------------------------------
 
 
+#: Where the ACC runs keep their result files (``--results``); a temporary folder if None.
+RESULTS: Path | None = None
+
+
 def _acc(scenario: str, out: Path) -> dict:
     """Run ``safestab acc --scenario SCENARIO`` and keep its PNG and headline metrics."""
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "safestab.cli", "acc", "--scenario", scenario, "--out", tmp]
+        folder = RESULTS or Path(tmp)
+        cmd = [sys.executable, "-m", "safestab.cli", "acc", "--scenario", scenario, "--out",
+               str(folder)]  # fmt: skip
         env = dict(os.environ, COLUMNS="120")
         subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL)
-        shutil.copyfile(Path(tmp) / f"acc_{scenario}.png", out / f"acc_{scenario}.png")
-        metrics = json.loads((Path(tmp) / f"acc_{scenario}_metrics.json").read_text())
+        shutil.copyfile(folder / f"acc_{scenario}.png", out / f"acc_{scenario}.png")
+        metrics = json.loads((folder / f"acc_{scenario}_metrics.json").read_text())
     mins = {name: round(m["min_h_m"], 3) for name, m in metrics["controllers"].items()}
     return {"command": f"safestab acc --scenario {scenario} --out DIR", "min_h_m": mins}
 
@@ -366,7 +372,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="+", choices=list(FIGURES), default=list(FIGURES))
     parser.add_argument("--out", type=Path, default=GALLERY)
+    parser.add_argument(
+        "--results", type=Path, default=None,
+        help="keep the ACC runs' result files here (default: a temporary folder)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    global RESULTS
+    RESULTS = args.results
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     manifest_path = out / "manifest.json"

@@ -3,23 +3,26 @@
     bash scripts/reproduce-docs.sh                 # every quick study (about 12 min here)
     bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min)
     bash scripts/reproduce-docs.sh --only mc-presets obstacle
-    bash scripts/reproduce-docs.sh --check         # then fail if a generated table changed
+    bash scripts/reproduce-docs.sh --check         # write nothing, fail if a table would change
 
 A generated table sits in a page between ``<!-- generated: NAME -->`` and
 ``<!-- end generated -->``; this script writes it from the result files of its step, never
-by hand. Each step's figures are copied into docs/figures. Timing tables (docs/performance*.md)
-are measurements of a time and place and are left alone (``scripts/run-benchmarks.sh``
-rewrites them). The script prints what it reran and how long each step took, and the pages
-whose tables are still typed by hand.
+by hand. Each step's figures are copied into docs/figures or docs/gallery. Timing tables
+(docs/performance*.md) are measurements of a time and place and are left alone
+(``scripts/run-benchmarks.sh`` rewrites them). The script prints what it reran and how long
+each step took. ``--check`` writes nothing: it exits 1 if a generated table would change, and
+lists the figures whose bytes would change (which does not fail: a figure's bytes also depend
+on the matplotlib and FreeType versions). The slow test
+``tests/test_docs_tools.py::test_reproduce_docs_check`` runs the check.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import re
 import shlex
-import shutil
 import subprocess
 import sys
 import time
@@ -32,11 +35,6 @@ SAFESTAB = [sys.executable, "-m", "safestab.cli"]
 MC_CONTROLLERS = (
     "true model,mismatched model,GP mean,GP-robust,GP-robust Lemma 2,GP-robust conformal"
 )
-#: Pages with result tables this script does not write yet (typed from a result file).
-BY_HAND = {
-    "docs/acc.md": "the ACC study's tables (safestab run --scenario paper / stress)",
-    "docs/swarm.md": "the swarm's table (safestab run --scenario swarm)",
-}
 BLOCK = re.compile(r"(<!-- generated: ([\w.-]+) -->\n)(.*?)(<!-- end generated -->)", re.S)
 
 
@@ -123,6 +121,87 @@ def gp_coverage_table(rows: list[dict]) -> str:
     return _table(header, ["---:"] * 7, body)
 
 
+def _num(x: float | None) -> str:
+    """A measured value as the tables print it.
+
+    0 as ``0``; at least 0.01 to four significant digits; smaller in scientific notation with
+    two; ``None`` (a non-finite value in strict JSON) as ``n/a``.
+    """
+    if x is None:
+        return "n/a"
+    if x == 0:
+        return "0"
+    return f"{x:.4g}" if abs(x) >= 0.01 else f"{x:.1e}"
+
+
+def acc_table(doc: dict) -> str:
+    """docs/acc.md's table for one ACC preset, and its GP line, from a metrics document."""
+    rows = []
+    for name, c in doc["controllers"].items():
+        regions = ", ".join(f"{k} {100 * v:.0f} %" for k, v in c["region_fraction"].items() if v)
+        rows.append([
+            name, f"{c['min_h_m']:+.3f}", _num(c["time_h_negative_s"]),
+            f"{c['rms_speed_error_mps']:.3f}", _num(c.get("max_abs_h_gap_to_true_m", 0.0)),
+            _num(c.get("rms_vf_gap_to_true_mps", 0.0)), _num(c["max_abs_u_over_Mg"]),
+            f"{c['incompatible_steps']:,}", regions,
+        ])  # fmt: skip
+    header = ["controller", "min h (m)", "time with h < 0 (s)", "RMS of v_f - v_d (m/s)",
+              "largest abs(h - h_true) (m)", "RMS of v_f - v_f,true (m/s)",
+              "largest abs(u) (M g)", "steps where CLF and CBF are incompatible",
+              "regions (Theorem 3)"]  # fmt: skip
+    gp = doc["gp"]
+    cover = ", ".join(f"{100 * c:.0f} %" for c in gp["held_out_coverage"])
+    rmse = ", ".join(f"{r:.1e}" for r in gp["held_out_rmse"])
+    line = (
+        f"GP ({gp['n_samples']:,} samples): held-out coverage of `omega` at `beta = "
+        f"{gp['beta']:g}` {cover} per component ({100 * gp['held_out_joint_coverage']:.0f} % "
+        f"jointly); held-out RMSE per component {rmse} m/s^2."
+    )
+    return _table(header, ["---"] + ["---:"] * 7 + ["---"], rows) + "\n" + line + "\n"
+
+
+def swarm_tables(doc: dict) -> tuple[str, str]:
+    """docs/swarm.md's results (table and the figures the text quotes) and its solver table."""
+    runs = doc["runs"]
+    rows = []
+    for mode, label in (("centralized", "centralized"), ("decentralized", "decentralized"),
+                        ("nominal", "nominal (no filter)")):  # fmt: skip
+        r = runs[mode]
+        if r["arrival_time_s"] is not None:
+            arrival = f"at {r['arrival_time_s']:.2f} s"
+        else:
+            arrival = f"never (largest goal error {r['final_max_goal_error_m']:.2f} m at the end)"
+        statuses = ", ".join(f"{k} {v:,}" for k, v in r["solver_statuses"].items()) or "-"
+        rows.append([label, f"{r['min_distance_m']:.6f}", str(r["steps_below_safety_distance"]),
+                     arrival, f"{r['mean_input_change_mps']:.3f}", statuses])  # fmt: skip
+    header = ["filter", "least pair distance (m)", "steps below the safety distance",
+              "all robots within the goal tolerance", "mean change to the input (m/s)",
+              "solver statuses (robot-steps)"]  # fmt: skip
+    results = _table(header, ["---", "---:", "---:", "---:", "---:", "---"], rows)
+    cen, nom = runs["centralized"], runs["nominal"]
+    facts = [f"Without a filter the robots pass within {1000 * nom['min_distance_m']:.1f} mm of "
+             "each other."]  # fmt: skip
+    if cen["arrival_time_s"] is not None and nom["arrival_time_s"] is not None:
+        delay = cen["arrival_time_s"] - nom["arrival_time_s"]
+        facts.append(f"The centralized filter arrives {delay:.2f} s after the unfiltered swarm.")
+    results += "\n" + "\n".join(f"- {f}" for f in facts) + "\n"
+    solver_rows = []
+    for solver, label in (("osqp", "OSQP"), ("clarabel", "Clarabel")):
+        r = doc["loose_solvers_on_centralized_states"].get(solver, {})
+        if "states" not in r:
+            solver_rows.append([label, r.get("note", "not run"), "", "", ""])
+            continue
+        solver_rows.append([
+            f"{label} ({r['states']} states)", _num(r["max_input_gap_mps"]),
+            _num(r["median_input_gap_mps"]), f"{100 * r['share_of_states_violating']:.0f} %",
+            _num(r["max_barrier_violation_m2ps"]),
+        ])  # fmt: skip
+    header = ["solver (qpsolvers, default tolerances)", "largest input difference (m/s)",
+              "median (m/s)", "states where a barrier is violated",
+              "largest violation of `c + d.u >= 0` (m^2/s)"]  # fmt: skip
+    return results, _table(header, ["---"] + ["---:"] * 4, solver_rows)
+
+
 def mc_table(doc: dict) -> str:
     """A Monte Carlo metrics document's table (safestab.montecarlo.report.markdown_table)."""
     from safestab.montecarlo.report import markdown_table
@@ -131,6 +210,10 @@ def mc_table(doc: dict) -> str:
 
 
 # -- steps -------------------------------------------------------------------------------
+
+#: Files a step makes besides its tables (figures, a JSON summary), by path under the
+#: repository root; ``main`` writes them, or with ``--check`` only compares them.
+FILES: dict[str, bytes] = {}
 
 
 def _run(cmd: list[str]) -> None:
@@ -142,13 +225,75 @@ def _load(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def _copy(src: Path, dst: str) -> None:
+    """Queue ``src`` to be copied to ``docs/<dst>``."""
+    FILES[f"docs/{dst}"] = src.read_bytes()
+
+
+def _gallery_figures() -> dict[str, str]:
+    """scripts/make_gallery.py's figures: name to file name."""
+    spec = importlib.util.spec_from_file_location(
+        "make_gallery", ROOT / "scripts" / "make_gallery.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return {name: file for name, (file, _) in module.FIGURES.items()}
+
+
+def _gallery(out: Path, names: list[str], results: Path | None = None) -> None:
+    """Run make_gallery.py for ``names`` into ``out``; queue the figures and manifest entries.
+
+    The manifest keeps the entries of the figures not remade (it records each figure's
+    command and seconds, so its text changes on every run and is not compared by --check).
+    """
+    folder = out / "gallery"
+    cmd = [sys.executable, "scripts/make_gallery.py", "--out", str(folder), "--only", *names]
+    _run(cmd + (["--results", str(results)] if results else []))
+    files = _gallery_figures()
+    for name in names:
+        _copy(folder / files[name], f"gallery/{files[name]}")
+    manifest = _load(DOCS / "gallery" / "manifest.json")
+    manifest.update({n: e for n, e in _load(folder / "manifest.json").items() if n in names})
+    MANIFESTS["docs/gallery/manifest.json"] = json.dumps(dict(sorted(manifest.items())),
+                                                         indent=2) + "\n"  # fmt: skip
+
+
+#: Files rewritten on every run (timings inside), never compared.
+MANIFESTS: dict[str, str] = {}
+
+
+def step_acc(out: Path) -> dict[str, tuple[str, str]]:
+    """The ACC presets (``safestab acc``, through scripts/make_gallery.py): docs/acc.md."""
+    folder = out / "acc"
+    _gallery(out, ["acc_paper", "acc_stress"], results=folder)
+    return {f"acc-{p}": ("docs/acc.md", acc_table(_load(folder / f"acc_{p}_metrics.json")))
+            for p in ("paper", "stress")}  # fmt: skip
+
+
+def step_gallery(out: Path) -> dict[str, tuple[str, str]]:
+    """The gallery's other figures (formulas, QP geometry, regions, GP band...): no tables."""
+    _gallery(out, [name for name in _gallery_figures() if not name.startswith("acc_")])
+    return {}
+
+
+def step_swarm(out: Path) -> dict[str, tuple[str, str]]:
+    """The swarm preset: docs/swarm.md's two tables and its figure."""
+    folder = out / "swarm"
+    _run([*SAFESTAB, "run", "--scenario", "swarm", "--out", str(folder)])
+    _copy(folder / "swarm_swarm.png", "figures/swarm.png")
+    results, solvers = swarm_tables(_load(folder / "swarm_swarm_metrics.json"))
+    return {"swarm-results": ("docs/swarm.md", results),
+            "swarm-loose-solvers": ("docs/swarm.md", solvers)}  # fmt: skip
+
+
 def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
     """The obstacle preset (main job): its outcome table and both figures."""
     folder = out / "obstacle"
     _run([*SAFESTAB, "run", "--scenario", "obstacle", "--out", str(folder)])
     for src, dst in (("obstacle_obstacle.png", "obstacle.png"),
                      ("obstacle_obstacle_maps.png", "obstacle_maps.png")):  # fmt: skip
-        shutil.copyfile(folder / src, DOCS / "figures" / dst)
+        _copy(folder / src, f"figures/{dst}")
     doc = _load(folder / "obstacle_obstacle_metrics.json")
     return {"obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc))}
 
@@ -171,7 +316,7 @@ def step_mc_presets(out: Path) -> dict[str, tuple[str, str]]:
     for preset in ("stress", "paper", "stress-ood"):
         _run([*SAFESTAB, "mc", "--scenario", preset, "--trials", "200", "--datasets", "2",
               "--out", str(folder), "--seed", "0"])  # fmt: skip
-        shutil.copyfile(folder / f"mc_{preset}.png", DOCS / "figures" / f"mc_{preset}.png")
+        _copy(folder / f"mc_{preset}.png", f"figures/mc_{preset}.png")
         doc = _load(folder / f"mc_{preset}_metrics.json")
         tables[f"mc-{preset}"] = ("docs/montecarlo.md", mc_table(doc))
     return tables
@@ -182,9 +327,9 @@ def step_mc_datasets(out: Path) -> dict[str, tuple[str, str]]:
     folder = out / "datasets"
     _run([*SAFESTAB, "mc", "--scenario", "stress", "--trials", "10000", "--datasets", "1000",
           "--controllers", MC_CONTROLLERS, "--out", str(folder)])  # fmt: skip
-    shutil.copyfile(folder / "mc_stress.png", DOCS / "figures" / "mc_stress_datasets.png")
+    _copy(folder / "mc_stress.png", "figures/mc_stress_datasets.png")
     doc = _load(folder / "mc_stress_metrics.json")
-    (DOCS / "montecarlo_datasets.json").write_text(datasets_summary(folder))
+    FILES["docs/montecarlo_datasets.json"] = datasets_summary(folder).encode()
     return {"mc-datasets": ("docs/montecarlo.md", mc_table(doc))}
 
 
@@ -212,54 +357,81 @@ def step_gp_coverage(out: Path) -> dict[str, tuple[str, str]]:
 
 
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
+    "acc": step_acc,
+    "swarm": step_swarm,
     "obstacle": step_obstacle,
     "obstacle-seeds": step_obstacle_seeds,
     "mc-presets": step_mc_presets,
     "gp-coverage": step_gp_coverage,
+    "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
 }
 LONG = {"mc-datasets"}
 #: The generated blocks each step writes (tests/test_docs_tools.py checks that every block
 #: in docs/ is written by a step).
 PRODUCES = {
+    "acc": ["acc-paper", "acc-stress"],
+    "swarm": ["swarm-results", "swarm-loose-solvers"],
     "obstacle": ["obstacle-outcomes"],
     "obstacle-seeds": ["obstacle-seeds"],
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],
+    "gallery": [],
     "mc-datasets": ["mc-datasets"],
 }
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the steps, rewrite the blocks; with ``--check``, 1 if a block's text changed."""
+    """Run the steps and rewrite their tables and files.
+
+    With ``--check``, write nothing and return 1 if a table would change.
+    """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="+", choices=sorted(STEPS), help="run these steps")
     parser.add_argument("--long", action="store_true", help="include " + ", ".join(LONG))
-    parser.add_argument("--check", action="store_true", help="exit 1 if a table changed")
+    parser.add_argument("--check", action="store_true",
+                        help="write nothing; exit 1 if a generated table would change")  # fmt: skip
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "docs",
                         help="folder for the runs' result files")  # fmt: skip
     args = parser.parse_args(argv)
     names = args.only or [n for n in STEPS if args.long or n not in LONG]
-    changed = []
+    changed: list[str] = []
+    files_changed: list[str] = []
+    pages: dict[Path, str] = {}  # with --check, the pages as they would be
     total = time.perf_counter()
     for name in names:
         print(f"[{name}]", flush=True)
         t0 = time.perf_counter()
+        FILES.clear()
+        MANIFESTS.clear()
         written = STEPS[name](args.out)
         assert sorted(written) == sorted(PRODUCES[name]), (name, sorted(written))
         for block, (page, table) in written.items():
             body = "\n" + table + "\n"  # blank lines: Markdown renders the table apart
             path = ROOT / page
-            text = path.read_text()
+            text = pages.get(path, path.read_text())
             if blocks(text).get(block) != body:
                 changed.append(f"{page}: {block}")
-            path.write_text(replace_block(text, block, body))
+            pages[path] = replace_block(text, block, body)
+        files_changed += [
+            rel for rel, data in FILES.items()
+            if not (ROOT / rel).exists() or (ROOT / rel).read_bytes() != data
+        ]  # fmt: skip
+        if not args.check:  # written after each step, so a later failure keeps them
+            for path, text in pages.items():
+                path.write_text(text)
+            for rel, data in FILES.items():
+                (ROOT / rel).write_bytes(data)
+            for rel, text in MANIFESTS.items():
+                (ROOT / rel).write_text(text)
         print(f"[{name}] {time.perf_counter() - t0:.0f} s", flush=True)
     print(f"reran {', '.join(names)} in {time.perf_counter() - total:.0f} s")
-    print("tables still typed by hand from result files: " +
-          "; ".join(f"{p} ({what})" for p, what in BY_HAND.items()))  # fmt: skip
+    # figures are compared byte for byte and reported, but do not fail --check: their bytes
+    # depend on the matplotlib and FreeType versions as well as on the numbers
+    if files_changed:
+        print("files whose bytes differ: " + ", ".join(files_changed))
     if changed:
-        print("changed: " + ", ".join(changed))
+        print(("would change: " if args.check else "changed: ") + ", ".join(changed))
         return 1 if args.check else 0
     print("no generated table changed")
     return 0

@@ -196,3 +196,72 @@ def test_obstacle_table_from_a_metrics_document():
     lines = reproduce_docs.obstacle_table(doc).splitlines()
     assert lines[2] == "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 1 / 2 |"
     assert lines[3] == "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | - |"
+
+
+def _acc_controller(min_h: float, gap: float | None, u: float) -> dict:
+    c = {"min_h_m": min_h, "time_h_negative_s": 53.66 if min_h < 0 else 0.0,
+         "rms_speed_error_mps": 9.8951, "incompatible_steps": 6001, "max_abs_u_over_Mg": u,
+         "region_fraction": {"INCOMPATIBLE": 0.0, "P1": 0.25, "P3": 0.75}}  # fmt: skip
+    if gap is not None:
+        c |= {"max_abs_h_gap_to_true_m": gap, "rms_vf_gap_to_true_mps": 3.6e-5}
+    return c
+
+
+def test_acc_table_from_a_metrics_document():
+    doc = {
+        "controllers": {"true model": _acc_controller(0.0150811, None, 0.50900),
+                        "mismatched model": _acc_controller(-0.89951, 1.66410, 0.55009)},
+        "gp": {"n_samples": 2000, "beta": 2.0, "held_out_coverage": [1.0, 0.96],
+               "held_out_joint_coverage": 0.955, "held_out_rmse": [5.14e-5, 8.29e-10]},
+    }  # fmt: skip
+    lines = reproduce_docs.acc_table(doc).splitlines()
+    assert len(lines[0].split("|")) == len(lines[1].split("|")) == len(lines[2].split("|"))
+    assert (
+        lines[2] == "| true model | +0.015 | 0 | 9.895 | 0 | 0 | 0.509 | 6,001 | P1 25 %, P3 75 % |"
+    )
+    assert lines[3].startswith("| mismatched model | -0.900 | 53.66 | 9.895 | 1.664 | 3.6e-05 |")
+    assert lines[-1] == (
+        "GP (2,000 samples): held-out coverage of `omega` at `beta = 2` 100 %, 96 % per "
+        "component (96 % jointly); held-out RMSE per component 5.1e-05, 8.3e-10 m/s^2."
+    )
+
+
+def test_swarm_tables_from_a_metrics_document():
+    def run(dist, below, arrival, change, statuses):
+        return {"min_distance_m": dist, "steps_below_safety_distance": below,
+                "arrival_time_s": arrival, "final_max_goal_error_m": 5.1724,
+                "mean_input_change_mps": change, "solver_statuses": statuses}  # fmt: skip
+
+    doc = {
+        "runs": {"centralized": run(0.6000094, 0, 11.6, 0.30051, {"SOLVED": 9600}),
+                 "decentralized": run(0.6, 0, None, 1.0978, {"SOLVED": 9590, "MAX_ITER": 10}),
+                 "nominal": run(0.0075920, 183, 9.98, 0.0, {})},
+        "loose_solvers_on_centralized_states": {
+            "osqp": {"states": 32, "max_input_gap_mps": 0.011756, "median_input_gap_mps": 6.79e-5,
+                     "max_barrier_violation_m2ps": 0.00405, "share_of_states_violating": 0.4375},
+            "clarabel": {"note": "not installed"},
+        },
+    }  # fmt: skip
+    results, solvers = reproduce_docs.swarm_tables(doc)
+    lines = results.splitlines()
+    assert lines[2] == "| centralized | 0.600009 | 0 | at 11.60 s | 0.301 | SOLVED 9,600 |"
+    assert lines[3] == (
+        "| decentralized | 0.600000 | 0 | never (largest goal error 5.17 m at the end) | 1.098 "
+        "| SOLVED 9,590, MAX_ITER 10 |"
+    )
+    assert lines[4] == "| nominal (no filter) | 0.007592 | 183 | at 9.98 s | 0.000 | - |"
+    assert "- Without a filter the robots pass within 7.6 mm of each other." in lines
+    assert "- The centralized filter arrives 1.62 s after the unfiltered swarm." in lines
+    rows = solvers.splitlines()
+    assert rows[2] == "| OSQP (32 states) | 0.01176 | 6.8e-05 | 44 % | 4.0e-03 |"
+    assert rows[3] == "| Clarabel | not installed |  |  |  |"
+
+
+@pytest.mark.slow
+def test_reproduce_docs_check(tmp_path):
+    # Reruns every quick study behind a generated table (about 20 minutes here) and fails when
+    # a number in one of them would change; writes nothing in docs/.
+    before = {p: p.read_bytes() for p in (ROOT / "docs").rglob("*") if p.is_file()}
+    assert reproduce_docs.main(["--check", "--out", str(tmp_path)]) == 0
+    after = {p: p.read_bytes() for p in (ROOT / "docs").rglob("*") if p.is_file()}
+    assert after == before

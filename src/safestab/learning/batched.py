@@ -379,3 +379,16 @@ class BatchedUncertainty:
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and standard deviation of ``omega`` at one state (n,), each (n,)."""
         return _mean_std_point(self.cache, x)
+
+    def mean_std_batch(self, x: Any) -> tuple[jax.Array, jax.Array]:
+        """Mean and standard deviation at states ``x`` (B, n), each (B, n).
+
+        Compiled once per cache shape and batch size (one module-level ``jax.jit``), not
+        traced again for every cache: a Monte Carlo study calls it once per data set.
+        """
+        return _mean_std_batch(self.cache, jnp.asarray(x, dtype=float))
+
+
+@jax.jit
+def _mean_std_batch(cache: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return cache.mean_std_batch(x)

@@ -23,6 +23,7 @@ import numpy as np
 from .._validation import check_finite, check_scalar_range
 from ..errors import DimensionError, NumericalError, ParameterError
 from ..robust import joint_probability
+from .batched import BatchedUncertainty
 from .gp import GaussianProcessModel
 
 __all__ = [
@@ -195,10 +196,17 @@ def confidence(
 
 
 def _mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std at states (N, n): the model's compiled ``predict`` where it has one."""
+    """Mean and std at states (N, n), each (N, n).
+
+    The model's compiled ``predict`` or ``mean_std_batch`` where it has one (a fitted GP, a
+    ``BatchedUncertainty``), else its ``mean_std`` mapped with ``jax.vmap``.
+    """
     if isinstance(model, GaussianProcessModel):
         mean, var = model.predict(x)
         return np.asarray(mean), np.sqrt(np.asarray(var))
+    if isinstance(model, BatchedUncertainty):
+        mean, std = model.mean_std_batch(x)
+        return np.asarray(mean), np.asarray(std)
     mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
     return np.asarray(mean), np.asarray(std)
 

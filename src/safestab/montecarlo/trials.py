@@ -199,7 +199,7 @@ def _fit_dataset(study, seed, index, hyper):
         )
         betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
     omega_test = np.asarray(study.omega(x_test))
-    mean, std = (np.asarray(v) for v in _mean_std(cache, jnp.asarray(x_test)))
+    mean, std = (np.asarray(v) for v in BatchedUncertainty(cache).mean_std_batch(x_test))
     coverage = {
         name: float(np.mean(np.all(np.abs(omega_test - mean) <= b * std, axis=1)))
         for name, b in betas.items()
@@ -244,12 +244,6 @@ def _compiled_chunk(study: TrialStudy) -> Any:
         return jax.vmap(run)(x0, params)
 
     return jax.jit(chunk)
-
-
-@jax.jit
-def _mean_std(cache: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """A cache's batched mean and std, compiled once per cache shape (not once per data set)."""
-    return cache.mean_std_batch(x)
 
 
 def run_chunk(

@@ -402,6 +402,15 @@ def test_mc_table_fits_an_80_column_terminal():
     assert text.count("[1.000, 1.000]") == 15  # every interval whole (names may wrap)
     assert text.count("0.9703") == 1  # the claim only where the beta carries one
     assert "mismatched" in text and "Lemma 2" in text
+    assert "10000 trials, 1000 data sets" in text
+
+
+def test_counts_take_their_nouns_in_the_right_number():
+    from safestab.montecarlo.report import counted
+
+    assert counted(1, "data set") == "1 data set"
+    assert counted(0, "trial") == "0 trials"
+    assert counted(1000, "data set") == "1000 data sets"
 
 
 def test_ecdf_axis_is_linear_only_near_zero():

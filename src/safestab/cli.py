@@ -672,8 +672,11 @@ def mc_table(name: str, summary: dict):
     from rich import box
     from rich.table import Table
 
+    from .montecarlo.report import counted
+
     table = Table(
-        title=f"Monte Carlo '{name}': {summary['trials']} trials, {summary['datasets']} data sets",
+        title=f"Monte Carlo '{name}': {counted(summary['trials'], 'trial')}, "
+        f"{counted(summary['datasets'], 'data set')}",
         caption="safe per data set: all of its trials safe. Claims and their assumptions: "
         "summary.controllers.<name>.guarantee in the metrics JSON, docs/montecarlo.md",
         # no vertical rules and no padding (the rules' places separate the columns): the

@@ -145,8 +145,8 @@ def plot_montecarlo(run: MonteCarloRun, ax: Any = None) -> Any:
     unit = run.study.h_unit
     ax[0].set_xlabel(f"min over the run of h ({unit}; linear within +-{lin:.1g}, log beyond)")
     ax[0].set_ylabel("fraction of trials (ECDF)")
-    ax[0].set_title(f"{run.study.name}: {summary['trials']} trials, "
-                    f"{summary['datasets']} data sets")  # fmt: skip
+    ax[0].set_title(f"{run.study.name}: {counted(summary['trials'], 'trial')}, "
+                    f"{counted(summary['datasets'], 'data set')}")  # fmt: skip
     ax[0].legend(fontsize=8)
     kinds = (("safe_per_dataset", "safe, per data set (all its trials)"),
              ("safe", "safe, per trial"),
@@ -227,3 +227,8 @@ def markdown_table(doc: dict[str, Any]) -> str:
             f"| {claim} | {low} / {one} | {beta_text} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def counted(n: int, noun: str) -> str:
+    """``"1 data set"``, ``"2 data sets"``: a count with its noun in the right number."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")

@@ -2,6 +2,7 @@
 
     bash scripts/reproduce-docs.sh                 # every quick study (about 12 min here)
     bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min)
+                                                   # and the price of robustness
     bash scripts/reproduce-docs.sh --only mc-presets obstacle
     bash scripts/reproduce-docs.sh --check         # write nothing, fail if a table would change
 
@@ -202,6 +203,27 @@ def swarm_tables(doc: dict) -> tuple[str, str]:
     return results, _table(header, ["---"] + ["---:"] * 4, solver_rows)
 
 
+def price_table(doc: dict) -> str:
+    """docs/price.md's table for one scenario (benchmarks/price_of_robustness.py's JSON).
+
+    Per size, each GP controller's safe data sets and its median margin paid over the true
+    model.
+    """
+    ref = doc["settings"]["reference"]
+    names = [n for n in doc["settings"]["controllers"] if n != ref]
+    unit = doc["h_unit"]
+    header = ["Q"] + [f"{n}: safe data sets, median min h - min h_true ({unit})" for n in names]
+    rows = []
+    for point in doc["points"]:
+        row = [f"{point['n_samples']:,}"]
+        for n in names:
+            e = point["controllers"][n]
+            s = e["safe_per_dataset"]
+            row.append(f"{s['count']}/{s['datasets']}, {e['min_h_excess']['0.5']:+.2g}")
+        rows.append(row)
+    return _table(header, ["---:"] * len(header), rows)
+
+
 def mc_table(doc: dict) -> str:
     """A Monte Carlo metrics document's table (safestab.montecarlo.report.markdown_table)."""
     from safestab.montecarlo.report import markdown_table
@@ -347,6 +369,26 @@ def datasets_summary(folder: Path) -> str:
     return json.dumps(summary, indent=1, allow_nan=False) + "\n"
 
 
+def step_price(out: Path) -> dict[str, tuple[str, str]]:
+    """The price-of-robustness study (--long): stress and obstacle, tables and figures."""
+    folder = out / "price"
+    tables = {}
+    for scenario, extra in PRICE_RUNS.items():
+        _run([sys.executable, "benchmarks/price_of_robustness.py", "--scenario", scenario,
+              "--out", str(folder), *extra])  # fmt: skip
+        _copy(folder / f"price_{scenario}.png", f"figures/price_{scenario}.png")
+        doc = _load(folder / f"price_{scenario}.json")
+        tables[f"price-{scenario}"] = ("docs/price.md", price_table(doc))
+    return tables
+
+
+#: The price study's runs: scenario and arguments beyond the script's defaults.
+PRICE_RUNS = {
+    "stress": [],
+    "obstacle": ["--q", "25", "50", "100", "200", "400", "800", "1600", "--datasets", "20"],
+}
+
+
 def step_gp_coverage(out: Path) -> dict[str, tuple[str, str]]:
     """benchmarks/gp_coverage.py over ten data seeds: docs/learning.md's table."""
     out.mkdir(parents=True, exist_ok=True)
@@ -365,8 +407,9 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "gp-coverage": step_gp_coverage,
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
+    "price": step_price,
 }
-LONG = {"mc-datasets"}
+LONG = {"mc-datasets", "price"}
 #: The generated blocks each step writes (tests/test_docs_tools.py checks that every block
 #: in docs/ is written by a step).
 PRODUCES = {
@@ -378,6 +421,7 @@ PRODUCES = {
     "gp-coverage": ["gp-coverage"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
+    "price": ["price-stress", "price-obstacle"],
 }
 
 

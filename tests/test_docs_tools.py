@@ -265,3 +265,30 @@ def test_reproduce_docs_check(tmp_path):
     assert reproduce_docs.main(["--check", "--out", str(tmp_path)]) == 0
     after = {p: p.read_bytes() for p in (ROOT / "docs").rglob("*") if p.is_file()}
     assert after == before
+
+
+def test_price_table_from_a_study_document():
+    def entry(count, median):
+        return {"safe_per_dataset": {"count": count, "datasets": 30},
+                "min_h_excess": {"0.5": median}}  # fmt: skip
+
+    doc = {
+        "settings": {"reference": "true model",
+                     "controllers": ["true model", "GP mean", "GP-robust"]},
+        "h_unit": "m",
+        "points": [
+            {"n_samples": 25, "controllers": {"true model": entry(30, 0.0),
+                                              "GP mean": entry(0, -0.9037),
+                                              "GP-robust": entry(30, 12.34)}},
+            {"n_samples": 4000, "controllers": {"true model": entry(30, 0.0),
+                                                "GP mean": entry(17, -1.2e-4),
+                                                "GP-robust": entry(30, 0.0123)}},
+        ],
+    }  # fmt: skip
+    lines = reproduce_docs.price_table(doc).splitlines()
+    assert lines[0] == (
+        "| Q | GP mean: safe data sets, median min h - min h_true (m) | GP-robust: safe data "
+        "sets, median min h - min h_true (m) |"
+    )
+    assert lines[2] == "| 25 | 0/30, -0.9 | 30/30, +12 |"
+    assert lines[3] == "| 4,000 | 17/30, -0.00012 | 30/30, +0.012 |"

@@ -1,0 +1,106 @@
+"""The price-of-robustness study (safestab.montecarlo.price) against hand computations."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from safestab.errors import ParameterError
+from safestab.montecarlo import clopper_pearson, run_montecarlo
+from safestab.montecarlo.loop import RECORD_FIELDS
+from safestab.montecarlo.price import PRICE_CONTROLLERS, plot_price, price_point, price_study
+from safestab.scenarios import load_scenario
+
+
+def _fake_run(min_h: np.ndarray, final_v: np.ndarray, sets: np.ndarray, names: tuple):
+    """A MonteCarloRun with given records (N, C): what summarize and price_point read."""
+    n, c = min_h.shape
+    rec = {k: np.zeros((n, c)) for k in RECORD_FIELDS}
+    rec.update(min_h=min_h, final_V=final_v, lemma2_violations=-np.ones((n, c)),
+               clf_true_fraction=np.linspace(0, 1, n * c).reshape(n, c))  # fmt: skip
+    rec["first_bad_step"] = -np.ones((n, c))
+    k = int(sets.max()) + 1
+    model = SimpleNamespace(hyper=SimpleNamespace(components=(0,)))
+    return SimpleNamespace(
+        records=rec, dataset_index=sets, datasets=[model] * k, controllers=names,
+        study=SimpleNamespace(h_unit="m"), spec=SimpleNamespace(delta=0.01),
+    )  # fmt: skip
+
+
+def test_price_point_pairs_each_trial_with_the_reference():
+    rng = np.random.default_rng(0)
+    n = 40
+    names = ("true model", "GP-robust")
+    min_h = np.column_stack([rng.uniform(0.0, 1.0, n), rng.uniform(-0.5, 3.0, n)])
+    final_v = rng.uniform(0, 5, (n, 2))
+    sets = np.arange(n) % 8
+    point = price_point(_fake_run(min_h, final_v, sets, names))
+    excess = min_h[:, 1] - min_h[:, 0]
+    for q in ("0.1", "0.5", "0.9"):
+        assert point["GP-robust"]["min_h_excess"][q] == pytest.approx(np.quantile(excess, float(q)))
+        assert point["true model"]["min_h_excess"][q] == 0.0
+    frac = np.linspace(0, 1, 2 * n).reshape(n, 2)
+    assert point["GP-robust"]["clf_fraction_deficit"] == pytest.approx(
+        np.mean(frac[:, 0] - frac[:, 1])
+    )
+    # safe per data set: every trial of the set has min h >= 0 (counted by hand)
+    safe = min_h[:, 1] >= 0
+    count = sum(bool(np.all(safe[sets == j])) for j in range(8))
+    entry = point["GP-robust"]["safe_per_dataset"]
+    assert entry["count"] == count and entry["datasets"] == 8
+    assert entry["ci95"] == pytest.approx(list(clopper_pearson(count, 8)))
+
+
+def test_price_point_needs_the_reference():
+    run = _fake_run(np.zeros((4, 1)), np.zeros((4, 1)), np.arange(4) % 2, ("GP-robust",))
+    with pytest.raises(ParameterError, match="reference must be one of"):
+        price_point(run)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"q_values": []}, "non-empty list of integers"),
+        ({"q_values": [100, 50]}, "must increase"),
+        ({"q_values": [100, True]}, "non-empty list of integers"),
+        ({"datasets": 0}, "datasets must be an integer >= 1"),
+        ({"trials_per_dataset": 2.5}, "trials_per_dataset must be an integer >= 1"),
+        ({"controllers": ("GP-robust",)}, "must include 'true model'"),
+    ],
+)
+def test_price_study_refuses_bad_input_before_any_work(kwargs, match):
+    args = {"q_values": [50, 100], "datasets": 2, "trials_per_dataset": 2} | kwargs
+    with pytest.raises(ParameterError, match=match):
+        price_study(load_scenario("stress"), **args)
+
+
+def test_price_study_checks_every_size_before_any_work():
+    from safestab.errors import ScenarioError
+
+    with pytest.raises(ScenarioError, match="n_samples"):
+        price_study(load_scenario("stress"), [50, 10**9], datasets=2, trials_per_dataset=2)
+
+
+@pytest.mark.slow
+# at Q = 30 the data are a slice of one excitation run: the fit warns, as it should
+@pytest.mark.filterwarnings("ignore::safestab.errors.DataWarning")
+def test_price_study_matches_a_direct_monte_carlo_run(tmp_path):
+    # Two small sizes of a short stress run; the second size's point is recomputed from a
+    # direct run_montecarlo call at that size (same seed, same trials).
+    sc = load_scenario("stress").replace(t_final=3.0)
+    doc = price_study(sc, [30, 60], datasets=2, trials_per_dataset=2, seed=3,
+                      controllers=PRICE_CONTROLLERS[:3])  # fmt: skip
+    json.dumps(doc, allow_nan=False)  # strict JSON
+    assert [p["n_samples"] for p in doc["points"]] == [30, 60]
+    spec = sc.montecarlo.replace(controllers=PRICE_CONTROLLERS[:3])
+    run = run_montecarlo(sc.replace(n_samples=60), trials=4, datasets=2, seed=3, spec=spec)
+    rec = run.records
+    excess = rec["min_h"][:, 2] - rec["min_h"][:, 0]
+    got = doc["points"][1]["controllers"]["GP-robust"]["min_h_excess"]["0.5"]
+    assert got == pytest.approx(float(np.median(excess)), abs=1e-12)
+    fig = plot_price(doc)
+    fig.savefig(tmp_path / "price.png")
+    assert (tmp_path / "price.png").stat().st_size > 10_000

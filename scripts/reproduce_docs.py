@@ -204,24 +204,32 @@ def swarm_tables(doc: dict) -> tuple[str, str]:
 
 
 def price_table(doc: dict) -> str:
-    """docs/price.md's table for one scenario (benchmarks/price_of_robustness.py's JSON).
+    """docs/price.md's tables for one scenario (benchmarks/price_of_robustness.py's JSON).
 
-    Per size, each GP controller's safe data sets and its median margin paid over the true
-    model.
+    Per size and GP controller: the safe data sets and the median margin paid over the true
+    model; then the median time to converge beyond the true model's and the median input gap
+    to the true-model controller at the same state.
     """
     ref = doc["settings"]["reference"]
     names = [n for n in doc["settings"]["controllers"] if n != ref]
     unit = doc["h_unit"]
-    header = ["Q"] + [f"{n}: safe data sets, median min h - min h_true ({unit})" for n in names]
-    rows = []
+    safety, effort = [], []
     for point in doc["points"]:
-        row = [f"{point['n_samples']:,}"]
+        q = f"{point['n_samples']:,}"
+        row_s, row_e = [q], [q]
         for n in names:
             e = point["controllers"][n]
             s = e["safe_per_dataset"]
-            row.append(f"{s['count']}/{s['datasets']}, {e['min_h_excess']['0.5']:+.2g}")
-        rows.append(row)
-    return _table(header, ["---:"] * len(header), rows)
+            row_s.append(f"{s['count']}/{s['datasets']}, {e['min_h_excess']['0.5']:+.2g}")
+            row_e.append(f"{e['settle_time_excess']['0.5']:+.3g}, "
+                         f"{e['mean_input_gap']['0.5']:.2g}")  # fmt: skip
+        safety.append(row_s)
+        effort.append(row_e)
+    head_s = ["Q"] + [f"{n}: safe data sets, median min h - min h_true ({unit})" for n in names]
+    head_e = ["Q"] + [f"{n}: median settle time - settle time_true (s), median input gap"
+                      for n in names]  # fmt: skip
+    align = ["---:"] * (len(names) + 1)
+    return _table(head_s, align, safety) + "\n" + _table(head_e, align, effort)
 
 
 def mc_table(doc: dict) -> str:

@@ -270,7 +270,8 @@ def test_reproduce_docs_check(tmp_path):
 def test_price_table_from_a_study_document():
     def entry(count, median):
         return {"safe_per_dataset": {"count": count, "datasets": 30},
-                "min_h_excess": {"0.5": median}}  # fmt: skip
+                "min_h_excess": {"0.5": median}, "settle_time_excess": {"0.5": 2.345},
+                "mean_input_gap": {"0.5": 0.01234}}  # fmt: skip
 
     doc = {
         "settings": {"reference": "true model",
@@ -292,3 +293,5 @@ def test_price_table_from_a_study_document():
     )
     assert lines[2] == "| 25 | 0/30, -0.9 | 30/30, +12 |"
     assert lines[3] == "| 4,000 | 17/30, -0.00012 | 30/30, +0.012 |"
+    assert lines[5].startswith("| Q | GP mean: median settle time - settle time_true (s), median")
+    assert lines[7] == "| 25 | +2.35, 0.012 | +2.35, 0.012 |"

@@ -95,12 +95,59 @@ def test_price_study_matches_a_direct_monte_carlo_run(tmp_path):
                       controllers=PRICE_CONTROLLERS[:3])  # fmt: skip
     json.dumps(doc, allow_nan=False)  # strict JSON
     assert [p["n_samples"] for p in doc["points"]] == [30, 60]
-    spec = sc.montecarlo.replace(controllers=PRICE_CONTROLLERS[:3])
+    spec = sc.montecarlo.replace(controllers=PRICE_CONTROLLERS[:3], price_metrics=True)
     run = run_montecarlo(sc.replace(n_samples=60), trials=4, datasets=2, seed=3, spec=spec)
     rec = run.records
     excess = rec["min_h"][:, 2] - rec["min_h"][:, 0]
     got = doc["points"][1]["controllers"]["GP-robust"]["min_h_excess"]["0.5"]
     assert got == pytest.approx(float(np.median(excess)), abs=1e-12)
+    # the price metrics are on: the reference's input gap to itself is exactly 0
+    ref = doc["points"][1]["controllers"]["true model"]
+    assert ref["mean_input_gap"] == {"0.1": 0.0, "0.5": 0.0, "0.9": 0.0}
+    assert ref["settle_time_excess"]["0.5"] == 0.0
+    assert doc["points"][1]["controllers"]["GP-robust"]["mean_input_gap"]["0.9"] >= 0.0
     fig = plot_price(doc)
     fig.savefig(tmp_path / "price.png")
     assert (tmp_path / "price.png").stat().st_size > 10_000
+
+
+def test_settle_time_and_input_gap_against_a_simulated_history():
+    # The running statistics of the Monte Carlo loop against the full history of
+    # ss.simulate (the same closed loop with the trajectory recorder), recomputed in NumPy:
+    # settle time from V(x_k), and the input gap from the reference controller evaluated at
+    # every recorded state.
+    import jax
+    import jax.numpy as jnp
+
+    import safestab as ss
+    from safestab.montecarlo import trial_function
+    from safestab.montecarlo.loop import SETTLE_FRACTION
+
+    plant = ss.ControlAffineSystem(lambda x: jnp.array([x[1], 0.5 * x[1]]),
+                                   lambda x: jnp.array([[0.0], [1.0]]), 2)  # fmt: skip
+    clf = ss.CLF(lambda x: x[0] ** 2 + x[0] * x[1] + x[1] ** 2, lam=1.0)
+    cbf = ss.CBF(lambda x: 4.0 - x[0], beta=1.0)
+    ctrl = ss.UniversalController(
+        plant, clf, cbf, kappa=0.5, rho=0.1, phi=1.0, varphi=1.0, slack_weight=10.0
+    )
+    other = ss.ControlAffineSystem(lambda x: jnp.array([x[1], 1.0 * x[1]]),
+                                   lambda x: jnp.array([[0.0], [1.0]]), 2)  # fmt: skip
+    ref = ss.UniversalController(other, clf, cbf, kappa=0.5, rho=0.1, phi=1.0, varphi=1.0,
+                                 slack_weight=10.0)  # fmt: skip
+    n_steps, dt, x0 = 1000, 0.01, jnp.array([2.0, -1.0])
+    run = trial_function([ctrl], plant=plant, n_steps=n_steps, dt=dt, reference=ref)
+    rec = jax.jit(run)(x0, None)
+    traj = ss.simulate(ctrl, x0, t_final=n_steps * dt, dt=dt)
+    v = np.asarray(traj.V)
+    assert v.shape == (n_steps + 1,)
+    unsettled = np.flatnonzero(v > SETTLE_FRACTION * v[0])
+    expected = (n_steps if unsettled[-1] == n_steps else unsettled[-1] + 1) * dt
+    assert float(rec["settle_time"][0]) == pytest.approx(expected, abs=1e-12)
+    assert 0 < expected < n_steps * dt  # the example settles inside the horizon
+    u_ref = np.array([np.asarray(ref.step_fn(x).u) for x in np.asarray(traj.x)[:-1]])
+    gap = np.mean(np.max(np.abs(np.asarray(traj.u)[:n_steps] - u_ref), axis=1))
+    assert float(rec["mean_input_gap"][0]) == pytest.approx(gap, rel=1e-9)
+    assert gap > 1e-3  # the reference's model differs: so do the inputs
+    # without a reference, both are -1
+    plain = jax.jit(trial_function([ctrl], plant=plant, n_steps=n_steps, dt=dt))(x0, None)
+    assert float(plain["settle_time"][0]) == -1.0 and float(plain["mean_input_gap"][0]) == -1.0

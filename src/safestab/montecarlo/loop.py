@@ -39,7 +39,15 @@ RECORD_FIELDS: dict[str, str] = {
     "some i, with the simulator's true omega; -1 for controllers without a GP",
     "first_bad_status": "the first StepStatus other than OK (0 if none)",
     "first_bad_step": "the step of first_bad_status (-1 if none)",
+    "mean_input_gap": "mean over steps of max_j |u_j - u_ref,j(x)|, u_ref the reference "
+    "(true-model) controller's input at the same state; -1 when not measured "
+    "(MonteCarloSpec.price_metrics)",
+    "settle_time": "time (s) from which V stays at or below SETTLE_FRACTION V(x_0) to the end; "
+    "the horizon if it never settles; -1 when not measured",
 }
+
+#: ``settle_time``: V at or below this fraction of its initial value counts as converged.
+SETTLE_FRACTION = 0.01
 
 #: ``e(t, x, params) -> (n,)``: a known term of the true dynamics, from per-trial data.
 Exogenous = Callable[[jax.Array, jax.Array, Any], jax.Array]
@@ -59,9 +67,10 @@ class StatisticsRecorder:
     Lemma-2 check, the uncertainty model's ``mean`` and ``std`` at the state.
     """
 
-    def __init__(self, plant, clf, cbf, exo, omega, beta, n_steps, dt) -> None:
+    def __init__(self, plant, clf, cbf, exo, omega, beta, n_steps, dt, price=False) -> None:
         self.plant, self.clf, self.cbf, self.exo = plant, clf, cbf, exo
         self.omega, self.beta, self.n_steps, self.dt = omega, beta, n_steps, dt
+        self.price = price  # the step's output then has "u_ref"
 
     def init(self, x0: jax.Array, data: Any) -> dict[str, jax.Array]:
         """The statistics before the first step (minima at inf, counts at 0)."""
@@ -76,6 +85,15 @@ class StatisticsRecorder:
             "lemma2_violations": zero_i,
             "first_bad_status": zero_i,
             "first_bad_step": jnp.asarray(-1, jnp.int64),
+            **(self._price_init(x0) if self.price else {}),
+        }
+
+    def _price_init(self, x0: jax.Array) -> dict[str, jax.Array]:
+        """The running sums of ``mean_input_gap`` and ``settle_time`` (``price`` only)."""
+        return {
+            "input_gap_sum": jnp.asarray(0.0),
+            "v_settled": SETTLE_FRACTION * self.clf.fn(x0),
+            "last_unsettled": jnp.asarray(-1, jnp.int64),
         }
 
     def _lemma2_bad(self, x: jax.Array, data: Any, ev: dict) -> jax.Array:
@@ -108,6 +126,13 @@ class StatisticsRecorder:
             "first_bad_status": jnp.where(first, status, s["first_bad_status"]),
             "first_bad_step": jnp.where(first, k, s["first_bad_step"]),
         }
+        if self.price:
+            unsettled = self.clf.fn(x) > s["v_settled"]
+            new |= {
+                "input_gap_sum": s["input_gap_sum"] + jnp.max(jnp.abs(u - ev["u_ref"])),
+                "v_settled": s["v_settled"],
+                "last_unsettled": jnp.where(unsettled, k, s["last_unsettled"]),
+            }
         return new, None
 
     def finish(self, s, ys, x_final, ev_final, t_final, data) -> dict[str, jax.Array]:
@@ -128,7 +153,17 @@ class StatisticsRecorder:
                 final_bad, int(StepStatus.NONFINITE_STATE), s["first_bad_status"]
             ),
             "first_bad_step": jnp.where(final_bad, n_steps, s["first_bad_step"]),
-        }
+            **(self._price_finish(s, x_final) if self.price else
+               {"mean_input_gap": jnp.asarray(-1.0), "settle_time": jnp.asarray(-1.0)}),
+        }  # fmt: skip
+
+    def _price_finish(self, s: dict, x_final: jax.Array) -> dict[str, jax.Array]:
+        # settled from step last_unsettled + 1 on; with the final state unsettled, never
+        # (the horizon)
+        last = jnp.where(self.clf.fn(x_final) > s["v_settled"], self.n_steps,
+                         s["last_unsettled"] + 1)  # fmt: skip
+        return {"mean_input_gap": s["input_gap_sum"] / self.n_steps,
+                "settle_time": last * self.dt}  # fmt: skip
 
 
 def trial_function(
@@ -140,6 +175,7 @@ def trial_function(
     exogenous: Exogenous | None = None,
     omega: Omega | None = None,
     lemma2: Sequence[tuple[Any, jax.Array] | None] | None = None,
+    reference: UniversalController | None = None,
 ) -> Callable[[jax.Array, Any], dict[str, jax.Array]]:
     """Build ``run(x0, params) -> records`` for one trial and every controller.
 
@@ -167,6 +203,10 @@ def trial_function(
         controller's own, it is evaluated once per step for both
         (:meth:`~safestab.UniversalController.step_with_uncertainty`; XLA does not merge two
         evaluations: measured, the check doubled the cost of a GP-robust step).
+    reference : UniversalController, optional
+        With it, every controller's trial also records ``mean_input_gap`` (its input against
+        this controller's input at the same state, one more step per step) and
+        ``settle_time``; without, both are -1.
 
     Returns
     -------
@@ -206,8 +246,11 @@ def trial_function(
             else:
                 out = ctrl.step_fn(x)
             incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)
-            return {"u": out.u, "incompatible": incompatible, "status": out.status,
-                    "mean": mean, "std": std}  # fmt: skip
+            ev = {"u": out.u, "incompatible": incompatible, "status": out.status,
+                  "mean": mean, "std": std}  # fmt: skip
+            if reference is not None:
+                ev["u_ref"] = reference.step_fn(x).u
+            return ev
 
         return step
 
@@ -216,7 +259,15 @@ def trial_function(
             stepper(ctrl, check),
             rhs,
             StatisticsRecorder(
-                plant, clf, cbf, exo, omega, None if check is None else check[1], n_steps, dt
+                plant,
+                clf,
+                cbf,
+                exo,
+                omega,
+                None if check is None else check[1],
+                n_steps,
+                dt,
+                price=reference is not None,
             ),
             n_steps=n_steps,
             dt=dt,

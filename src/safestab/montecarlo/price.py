@@ -9,9 +9,13 @@ controller is scored on two things:
   :func:`~safestab.montecarlo.stats.summarize`);
 - **price**, paired with the true-model controller on the same trials (same initial state,
   same lead or current): ``min h - min h_true`` (the margin kept beyond what the true model
-  needs), ``final V - final V_true`` (how much further from the goal the run ends: a
-  convergence shortfall) and ``clf_true_fraction_true - clf_true_fraction`` (the share of
-  steps on which the CLF decrease was given up, beyond the true model's).
+  needs), ``settle_time - settle_time_true`` (the time to converge, ``V`` down to 1 % of its
+  initial value for good, beyond the true model's), ``final V - final V_true`` (how much
+  further from the goal the run ends) and ``clf_true_fraction_true - clf_true_fraction``
+  (the share of steps on which the CLF decrease was given up, beyond the true model's);
+  and, unpaired, ``mean_input_gap``: the mean over the run of ``max_j |u_j - u_true,j(x)|``,
+  the controller's input against the true-model controller's input *at the same state*
+  (``MonteCarloSpec.price_metrics``).
 
 The pairing removes the spread of the trials themselves: a controller that behaves like the
 true-model one scores 0 on every trial, whatever the initial state.
@@ -65,8 +69,9 @@ def price_point(run: MonteCarloRun, reference: str = REFERENCE) -> dict[str, Any
         Per controller: ``safe_per_dataset`` (count, rate and exact interval over data sets),
         ``safe`` (per trial, with the interval of :func:`summarize`), the quantiles
         :data:`QUANTILES` over trials of ``min_h_excess`` (``min h - min h_ref``, in the
-        study's ``h_unit``) and ``final_V_excess``, the mean ``clf_fraction_deficit``, and
-        for GP controllers ``beta_mean``.
+        study's ``h_unit``) and ``final_V_excess``, the mean ``clf_fraction_deficit``, for GP
+        controllers ``beta_mean``, and where the run measured them (``price_metrics``) the
+        quantiles of ``settle_time_excess`` (s) and ``mean_input_gap`` (input units).
 
     Raises
     ------
@@ -93,6 +98,11 @@ def price_point(run: MonteCarloRun, reference: str = REFERENCE) -> dict[str, Any
                 np.mean(rec["clf_true_fraction"][:, r] - rec["clf_true_fraction"][:, c])
             ),
         }
+        if np.all(rec["settle_time"][:, c] >= 0):  # measured (price_metrics)
+            entry["settle_time_excess"] = _quantiles(
+                rec["settle_time"][:, c] - rec["settle_time"][:, r]
+            )
+            entry["mean_input_gap"] = _quantiles(rec["mean_input_gap"][:, c])
         if "beta_mean_over_datasets" in s:
             entry["beta_mean"] = s["beta_mean_over_datasets"]
         out[name] = entry
@@ -161,7 +171,7 @@ def price_study(
         )
     scenarios = [scenario.replace(n_samples=q) for q in qs]  # every size checked first
     base = getattr(scenario, "montecarlo", None) or MonteCarloSpec()  # as run_montecarlo
-    spec = base.replace(controllers=tuple(controllers))
+    spec = base.replace(controllers=tuple(controllers), price_metrics=True)
     points = []
     h_unit = None
     for i, (q, sc) in enumerate(zip(qs, scenarios, strict=True)):

@@ -237,9 +237,11 @@ def _compiled_chunk(study: TrialStudy) -> Any:
                     )
                 )
                 checks.append((model, beta))
+        # the reference of mean_input_gap: the true-model controller (price_metrics only)
+        ref = UniversalController(true_sys, clf, cbf, **common) if spec.price_metrics else None
         run = trial_function(
             ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
-            exogenous=study.exogenous, omega=omega, lemma2=checks,
+            exogenous=study.exogenous, omega=omega, lemma2=checks, reference=ref,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 

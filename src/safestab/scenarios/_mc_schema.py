@@ -55,6 +55,12 @@ def _vector_or_none(path: str, value: Any, source: str) -> tuple[float, ...] | N
     return tuple(check(f"{path}[{i}]", v, source) for i, v in enumerate(value))
 
 
+def _boolean(path: str, value: Any, source: str) -> bool:
+    if not isinstance(value, bool):
+        raise fail(source, path, "true or false", value)
+    return value
+
+
 def _optional_real(low: float, high: float = _BIG):
     check = real(low, high)
 
@@ -77,6 +83,7 @@ MC_FIELDS: dict[str, tuple[Any, Any]] = {
     "chunk_size": (integer(1, 1_000_000), 1000),
     "delta": (real(_SMALL, 1.0 - 1e-12), 0.01),
     "rkhs_norm": (real(0.0), 1.0),
+    "price_metrics": (_boolean, False),
     "initial.distribution": (choice(("fixed", "box", "normal")), "fixed"),
     "initial.low": (_vector_or_none, None),
     "initial.high": (_vector_or_none, None),
@@ -121,6 +128,11 @@ class MonteCarloSpec:
         Trials per compiled batch (bounds memory); results do not depend on it.
     delta, rkhs_norm : float
         Lemma 2's ``delta`` per component and the assumed bound on ``||omega_i||_k``.
+    price_metrics : bool
+        Also record, per trial and controller, the input's distance from the true-model
+        controller's input at the same state and the time to converge
+        (:data:`~safestab.montecarlo.loop.RECORD_FIELDS` ``mean_input_gap``,
+        ``settle_time``; -1 when off). Off by default: one more controller step per step.
     initial_distribution : {"fixed", "box", "normal"}
         The scenario's own initial state, a uniform box ``[initial_low, initial_high]``, or
         independent normals ``N(initial_mean, initial_std^2)`` per component.
@@ -140,6 +152,7 @@ class MonteCarloSpec:
     chunk_size: int = 1000
     delta: float = 0.01
     rkhs_norm: float = 1.0
+    price_metrics: bool = False
     initial_distribution: str = "fixed"
     initial_low: tuple[float, ...] | None = None
     initial_high: tuple[float, ...] | None = None

@@ -151,3 +151,13 @@ def test_settle_time_and_input_gap_against_a_simulated_history():
     # without a reference, both are -1
     plain = jax.jit(trial_function([ctrl], plant=plant, n_steps=n_steps, dt=dt))(x0, None)
     assert float(plain["settle_time"][0]) == -1.0 and float(plain["mean_input_gap"][0]) == -1.0
+
+
+def test_price_metrics_is_a_checked_boolean():
+    from safestab.errors import ScenarioError
+    from safestab.scenarios import MonteCarloSpec
+
+    assert MonteCarloSpec().price_metrics is False
+    assert MonteCarloSpec(price_metrics=True).price_metrics is True
+    with pytest.raises(ScenarioError, match="price_metrics must be true or false, got 1"):
+        MonteCarloSpec(price_metrics=1)

@@ -20,6 +20,7 @@ on the matplotlib and FreeType versions). The slow test
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 import re
@@ -244,6 +245,8 @@ def mc_table(doc: dict) -> str:
 #: Files a step makes besides its tables (figures, a JSON summary), by path under the
 #: repository root; ``main`` writes them, or with ``--check`` only compares them.
 FILES: dict[str, bytes] = {}
+#: Files rewritten on every run (timings inside), never compared.
+MANIFESTS: dict[str, str] = {}
 
 
 def _run(cmd: list[str]) -> None:
@@ -260,8 +263,9 @@ def _copy(src: Path, dst: str) -> None:
     FILES[f"docs/{dst}"] = src.read_bytes()
 
 
+@functools.cache
 def _gallery_figures() -> dict[str, str]:
-    """scripts/make_gallery.py's figures: name to file name."""
+    """scripts/make_gallery.py's figures: name to file name (its module loaded once)."""
     spec = importlib.util.spec_from_file_location(
         "make_gallery", ROOT / "scripts" / "make_gallery.py"
     )
@@ -287,10 +291,6 @@ def _gallery(out: Path, names: list[str], results: Path | None = None) -> None:
     manifest.update({n: e for n, e in _load(folder / "manifest.json").items() if n in names})
     MANIFESTS["docs/gallery/manifest.json"] = json.dumps(dict(sorted(manifest.items())),
                                                          indent=2) + "\n"  # fmt: skip
-
-
-#: Files rewritten on every run (timings inside), never compared.
-MANIFESTS: dict[str, str] = {}
 
 
 def step_acc(out: Path) -> dict[str, tuple[str, str]]:

@@ -140,27 +140,28 @@ class StatisticsRecorder:
         n_steps = self.n_steps
         final_bad = ~jnp.all(jnp.isfinite(x_final)) & (s["first_bad_status"] == 0)
         l2 = s["lemma2_violations"] + self._lemma2_bad(x_final, data, ev_final)
+        v_final = self.clf.fn(x_final)
         return {
             "min_h": jnp.minimum(s["min_h"], self.cbf.fn(x_final)),
             "time_h_negative": s["h_negative_steps"] * self.dt,
             "cbf_true_violations": s["cbf_true_violations"],
             "min_cbf_true_margin": s["min_cbf_true_margin"],
             "clf_true_fraction": s["clf_true_steps"] / n_steps,
-            "final_V": self.clf.fn(x_final),
+            "final_V": v_final,
             "incompatible_steps": s["incompatible_steps"],
             "lemma2_violations": l2 if self.beta is not None else jnp.asarray(-1),
             "first_bad_status": jnp.where(
                 final_bad, int(StepStatus.NONFINITE_STATE), s["first_bad_status"]
             ),
             "first_bad_step": jnp.where(final_bad, n_steps, s["first_bad_step"]),
-            **(self._price_finish(s, x_final) if self.price else
+            **(self._price_finish(s, v_final) if self.price else
                {"mean_input_gap": jnp.asarray(-1.0), "settle_time": jnp.asarray(-1.0)}),
         }  # fmt: skip
 
-    def _price_finish(self, s: dict, x_final: jax.Array) -> dict[str, jax.Array]:
-        # settled from step last_unsettled + 1 on; with the final state unsettled, never
-        # (the horizon)
-        last = jnp.where(self.clf.fn(x_final) > s["v_settled"], self.n_steps,
+    def _price_finish(self, s: dict, v_final: jax.Array) -> dict[str, jax.Array]:
+        # settled from step last_unsettled + 1 on; with the final state unsettled (V(x_K)
+        # above the threshold), never: the horizon
+        last = jnp.where(v_final > s["v_settled"], self.n_steps,
                          s["last_unsettled"] + 1)  # fmt: skip
         return {"mean_input_gap": s["input_gap_sum"] / self.n_steps,
                 "settle_time": last * self.dt}  # fmt: skip

@@ -85,29 +85,62 @@ def obstacle_table(doc: dict) -> str:
         name, limits = key.split(" / ")
         o, stuck = run["outcomes"], run["stuck"]
         both = sum(not s["end_flag_compatible"] and not s["end_verdict_compatible"] for s in stuck)
+        settle = run["median_converge_time_s"]
         rows.append([
             name, "none" if limits == "no limits" else "+-1.5 m/s",
             *(str(o[k]) for k in ("converged", "stuck", "unsafe", "moving")),
-            f"{run['min_h_m2']:.3f}", f"{both} / {len(stuck)}" if stuck else "-",
+            f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
+            f"{run['median_input_variation_mps2']:.3f}", "-" if settle is None else f"{settle:.1f}",
+            f"{both} / {len(stuck)}" if stuck else "-",
         ])  # fmt: skip
     header = ["controller", "limits", "converged", "stuck", "unsafe", "moving", "min h (m^2)",
-              "stuck ends incompatible"]  # fmt: skip
-    return _table(header, ["---"] * 2 + ["---:"] * 6, rows)
+              "max abs u (m/s)", "input variation (m/s^2, median)",
+              "time to converge (s, median)", "stuck ends incompatible"]  # fmt: skip
+    return _table(header, ["---"] * 2 + ["---:"] * 9, rows)
+
+
+def obstacle_gp_table(doc: dict) -> str:
+    """The obstacle GP per component: the cache's width, beta and held-out coverage."""
+    gp = doc["gp"]
+    cache = gp.get("cache")
+    rows = []
+    for j, name in enumerate(("x1 (m/s)", "x2 (m/s)")):
+        width = (
+            "exact GP"
+            if cache is None
+            else f"{cache['n_inducing'][j]}: "
+            f"{cache['std_over_exact_at_training_median'][j]:.2f} / "
+            f"{cache['std_over_exact_at_training_max'][j]:.2f}"
+        )
+        rows.append([
+            name, width, f"{gp['beta']:.2f}", f"{gp['per_component'][j]:.2f}",
+            f"{gp['rmse_mps'][j]:.3f}",
+        ])  # fmt: skip
+    header = ["component", "inducing inputs: cache std / exact std at the training inputs "
+              "(median / max)", "beta", "held-out coverage", "held-out RMSE (m/s)"]  # fmt: skip
+    return _table(header, ["---", "---", "---:", "---:", "---:"], rows)
 
 
 def obstacle_seed_table(docs: list[dict]) -> str:
-    """The GP-robust controller without limits over data seeds."""
+    """The GP-robust controller without limits over data seeds, with the beta it used."""
     rows = []
     for doc in docs:
-        run = doc["runs"]["GP-robust / no limits"]
+        run, gp = doc["runs"]["GP-robust / no limits"], doc["gp"]
         o = run["outcomes"]
+        beta = f"{gp['beta']:.2f}" + (
+            " (conformal)" if gp.get("beta_method") == "conformal" else ""
+        )
         rows.append([
-            str(doc["settings"]["seed"]), f"{o['converged']} / {o['stuck']} / {o['moving']}",
+            str(doc["settings"]["seed"]), beta,
+            f"{o['converged']} / {o['stuck']} / {o['moving']} / {o['unsafe']}",
             f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.1f}",
+            f"{doc['maps']['nominal_incompatible_points']} / "
+            f"{doc['maps']['robust_incompatible_points']}",
         ])  # fmt: skip
-    header = ["data seed", "GP-robust, no limits: converged / stuck / moving", "min h (m^2)",
-              "largest input (m/s)"]  # fmt: skip
-    return _table(header, ["---:", "---", "---:", "---:"], rows)
+    header = ["data seed", "beta", "GP-robust, no limits: converged / stuck / moving / unsafe",
+              "min h (m^2)", "largest input (m/s)",
+              "incompatible map points: nominal / GP-robust"]  # fmt: skip
+    return _table(header, ["---:", "---:", "---", "---:", "---:", "---:"], rows)
 
 
 def gp_coverage_table(rows: list[dict]) -> str:
@@ -325,7 +358,10 @@ def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
                      ("obstacle_obstacle_maps.png", "obstacle_maps.png")):  # fmt: skip
         _copy(folder / src, f"figures/{dst}")
     doc = _load(folder / "obstacle_obstacle_metrics.json")
-    return {"obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc))}
+    return {
+        "obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc)),
+        "obstacle-gp": ("docs/obstacle.md", obstacle_gp_table(doc)),
+    }
 
 
 def step_obstacle_seeds(out: Path) -> dict[str, tuple[str, str]]:
@@ -423,7 +459,7 @@ LONG = {"mc-datasets", "price"}
 PRODUCES = {
     "acc": ["acc-paper", "acc-stress"],
     "swarm": ["swarm-results", "swarm-loose-solvers"],
-    "obstacle": ["obstacle-outcomes"],
+    "obstacle": ["obstacle-outcomes", "obstacle-gp"],
     "obstacle-seeds": ["obstacle-seeds"],
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],

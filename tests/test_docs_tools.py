@@ -188,14 +188,58 @@ def test_obstacle_table_from_a_metrics_document():
     doc = {"runs": {
         "true model / no limits": {"outcomes": {"converged": 70, "stuck": 2, "unsafe": 0,
                                                 "moving": 0}, "stuck": stuck,
-                                   "min_h_m2": 0.0199937},
+                                   "min_h_m2": 0.0199937, "max_abs_u_mps": 2.02635,
+                                   "median_input_variation_mps2": 0.05216,
+                                   "median_converge_time_s": 13.42},
         "mismatched model / input limits": {"outcomes": {"converged": 66, "stuck": 0,
                                                          "unsafe": 6, "moving": 0},
-                                            "stuck": [], "min_h_m2": -0.2314722},
+                                            "stuck": [], "min_h_m2": -0.2314722,
+                                            "max_abs_u_mps": 1.5,
+                                            "median_input_variation_mps2": 0.04912,
+                                            "median_converge_time_s": None},
     }}  # fmt: skip
     lines = reproduce_docs.obstacle_table(doc).splitlines()
-    assert lines[2] == "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 1 / 2 |"
-    assert lines[3] == "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | - |"
+    assert len(lines[0].split("|")) == len(lines[1].split("|")) == len(lines[2].split("|"))
+    assert (
+        lines[2] == "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 2.03 | 0.052 | 13.4 | 1 / 2 |"
+    )
+    assert (
+        lines[3]
+        == "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | 1.50 | 0.049 | - | - |"
+    )
+
+
+def test_obstacle_gp_table_from_a_metrics_document():
+    gp = {"beta": 5.8356, "per_component": [1.0, 0.99], "rmse_mps": [0.13729, 0.04021],
+          "cache": {"n_inducing": [101, 190], "std_over_exact_at_training_median": [1.0653, 1.0247],
+                    "std_over_exact_at_training_max": [1.3257, 1.2698]}}  # fmt: skip
+    lines = reproduce_docs.obstacle_gp_table({"gp": gp}).splitlines()
+    assert len(lines[0].split("|")) == len(lines[1].split("|")) == len(lines[2].split("|"))
+    assert lines[2] == "| x1 (m/s) | 101: 1.07 / 1.33 | 5.84 | 1.00 | 0.137 |"
+    assert lines[3] == "| x2 (m/s) | 190: 1.02 / 1.27 | 5.84 | 0.99 | 0.040 |"
+    del gp["cache"]
+    assert (
+        reproduce_docs.obstacle_gp_table({"gp": gp})
+        .splitlines()[2]
+        .startswith("| x1 (m/s) | exact GP |")
+    )
+
+
+def test_obstacle_seed_table_names_the_beta_of_each_seed():
+    run = {"outcomes": {"converged": 68, "stuck": 4, "unsafe": 0, "moving": 0},
+           "min_h_m2": 0.1803, "max_abs_u_mps": 5.2249}  # fmt: skip
+    maps = {"nominal_incompatible_points": 15, "robust_incompatible_points": 16}
+    docs = [
+        {"settings": {"seed": 0}, "runs": {"GP-robust / no limits": run},
+         "gp": {"beta": 5.8356, "beta_method": "conformal"}, "maps": maps},
+        {"settings": {"seed": 1}, "runs": {"GP-robust / no limits": run | {"outcomes": {
+            "converged": 63, "stuck": 4, "unsafe": 1, "moving": 4}}}, "gp": {"beta": 2.0},
+         "maps": maps | {"robust_incompatible_points": 98}},
+    ]  # fmt: skip
+    lines = reproduce_docs.obstacle_seed_table(docs).splitlines()
+    assert len(lines[0].split("|")) == len(lines[1].split("|")) == len(lines[2].split("|"))
+    assert lines[2] == "| 0 | 5.84 (conformal) | 68 / 4 / 0 / 0 | 0.180 | 5.2 | 15 / 16 |"
+    assert lines[3] == "| 1 | 2.00 | 63 / 4 / 4 / 1 | 0.180 | 5.2 | 15 / 98 |"
 
 
 def _acc_controller(min_h: float, gap: float | None, u: float) -> dict:

@@ -5,6 +5,7 @@ tests marked slow run the whole preset study once (module fixture) and check its
 """
 
 import json
+import warnings
 from importlib import resources
 
 import jax
@@ -20,6 +21,7 @@ from safestab.scenarios import ObstacleScenario, load, load_obstacle_scenario, s
 from safestab.scenarios.obstacle_study import (
     CONTROLLERS,
     LIMIT_SETTINGS,
+    calibrate_beta,
     classify_outcomes,
     compatibility_maps,
     doa_level,
@@ -140,6 +142,34 @@ def test_classify_outcomes_by_hand():
 # -- the claims, with direct simulations (fast) ------------------------------------------
 
 
+def test_input_variation_and_converge_time_by_hand():
+    from safestab.scenarios.obstacle_study import ObstacleRun
+
+    t = np.arange(5) * 0.5  # T = 2 s
+    x = np.array([[[1, 0], [0.5, 0], [0.04, 0], [0.06, 0], [0.01, 0]],  # back out once
+                  [[1, 0], [0.5, 0], [0.3, 0], [0.2, 0], [0.1, 0]],  # never inside
+                  [[0.01, 0]] * 5], float)  # fmt: skip
+    u = np.zeros((3, 5, 2))
+    u[0, :, 0] = [0, 3, -1, -1, 0]  # jumps 3, 4, 0, 1: 8 m/s over 2 s
+    u[1, :, 1] = [0, 0, 0, 0, 0.5]
+    u[2, :, 0] = [0, 0, 0, 0.2, 0]  # jumps 0.2, 0.2, all inside the ball
+    n = np.zeros((3, 5))
+    run = ObstacleRun(
+        controller="true model", limits="no limits", x0=x[:, 0], compatible_formula=n[:, 0] > 0,
+        t=t, x=x, u=u, V=n, h=n + 1, compatible=n > 0, status=n.astype(int),
+        outcome=np.array(["converged", "moving", "converged"]), end_verdict=n[:, 0] > 0,
+    )  # fmt: skip
+    np.testing.assert_allclose(run.input_variation(), [4.0, 0.25, 0.2])
+    ct = run.converge_time(0.05)
+    assert ct[0] == 2.0 and np.isnan(ct[1]) and ct[2] == 0.0
+    # jumps made inside the ball: run 0's third (0 of its 8), run 1 none (0.5), run 2 all 0.4
+    assert run.variation_in_ball_share(0.05) == pytest.approx(0.4 / 8.9)
+    doc = run.summary(0.05)
+    assert doc["median_input_variation_mps2"] == 0.25 and doc["median_converge_time_s"] == 1.0
+    assert doc["input_variation_in_ball_share"] == pytest.approx(0.4 / 8.9)
+    assert "median_converge_time_s" not in run.summary()
+
+
 def test_true_model_from_documented_compatible_region_converges_safely(sc):
     # docs/obstacle.md: the compatible region is {V < doa_fraction c*} ∩ C, c* of the true model
     level = sc.doa_fraction * doa_level(sc, "true model")
@@ -214,7 +244,12 @@ def test_maps_agree_pointwise_with_the_public_verdicts(sc):
     )
     np.testing.assert_array_equal(maps.robust_updated.reshape(-1), np.asarray(pc.updated))
     np.testing.assert_array_equal(maps.robust_lemma4.reshape(-1), np.asarray(pc.lemma4))
-    assert maps.probability == pytest.approx((1 - small.delta) ** 2, rel=1e-15)
+    # the preset's conformal beta holds for both components at once; Lemma 2's per component
+    assert small.beta_method == "conformal"
+    assert maps.probability == pytest.approx(1 - small.delta, rel=1e-15)
+    chosen = compatibility_maps(small.replace(beta_method="chosen"), band)
+    assert chosen.probability == pytest.approx((1 - small.delta) ** 2, rel=1e-15)
+    np.testing.assert_array_equal(chosen.robust_updated, maps.robust_updated)
     # the grid holds the axis, so the maps do show incompatible points behind the obstacle
     axis = np.isclose(x2, 0.0, atol=0)
     assert axis.sum() == 1
@@ -261,7 +296,12 @@ BAD = [
     ('kernel = "se"', 'kernel = "rbf"', r"learning\.kernel must be one of 'se', 'matern52'"),
     ("x0_low = [-9.0, -4.0]", "x0_low = [9.0, -4.0]", r"learning\.x0_low\[0\] must be <="),
     ("seed = 0", "seed = -1", r"learning\.seed must be an integer in \[0, 4294967295\]"),
-    ("n_inducing = 32", "n_inducing = -1", r"learning\.n_inducing must be an integer"),
+    ("n_inducing = 256", "n_inducing = -1", r"learning\.n_inducing must be an integer"),
+    (
+        'beta_method = "conformal"',
+        'beta_method = "lemma2"',
+        r"learning\.beta_method must be one of 'chosen', 'conformal', got 'lemma2'",
+    ),
     ('name = "obstacle"', 'name = "../x"', r"name must be a string of 1 to 64"),
     ("[map]", "[mapp]\nx = 1\n\n[map]", r"unknown key 'mapp'; expected one of certificates"),
     ("rest_speed = 0.001", "rest_speed = 0.001\nextra = 1", r"unknown key 'simulation\.extra'"),
@@ -276,6 +316,38 @@ def test_bad_fields_are_rejected_at_load_naming_the_key(tmp_path, old, new, mess
         load_obstacle_scenario(path)
     with pytest.raises(ScenarioError, match=message):  # the dispatching loader too
         load(path)
+
+
+def test_beta_method_is_optional_and_defaults_to_chosen(tmp_path, sc):
+    assert sc.beta_method == "conformal"  # the preset
+    old = _edited(tmp_path, 'beta_method = "conformal"  #', "#")  # a file from before the key
+    assert load_obstacle_scenario(old).beta_method == "chosen"
+    with pytest.raises(ScenarioError, match=r"learning\.beta_method must be one of"):
+        sc.replace(beta_method="Conformal")
+
+
+def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
+    from safestab.scenarios.obstacle_study import fit_obstacle_gp
+
+    small = sc.replace(n_samples=60, hyper_subset=60, n_inducing=16, delta=0.05)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InducingPointsWarning)  # Q = 60, M = 16: wide, valid
+        _, _, model = fit_obstacle_gp(small)
+    rep = calibrate_beta(small, model)
+    assert rep["n_trajectories"] == 100 and rep["states_per_trajectory"] == 2
+    assert rep["chosen_beta"] == sc.gp_beta and rep["probability"] == pytest.approx(0.95)
+    # the same draw, scored by hand: the largest |omega - m| / sigma over a trajectory's
+    # states and both components, then the ceil((N + 1)(1 - delta))-th smallest
+    cal_seed = int(np.random.SeedSequence([small.seed, 1]).generate_state(1)[0])
+    cal = small.trial_study().collect(100 * 20, cal_seed)
+    cal = cal.take(np.arange(0, len(cal), 10))
+    mean, std = (np.asarray(a) for a in model.predict(cal.x))
+    score = np.abs(np.asarray(small.omega(cal.x)) - mean) / std
+    per_traj = np.array([score[cal.trajectory == t].max() for t in np.unique(cal.trajectory)])
+    k = int(np.ceil((len(per_traj) + 1) * (1 - small.delta)))
+    assert rep["beta"] == pytest.approx(np.sort(per_traj)[k - 1], rel=1e-12)
+    # and the band m +- beta sigma holds on that many of the calibration trajectories
+    assert np.sum(per_traj <= rep["beta"] * (1 + 1e-12)) >= k
 
 
 def test_kind_dispatch_and_errors(tmp_path):
@@ -319,9 +391,10 @@ def test_overrides_are_checked_like_the_file(sc):
 @pytest.fixture(scope="module")
 def study(sc):
     """The preset study (a coarser map grid): about 1.5 to 5 minutes on 2 shared cores."""
-    # the preset's 32-point cache is needlessly wide for the position GP (its band is valid;
-    # FastGP says so): expected here, and the test fails if the warning changes or goes away
-    with pytest.warns(InducingPointsWarning, match="needlessly wide"):
+    # the preset's cache (up to 256 inducing points; the pivot rule takes 101 and 190) is
+    # within 1.1 times the exact std at the training inputs: FastGP must not warn
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InducingPointsWarning)
         return run_obstacle_study(sc.replace(map_n_x1=61, map_n_x2=41))
 
 
@@ -423,6 +496,11 @@ def test_cli_run_obstacle_smoke(tmp_path):
     assert all(r["n_starts"] == doc["settings"]["n_starts"] == 6 for r in doc["runs"].values())
     assert all(r["compatible_formula_starts"] == 0 for r in doc["runs"].values())
     assert "Obstacle study 'obstacle'" in res.output and "GP-robust" in res.output
+    # the preset calibrates beta: the controller, the coverage and the maps all use it
+    gp = doc["gp"]
+    assert gp["beta_method"] == "conformal" and gp["calibration"]["chosen_beta"] == 2.0
+    assert gp["beta"] == gp["calibration"]["beta"] != 2.0
+    assert gp["stated_probability"] == doc["maps"]["stated_probability"] == pytest.approx(0.99)
 
 
 @pytest.mark.parametrize(

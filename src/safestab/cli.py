@@ -297,10 +297,17 @@ def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
         )
     console.print(table)
     cov = result.coverage
-    console.print(
-        f"GP held-out coverage at beta = {sc.gp_beta}: per component "
-        f"{[round(float(c), 3) for c in cov['per_component']]}, joint {cov['joint']:.3f}; "
+    how = (
+        f"conformal beta = {cov['beta']:.3g} (chosen {cov['calibration']['chosen_beta']:g}), "
+        f"calibrated on {cov['calibration']['n_trajectories']} fresh trajectories; "
+        f"stated probability 1 - delta = {cov['stated_probability']:.4f}"
+        if cov["beta_method"] == "conformal"
+        else f"chosen beta = {cov['beta']:g}; "
         f"stated probability (1 - delta)^2 = {cov['stated_probability']:.4f}"
+    )
+    console.print(
+        f"GP held-out coverage: per component "
+        f"{[round(float(c), 3) for c in cov['per_component']]}, joint {cov['joint']:.3f}; {how}"
     )
     console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
     _note_other_runs(console, written)

@@ -227,8 +227,10 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
          "Lemma 1, nominal model: regions of the compatible formula",
          ["incompatible", "P1", "P2", "P3", "P4"]),
         (robust_class, ["black", "#fdae6b", "#9ecae1"], "GP-robust",
-         f"eq. (20), GP-robust terms ($\\beta$ = {sc.gp_beta:g}), stated probability "
-         f"$(1-\\delta)^2$ = {maps.probability:.4f}",
+         f"eq. (20), GP-robust terms ($\\beta$ = {sc.gp_beta:.3g}"
+         + (", conformal), stated probability $1-\\delta$"
+            if sc.beta_method == "conformal" else "), stated probability $(1-\\delta)^2$")
+         + f" = {maps.probability:.4f}",
          ["incompatible", "compatible (eq. 20)", "compatible (eq. 20 and Lemma 4)"]),
     ]  # fmt: skip
     for ax, (z, colors, name, title, labels) in zip(axes, panels, strict=True):

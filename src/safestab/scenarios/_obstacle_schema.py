@@ -25,11 +25,14 @@ from ._schema import (
 )
 from ._schema import check_structure as _check_structure_with
 
-__all__ = ["FIELDS", "KIND", "check_structure", "check_values"]
+__all__ = ["BETA_METHODS", "FIELDS", "KIND", "check_structure", "check_values"]
 
 #: The value of the required top-level ``kind`` key.
 KIND = "obstacle"
 KERNELS = ("se", "matern52")  # the kernels of safestab.learning.GaussianProcessModel
+#: How the GP-robust controller's beta is set: ``gp_beta`` as given ("chosen"), or calibrated
+#: by split conformal prediction on fresh trajectories ("conformal", docs/obstacle.md).
+BETA_METHODS = ("chosen", "conformal")
 MAX_GRID = 1000  # points per axis of the start grid and the map grid
 
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
@@ -86,6 +89,7 @@ FIELDS: dict[str, Check] = {
     "learning.sample_horizon": _POS,  # s
     "learning.noise_std": _NONNEG,  # m/s
     "learning.gp_beta": _NONNEG,
+    "learning.beta_method": choice(BETA_METHODS),  # optional, default "chosen"
     "learning.delta": _open_unit,
     "learning.kernel": choice(KERNELS),
     "learning.x0_low": _POINT,
@@ -95,7 +99,7 @@ FIELDS: dict[str, Check] = {
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),  # 0: the exact GP
     "learning.seed": integer(0, LIMITS.max_seed),
 }
-_OPTIONAL = {"name"}
+_OPTIONAL = {"name", "learning.beta_method"}
 
 
 def check_structure(doc: Mapping[str, Any], source: str) -> dict[str, Any]:

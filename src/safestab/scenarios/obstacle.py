@@ -74,6 +74,7 @@ _KEYS = {
             "sample_horizon",
             "noise_std",
             "gp_beta",
+            "beta_method",
             "delta",
             "kernel",
             "x0_low",
@@ -157,6 +158,10 @@ class ObstacleScenario:
     seed: int
     #: The optional ``[montecarlo]`` table (trial distributions); ``None`` when absent.
     montecarlo: MonteCarloSpec | None = None
+    #: ``learning.beta_method`` (optional): "chosen" uses ``gp_beta``; "conformal" calibrates
+    #: beta by split conformal prediction on fresh trajectories and uses it instead
+    #: (:func:`~safestab.scenarios.obstacle_study.calibrate_beta`, docs/obstacle.md).
+    beta_method: str = "chosen"
 
     def __post_init__(self) -> None:
         flat = {key: getattr(self, attr) for attr, key in _KEYS.items()}
@@ -329,6 +334,7 @@ def load_obstacle_scenario(
     source = apply_overrides(doc, overrides or {}, source)
     table = doc.pop("montecarlo", None)  # optional; checked after the required tables
     flat = check_structure(doc, source)
+    flat.setdefault("learning.beta_method", "chosen")
     if "name" not in flat:
         try:
             flat["name"] = FIELDS["name"]("name", name, source)

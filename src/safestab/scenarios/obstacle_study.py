@@ -29,7 +29,7 @@ from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
-from ..learning import FastGP, GaussianProcessModel
+from ..learning import FastGP, GaussianProcessModel, conformal_beta
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import ObstacleScenario
@@ -164,8 +164,11 @@ def _robust(sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerm
         mean, std = jax.vmap(uncertainty.mean_std)(x)
         return robust_margins(clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta))
 
+    # Lemma 2's beta holds per component with 1 - delta: (1 - delta)^2 jointly; the conformal
+    # beta holds for both components at once (one score per unit): 1 - delta
+    n_bounds = 1 if sc.beta_method == "conformal" else 2
     return probabilistic_compatibility(
-        terms, margins(x), **_params(sc), delta=sc.delta, n_components=2
+        terms, margins(x), **_params(sc), delta=sc.delta, n_components=n_bounds
     )
 
 
@@ -230,16 +233,64 @@ class ObstacleRun:
         speed = np.linalg.norm(self.x[:, -1] - self.x[:, -2], axis=-1) / (self.t[1] - self.t[0])
         return (speed <= rest_speed) & (np.linalg.norm(self.x[:, -1], axis=-1) > ball_radius)
 
-    def summary(self) -> dict[str, Any]:
-        """Counts per outcome, min h, stuck end points with their verdicts, largest |u|."""
+    def input_variation(self) -> np.ndarray:
+        """Total variation of ``u`` per second of each run, ``sum_k |u_k+1 - u_k| / T``, m/s^2.
+
+        ``|.|`` the Euclidean norm; ``T`` the run's horizon. A run whose input chatters
+        between samples scores high even when ``|u|`` stays small. Shape (N,).
+        """
+        jumps = np.linalg.norm(np.diff(self.u, axis=1), axis=-1).sum(axis=1)
+        return jumps / (self.t[-1] - self.t[0])
+
+    def variation_in_ball_share(self, ball_radius: float) -> float:
+        """Share of all runs' input variation made at states within ``ball_radius`` of the goal.
+
+        The jump ``|u_k+1 - u_k|`` counts where ``x_k`` is; 0 when no input varies.
+        """
+        jumps = np.linalg.norm(np.diff(self.u, axis=1), axis=-1)
+        near = np.linalg.norm(self.x[:, :-1], axis=-1) <= ball_radius
+        total = float(jumps.sum())
+        return float(jumps[near].sum()) / total if total > 0 else 0.0
+
+    def converge_time(self, ball_radius: float) -> np.ndarray:
+        """Time after which each run stays within ``ball_radius`` of the goal, s.
+
+        NaN where the run is outside the ball at the end. Shape (N,).
+        """
+        inside = np.linalg.norm(self.x, axis=-1) <= ball_radius
+        # index of the last sample outside, + 1 (0 when always inside)
+        last_out = np.where(inside.all(1), 0, inside.shape[1] - np.argmax(~inside[:, ::-1], 1))
+        return np.where(inside[:, -1], self.t[np.minimum(last_out, len(self.t) - 1)], np.nan)
+
+    def summary(self, ball_radius: float | None = None) -> dict[str, Any]:
+        """Counts per outcome, min h, stuck end points with their verdicts, largest |u|.
+
+        With ``ball_radius``, also the median input variation (:meth:`input_variation`)
+        over all starts and the median time to converge (:meth:`converge_time`) over the
+        converged starts (``None`` when none converged).
+        """
         stuck = np.flatnonzero(self.outcome == "stuck")
         unsafe = np.flatnonzero(self.outcome == "unsafe")
+        converged = self.outcome == "converged"  # inside the ball at the end: a finite time
         return {
             "n_starts": int(len(self.x0)),
             "outcomes": {o: int(np.sum(self.outcome == o)) for o in OUTCOMES},
             "compatible_formula_starts": int(np.sum(self.compatible_formula)),
             "min_h_m2": float(np.min(self.h)),
             "max_abs_u_mps": float(np.max(np.abs(self.u))),
+            **(
+                {}
+                if ball_radius is None
+                else {
+                    "median_input_variation_mps2": float(np.median(self.input_variation())),
+                    "input_variation_in_ball_share": self.variation_in_ball_share(ball_radius),
+                    "median_converge_time_s": (
+                        float(np.median(self.converge_time(ball_radius)[converged]))
+                        if np.any(converged)
+                        else None
+                    ),
+                }
+            ),
             "status": "ok" if np.all(self.status == 0) else "non-finite steps",
             "stuck": [
                 {
@@ -351,7 +402,9 @@ class ObstacleStudyResult:
             },
             "doa_c_star_m2": self.doa,
             "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},
-            "runs": {f"{c} / {lim}": run.summary() for (c, lim), run in self.runs.items()},
+            "runs": {
+                f"{c} / {lim}": run.summary(sc.ball_radius) for (c, lim), run in self.runs.items()
+            },
             "gp": self.coverage,
             "maps": {
                 "grid": [len(self.maps.x1), len(self.maps.x2)],
@@ -380,8 +433,65 @@ def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray) -> dict[str, Any]
         "joint": float(np.all(inside, -1).mean()),
         "rmse_mps": np.sqrt((err**2).mean(0)).tolist(),
         "beta": sc.gp_beta,
+        "beta_method": sc.beta_method,
         "delta": sc.delta,
-        "stated_probability": (1 - sc.delta) ** 2,
+        # chosen: Lemma 2's (1 - delta)^2, nominal unless beta meets the lemma's bound;
+        # conformal: the calibrated joint probability (calibrate_beta)
+        "stated_probability": (1 - sc.delta) ** (1 if sc.beta_method == "conformal" else 2),
+    }
+
+
+def _cache_width(gp: GaussianProcessModel, cache: FastGP) -> dict[str, Any]:
+    """The cache's inducing inputs, and its std over the exact std at the training inputs."""
+    x = gp.x_train_
+    comps = list(gp.components_)
+    exact = np.sqrt(np.asarray(gp.predict(x)[1]))[:, comps]
+    ratio = cache.predict(x)[1][:, comps] / exact
+    return {
+        "n_inducing": cache.n_inducing_.tolist(),
+        "std_over_exact_at_training_median": np.median(ratio, 0).tolist(),
+        "std_over_exact_at_training_max": np.max(ratio, 0).tolist(),
+    }
+
+
+#: Fewest calibration trajectories for ``beta_method = "conformal"`` (also ``ceil(1/delta)``).
+CONFORMAL_MIN_TRAJECTORIES = 100
+
+
+def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
+    """Split conformal ``beta`` of ``model`` on fresh trajectories, per trajectory.
+
+    ``max(CONFORMAL_MIN_TRAJECTORIES, ceil(1 / delta))`` excitation trajectories of the
+    scenario's horizon are collected with the seed ``SeedSequence([seed, 1])``, a stream
+    independent of the fitting and held-out rows (``seed``), and thinned to one state per
+    second; each trajectory is one calibration unit (``groups``). The score of a unit is the
+    largest ``|omega_i - m_i| / sigma_i`` over its states and both components, against the
+    true ``omega``; ``beta`` is the ``ceil((N + 1)(1 - delta))``-th smallest score
+    (:func:`~safestab.learning.conformal_beta`). The guarantee: a new trajectory of the same
+    excitation lies inside ``m +- beta sigma`` (both components, every state) with
+    probability at least ``1 - delta``. Closed-loop states are another distribution, which
+    the guarantee does not cover.
+
+    Returns
+    -------
+    dict
+        ``beta``, ``chosen_beta`` (``gp_beta``), ``delta``, ``probability``,
+        ``n_trajectories``, ``states_per_trajectory``, ``statement``: strict JSON data.
+    """
+    per_traj, stride = sc.trial_study().calibration_shape()
+    n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / sc.delta)))
+    cal_seed = int(np.random.SeedSequence([sc.seed, 1]).generate_state(1)[0])
+    cal = sc.trial_study().collect(n_traj * per_traj, cal_seed)
+    cal = cal.take(np.arange(0, len(cal), stride))
+    rep = conformal_beta(model, cal.x, np.asarray(sc.omega(cal.x)), sc.delta, groups=cal.trajectory)
+    return {
+        "beta": float(np.max(rep.beta)),
+        "chosen_beta": sc.gp_beta,
+        "delta": sc.delta,
+        "probability": float(rep.probability),
+        "n_trajectories": int(rep.n_calibration),
+        "states_per_trajectory": int(len(np.arange(0, per_traj, stride))),
+        "statement": rep.statement,
     }
 
 
@@ -502,7 +612,19 @@ def run_obstacle_study(
     data, gp, uncertainty = fit_obstacle_gp(sc, timings=timings, report=report)
     q = sc.n_samples
     n_test = max(50, q // 4)
+    calibrated = None
+    if sc.beta_method == "conformal":
+        report("calibrating beta on fresh trajectories", 0.15)
+        t0 = time.perf_counter()
+        calibrated = calibrate_beta(sc, uncertainty)
+        # every GP-robust use below (verdicts, maps, controllers, coverage) reads gp_beta
+        sc = sc.replace(gp_beta=calibrated["beta"])
+        timings["calibrate_beta"] = time.perf_counter() - t0
     coverage = _coverage(sc, uncertainty, data.x[q : q + n_test])
+    if calibrated is not None:
+        coverage["calibration"] = calibrated
+    if isinstance(uncertainty, FastGP):
+        coverage["cache"] = _cache_width(gp, uncertainty)
 
     report("domains of attraction and maps", 0.2)
     t0 = time.perf_counter()

@@ -663,18 +663,25 @@ def export_markdown(e):
 def write_page(results, out):
     """Rewrite performance.md from ``results``, keeping the blocks that other runs measured.
 
-    The Monte Carlo, several-CBF and filter blocks come from their own runs
-    (performance_mc.json, performance_multi.json, performance_filter.json) and are put back,
+    The Monte Carlo, several-CBF, filter and first-run blocks come from their own runs
+    (performance_mc.json, performance_multi.json, performance_filter.json,
+    performance_first_run.json) and are put back,
     so a partial rerun loses none.
     """
     import filter as filter_rows
+    import first_run
     import mc_rows
     import multi
+    from _page import update_block
 
     write_markdown(results, out / "performance.md")
     mc_rows.update_markdown(out / "performance.md", out / "performance_mc.json")
     multi.update_markdown(out / "performance.md", out / "performance_multi.json")
     filter_rows.update_markdown(out / "performance.md", out / "performance_filter.json")
+    update_block(
+        out / "performance.md", out / "performance_first_run.json", first_run.markdown,
+        first_run.BEGIN, first_run.END,
+    )  # fmt: skip
 
 
 def write_markdown(r, path):

@@ -1,0 +1,141 @@
+"""Wall time of the README's commands, each in a fresh process: the first run with an empty
+compilation cache, then a second run that reuses it (issue 22's targets).
+
+    python benchmarks/first_run.py            # main job (paper, stress, obstacle) and mc
+    python benchmarks/first_run.py --tests    # also the default test run, twice (~20 min)
+
+Each command runs as a new process with ``SAFESTAB_COMPILATION_CACHE`` set to a fresh
+temporary folder: the first run finds it empty (every program compiled), the second finds the
+first run's programs. Installation is excluded (the environment must exist). Writes
+``docs/performance_first_run.json`` and its block in ``docs/performance.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _page import machine, save_results
+
+BEGIN, END = "<!-- first-run:begin -->", "<!-- first-run:end -->"
+ROOT = Path(__file__).resolve().parents[1]
+SAFESTAB = [sys.executable, "-m", "safestab.cli"]
+#: issue 22's targets in seconds, per row name: (first run, second run)
+TARGETS = {
+    "main job (paper + stress + obstacle)": (60.0, 20.0),
+    "safestab mc --scenario stress --trials 10000 --datasets 1": (45.0, 45.0),
+    "default test run (bash scripts/run-tests.sh)": (360.0, 360.0),
+}
+
+
+def _commands(out: Path, tests: bool) -> list[tuple[str, list[list[str]]]]:
+    """Rows: a name and the commands whose wall times add up to it."""
+    rows = [
+        (
+            "main job (paper + stress + obstacle)",
+            [
+                [*SAFESTAB, "run", "--scenario", s, "--out", str(out / "main")]
+                for s in ("paper", "stress", "obstacle")
+            ],
+        ),  # fmt: skip
+        (
+            "safestab mc --scenario stress --trials 10000 --datasets 1",
+            [
+                [
+                    *SAFESTAB,
+                    "mc",
+                    "--scenario",
+                    "stress",
+                    "--trials",
+                    "10000",
+                    "--datasets",
+                    "1",
+                    "--backend",
+                    "local",
+                    "--out",
+                    str(out / "mc"),
+                ]
+            ],
+        ),  # fmt: skip
+    ]
+    if tests:
+        rows.append(
+            ("default test run (bash scripts/run-tests.sh)", [["bash", "scripts/run-tests.sh"]])
+        )
+    return rows
+
+
+def _timed(cmd: list[str], cache: Path) -> float:
+    env = dict(os.environ, SAFESTAB_COMPILATION_CACHE=str(cache))
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+    seconds = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed with exit code {done.returncode}")
+    return seconds
+
+
+def bench(tests: bool) -> dict:
+    results: dict = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "rows": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, cmds in _commands(Path(tmp), tests):
+            cache = Path(tmp) / f"cache-{len(results['rows'])}"  # empty for the first run
+            runs = []
+            for attempt in ("first", "second"):
+                parts = [_timed(cmd, cache) for cmd in cmds]
+                runs.append(parts)
+                print(f"{name}, {attempt} run: {sum(parts):.1f} s {[round(p, 1) for p in parts]}")
+            results["rows"].append(
+                {"name": name, "first_s": runs[0], "second_s": runs[1], "target_s": TARGETS[name]}
+            )
+    results["load_average_at_end"] = os.getloadavg()[0]
+    return results
+
+
+def markdown(r: dict) -> str:
+    m = r["machine"]
+    lines = [
+        BEGIN,
+        "## First run and second run (issue 22; `python benchmarks/first_run.py --tests`)",
+        "",
+        f"Measured {r['date']}, {m['cpus']} CPUs, load average {m['load_average_at_start']:.1f} "
+        f"at the start and {r['load_average_at_end']:.1f} at the end. Each command is a fresh "
+        "process; the first run starts with an empty compilation cache "
+        "(`SAFESTAB_COMPILATION_CACHE` set to a new folder), the second reuses the first's. "
+        "Installation excluded.",
+        "",
+        "| command | first run (s) | second run (s) | target first / second (s) | met |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for row in r["rows"]:
+        first, second = sum(row["first_s"]), sum(row["second_s"])
+        t1, t2 = row["target_s"]
+        parts = (
+            f" ({' + '.join(f'{p:.0f}' for p in row['first_s'])};"
+            f" {' + '.join(f'{p:.0f}' for p in row['second_s'])})"
+            if len(row["first_s"]) > 1
+            else ""
+        )
+        met = "yes" if first <= t1 and second <= t2 else "no"
+        lines.append(
+            f"| {row['name']}{parts} | {first:.0f} | {second:.0f} | {t1:.0f} / {t2:.0f} | {met} |"
+        )
+    return "\n".join([*lines, "", END])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tests", action="store_true", help="also time the default test run")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs")
+    args = parser.parse_args()
+    results = bench(args.tests)
+    save_results(args.out, "performance_first_run.json", results, markdown, BEGIN, END)
+
+
+if __name__ == "__main__":
+    main()

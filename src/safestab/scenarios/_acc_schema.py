@@ -12,16 +12,16 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ..errors import ScenarioError
 from ._schema import (
     LIMITS,
     Check,
     ScenarioLimits,
-    check_count,
+    check_learning_counts,
     choice,
     fail,
     integer,
     is_real,
+    learning_fields,
     name_field,
     num_text,
     real,
@@ -35,7 +35,6 @@ __all__ = [
 ]  # fmt: skip
 
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
-KERNELS = ("se", "matern52")  # the kernels of safestab.learning.GaussianProcessModel
 INPUT_UNITS = ("newton", "normalized")
 
 _POS, _NONNEG, _SIGNED = real(_SMALL), real(0.0), real(-_BIG)
@@ -77,7 +76,6 @@ def _profile(path: str, value: Any, source: str) -> tuple[tuple[float, float], .
 
 _VECTOR3 = vector(3, "v_f m/s, v_l m/s, D m", _SIGNED)
 _DRAG = {"f0": _NONNEG, "f1": _NONNEG, "f2": _NONNEG}  # resistances: N, N s/m, N s^2/m^2
-_ROWS = integer(LIMITS.min_gp_rows, LIMITS.max_n_samples)
 
 #: Every key of a scenario file (table path) and its check. ``name`` is optional.
 FIELDS: dict[str, Check] = {
@@ -104,17 +102,7 @@ FIELDS: dict[str, Check] = {
     "controller.input_limit": _input_limit,
     "simulation.t_final": _POS,
     "simulation.dt": _POS,
-    "learning.n_samples": _ROWS,
-    "learning.sample_rate": _POS,
-    "learning.sample_horizon": _POS,
-    "learning.noise_std": _NONNEG,
-    "learning.gp_beta": _NONNEG,
-    "learning.kernel": choice(KERNELS),
-    "learning.x0_low": _VECTOR3,
-    "learning.x0_high": _VECTOR3,
-    "learning.excitation_limit": _NONNEG,
-    "learning.hyper_subset": _ROWS,
-    "learning.seed": integer(0, LIMITS.max_seed),
+    **learning_fields(_VECTOR3),
 }
 _OPTIONAL = {"name", "kind"}
 
@@ -156,23 +144,5 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
         Naming the key, what was received and what was expected.
     """
     v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
-    lo, hi = v["learning.x0_low"], v["learning.x0_high"]
-    for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
-        if a > b:
-            raise ScenarioError(
-                f"{source}: learning.x0_low[{i}] must be <= learning.x0_high[{i}] = {b!r}, "
-                f"got {a!r}"
-            )
-    check_count(
-        source,
-        "simulation.t_final / simulation.dt",
-        "simulation steps",
-        v["simulation.t_final"] / v["simulation.dt"],
-    )
-    check_count(
-        source,
-        "learning.sample_horizon * learning.sample_rate",
-        "samples per excitation trajectory",
-        v["learning.sample_horizon"] * v["learning.sample_rate"],
-    )
+    check_learning_counts(v, source)
     return v

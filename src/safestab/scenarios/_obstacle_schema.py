@@ -15,10 +15,11 @@ from ..errors import ScenarioError
 from ._schema import (
     LIMITS,
     Check,
-    check_count,
+    check_learning_counts,
     choice,
     fail,
     integer,
+    learning_fields,
     name_field,
     real,
     vector,
@@ -29,7 +30,6 @@ __all__ = ["BETA_METHODS", "FIELDS", "KIND", "check_structure", "check_values"]
 
 #: The value of the required top-level ``kind`` key.
 KIND = "obstacle"
-KERNELS = ("se", "matern52")  # the kernels of safestab.learning.GaussianProcessModel
 #: How the GP-robust controller's beta is set: ``gp_beta`` as given ("chosen"), or calibrated
 #: by split conformal prediction on fresh trajectories ("conformal", docs/obstacle.md).
 BETA_METHODS = ("chosen", "conformal")
@@ -37,7 +37,6 @@ MAX_GRID = 1000  # points per axis of the start grid and the map grid
 
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
 _POS, _NONNEG, _SIGNED = real(_SMALL), real(0.0), real(-_BIG)
-_ROWS = integer(LIMITS.min_gp_rows, LIMITS.max_n_samples)
 _GRID = integer(1, MAX_GRID)
 _RANGE = vector(2, "low m, high m", _SIGNED)
 _POINT = vector(2, "x1 m, x2 m", _SIGNED)
@@ -84,20 +83,10 @@ FIELDS: dict[str, Check] = {
     "simulation.dt": _POS,  # s
     "simulation.ball_radius": _POS,  # m
     "simulation.rest_speed": _POS,  # m/s
-    "learning.n_samples": _ROWS,
-    "learning.sample_rate": _POS,  # Hz
-    "learning.sample_horizon": _POS,  # s
-    "learning.noise_std": _NONNEG,  # m/s
-    "learning.gp_beta": _NONNEG,
+    **learning_fields(_POINT),  # rates Hz, horizon s, noise m/s, excitation m/s
     "learning.beta_method": choice(BETA_METHODS),  # optional, default "chosen"
     "learning.delta": _open_unit,
-    "learning.kernel": choice(KERNELS),
-    "learning.x0_low": _POINT,
-    "learning.x0_high": _POINT,
-    "learning.excitation_limit": _NONNEG,  # m/s per component
-    "learning.hyper_subset": _ROWS,
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),  # 0: the exact GP
-    "learning.seed": integer(0, LIMITS.max_seed),
 }
 _OPTIONAL = {"name", "learning.beta_method"}
 
@@ -142,29 +131,11 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
     v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
     for key in ("starts.x1", "map.x1"):
         _ordered(v, key, source)
-    lo, hi = v["learning.x0_low"], v["learning.x0_high"]
-    for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
-        if a > b:
-            raise ScenarioError(
-                f"{source}: learning.x0_low[{i}] must be <= learning.x0_high[{i}] = {b!r}, "
-                f"got {a!r}"
-            )
     xo, r = v["obstacle.x1"], v["obstacle.radius"]
     if not abs(xo) > r:
         raise ScenarioError(
             f"{source}: obstacle.radius must be < |obstacle.x1| = {abs(xo)!r} (the goal, the "
             f"origin, must lie outside the obstacle), got {r!r}"
         )
-    check_count(
-        source,
-        "simulation.t_final / simulation.dt",
-        "simulation steps",
-        v["simulation.t_final"] / v["simulation.dt"],
-    )
-    check_count(
-        source,
-        "learning.sample_horizon * learning.sample_rate",
-        "samples per excitation trajectory",
-        v["learning.sample_horizon"] * v["learning.sample_rate"],
-    )
+    check_learning_counts(v, source)
     return v

@@ -299,6 +299,100 @@ def check_count(source: str, what: str, unit: str, ratio: float) -> None:
         )
 
 
+# -- what the scenarios that learn omega share -------------------------------------------
+
+#: The kernels of :class:`safestab.learning.GaussianProcessModel`.
+KERNELS = ("se", "matern52")
+#: The ``[learning]`` keys of every scenario that learns ``omega`` (ACC, obstacle), in order;
+#: a scenario's dataclass stores ``learning.k`` as its field ``k``.
+LEARNING_KEYS = (
+    "n_samples", "sample_rate", "sample_horizon", "noise_std", "gp_beta", "kernel", "x0_low",
+    "x0_high", "excitation_limit", "hyper_subset", "seed",
+)  # fmt: skip
+
+
+def learning_fields(point: Check) -> dict[str, Check]:
+    """The checks of :data:`LEARNING_KEYS`; ``point`` checks ``x0_low`` and ``x0_high``."""
+    pos, nonneg = real(LIMITS.min_positive), real(0.0)
+    rows = integer(LIMITS.min_gp_rows, LIMITS.max_n_samples)
+    checks = {
+        "n_samples": rows, "sample_rate": pos, "sample_horizon": pos, "noise_std": nonneg,
+        "gp_beta": nonneg, "kernel": choice(KERNELS), "x0_low": point, "x0_high": point,
+        "excitation_limit": nonneg, "hyper_subset": rows, "seed": integer(0, LIMITS.max_seed),
+    }  # fmt: skip
+    return {f"learning.{k}": checks[k] for k in LEARNING_KEYS}
+
+
+def check_learning_counts(v: Mapping[str, Any], source: str) -> None:
+    """The cross-field checks every learning scenario shares.
+
+    ``learning.x0_low <= learning.x0_high`` per coordinate, and step and sample counts in
+    range (:func:`check_count`).
+    """
+    lo, hi = v["learning.x0_low"], v["learning.x0_high"]
+    for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
+        if a > b:
+            raise ScenarioError(
+                f"{source}: learning.x0_low[{i}] must be <= learning.x0_high[{i}] = {b!r}, "
+                f"got {a!r}"
+            )
+    check_count(
+        source,
+        "simulation.t_final / simulation.dt",
+        "simulation steps",
+        v["simulation.t_final"] / v["simulation.dt"],
+    )
+    check_count(
+        source,
+        "learning.sample_horizon * learning.sample_rate",
+        "samples per excitation trajectory",
+        v["learning.sample_horizon"] * v["learning.sample_rate"],
+    )
+
+
+def load_flat(
+    name_or_path: str | Path,
+    presets: tuple[str, ...],
+    package: str,
+    check_structure_of: Callable[[Mapping[str, Any], str], dict[str, Any]],
+    overrides: Mapping[str, Any] | None = None,
+    defaults: Mapping[str, Any] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any] | None, str]:
+    """The steps every scenario loader shares, up to the value checks.
+
+    Read the preset or file (:func:`read_document`), apply ``overrides``, set aside the
+    optional ``[montecarlo]`` table, check the structure, fill optional keys from
+    ``defaults``, and name the scenario after the preset or the file's stem when the file
+    has no ``name``.
+
+    Returns
+    -------
+    (flat, montecarlo, source)
+        ``{"table.key": value}`` to check, the raw ``[montecarlo]`` table or ``None``, and
+        the source label for messages.
+
+    Raises
+    ------
+    ScenarioError
+        As :func:`read_document`, :func:`apply_overrides` and ``check_structure_of``, or for
+        a stem that is not a valid name.
+    """
+    doc, name, source = read_document(name_or_path, presets, package)
+    source = apply_overrides(doc, overrides or {}, source)
+    table = doc.pop("montecarlo", None)  # optional; checked after the required tables
+    flat = check_structure_of(doc, source)
+    for key, value in (defaults or {}).items():
+        flat.setdefault(key, value)
+    if "name" not in flat:
+        try:
+            flat["name"] = name_field("name", name, source)
+        except ScenarioError as exc:
+            raise ScenarioError(
+                f'{exc} (the file has no name key, so its stem was used; add name = "...")'
+            ) from None
+    return flat, table, source
+
+
 # -- reading files ----------------------------------------------------------------------
 
 

@@ -26,9 +26,9 @@ import jax.numpy as jnp
 from ..certificates import CBF, CLF, LieTerms
 from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
-from ._acc_schema import FIELDS, LIMITS, ScenarioLimits, check_structure, check_values
+from ._acc_schema import LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
-from ._schema import apply_overrides, read_document
+from ._schema import LEARNING_KEYS, load_flat
 from .trials import ACCTrials
 
 __all__ = [
@@ -231,22 +231,7 @@ _KEYS = {
         for k in ("kappa", "rho", "phi", "varphi", "slack_weight", "input_units", "input_limit")
     },
     **{k: f"simulation.{k}" for k in ("t_final", "dt")},
-    **{
-        k: f"learning.{k}"
-        for k in (
-            "n_samples",
-            "sample_rate",
-            "sample_horizon",
-            "noise_std",
-            "gp_beta",
-            "kernel",
-            "x0_low",
-            "x0_high",
-            "excitation_limit",
-            "hyper_subset",
-            "seed",
-        )
-    },  # fmt: skip
+    **{k: f"learning.{k}" for k in LEARNING_KEYS},
 }
 
 
@@ -301,17 +286,7 @@ def load_scenario(
         out of range. The message names the file and the key with its table path, what was
         received and what was expected.
     """
-    doc, name, source = read_document(name_or_path, PRESETS, __package__)
-    source = apply_overrides(doc, overrides or {}, source)
-    table = doc.pop("montecarlo", None)  # optional; checked after the required tables
-    flat = check_structure(doc, source)
-    if "name" not in flat:
-        try:
-            flat["name"] = FIELDS["name"]("name", name, source)
-        except ScenarioError as exc:
-            raise ScenarioError(
-                f'{exc} (the file has no name key, so its stem was used; add name = "...")'
-            ) from None
+    flat, table, source = load_flat(name_or_path, PRESETS, __package__, check_structure, overrides)
     values = check_values(flat, source)
     spec = None if table is None else check_montecarlo(table, source)
     return _build(values, spec)

@@ -32,8 +32,8 @@ from ..certificates import CBF, CLF, LieTerms
 from ..errors import ScenarioError
 from ..systems import ControlAffineSystem
 from ._mc_schema import MonteCarloSpec, check_montecarlo
-from ._obstacle_schema import FIELDS, KIND, check_structure, check_values
-from ._schema import apply_overrides, read_document
+from ._obstacle_schema import KIND, check_structure, check_values
+from ._schema import LEARNING_KEYS, load_flat
 from .trials import ObstacleTrials
 
 __all__ = ["ObstacleScenario", "load_obstacle_scenario", "PRESETS"]
@@ -66,25 +66,7 @@ _KEYS = {
     "map_x2_half_width": "map.x2_half_width",
     "map_n_x2": "map.n_x2",
     **{k: f"simulation.{k}" for k in ("t_final", "dt", "ball_radius", "rest_speed")},
-    **{
-        k: f"learning.{k}"
-        for k in (
-            "n_samples",
-            "sample_rate",
-            "sample_horizon",
-            "noise_std",
-            "gp_beta",
-            "beta_method",
-            "delta",
-            "kernel",
-            "x0_low",
-            "x0_high",
-            "excitation_limit",
-            "hyper_subset",
-            "n_inducing",
-            "seed",
-        )
-    },  # fmt: skip
+    **{k: f"learning.{k}" for k in (*LEARNING_KEYS, "beta_method", "delta", "n_inducing")},
 }
 
 
@@ -330,18 +312,10 @@ def load_obstacle_scenario(
         If the file cannot be read or parsed, or a key or table is missing, unknown, of the
         wrong type, not finite or out of range; the message names the key.
     """
-    doc, name, source = read_document(name_or_path, PRESETS, __package__)
-    source = apply_overrides(doc, overrides or {}, source)
-    table = doc.pop("montecarlo", None)  # optional; checked after the required tables
-    flat = check_structure(doc, source)
-    flat.setdefault("learning.beta_method", "chosen")
-    if "name" not in flat:
-        try:
-            flat["name"] = FIELDS["name"]("name", name, source)
-        except ScenarioError as exc:
-            raise ScenarioError(
-                f'{exc} (the file has no name key, so its stem was used; add name = "...")'
-            ) from None
+    flat, table, source = load_flat(
+        name_or_path, PRESETS, __package__, check_structure, overrides,
+        defaults={"learning.beta_method": "chosen"},
+    )  # fmt: skip
     v = check_values(flat, source)
     spec = (
         None

@@ -665,13 +665,14 @@ def write_page(results, out):
 
     The Monte Carlo, several-CBF, filter and first-run blocks come from their own runs
     (performance_mc.json, performance_multi.json, performance_filter.json,
-    performance_first_run.json) and are put back,
+    performance_first_run.json, performance_sparse.json) and are put back,
     so a partial rerun loses none.
     """
     import filter as filter_rows
     import first_run
     import mc_rows
     import multi
+    import sparse_gp
     from _page import update_block
 
     write_markdown(results, out / "performance.md")
@@ -681,6 +682,10 @@ def write_page(results, out):
     update_block(
         out / "performance.md", out / "performance_first_run.json", first_run.markdown,
         first_run.BEGIN, first_run.END,
+    )  # fmt: skip
+    update_block(
+        out / "performance.md", out / "performance_sparse.json", sparse_gp.markdown,
+        sparse_gp.BEGIN, sparse_gp.END,
     )  # fmt: skip
 
 

@@ -21,6 +21,7 @@ from .data import Dataset, collect_data
 from .fast import FastGP
 from .gp import GaussianProcessModel
 from .sklearn_adapter import SklearnGPAdapter
+from .sparse import SparseGP
 
 __all__ = [
     "BatchedUncertainty",
@@ -33,6 +34,7 @@ __all__ = [
     "Hyperparameters",
     "InducingCache",
     "SklearnGPAdapter",
+    "SparseGP",
     "beta_lemma2",
     "calibration",
     "collect_data",

@@ -54,7 +54,7 @@ INFLATION_WARN = 3.0
 _U = np.finfo(float).eps / 2  # unit roundoff of float64
 
 
-def _pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor: float = 0.0):
+def pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor: float = 0.0):
     """Greedy choice of ``m`` rows maximising the residual prior variance (pivoted Cholesky).
 
     Returns the chosen indices and the residual prior variance left at every row.
@@ -122,143 +122,26 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
-class FastGP:
-    """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
+class _InducingBand:
+    """A band evaluated from ``M`` inducing inputs per component (FastGP, SparseGP).
 
-    Parameters
-    ----------
-    model : GaussianProcessModel
-        A fitted model.
-    n_inducing : int
-        ``M``, inducing inputs per component (default 32).
-    min_beta : float
-        The band ``m~ +- beta sigma~`` contains the exact band for every ``beta >= min_beta``
-        (default 1; the mean-error term of ``sigma~`` scales as ``1 / min_beta``).
-    pivot_tol : float
-        Stop adding inducing inputs once the largest residual prior variance is below
-        ``pivot_tol * amplitude^2`` (default 1e-10). Smaller values resolve more but make
-        ``K_ZZ`` worse conditioned, and the rounding allowance grows with ``cond(Lj)``; on the
-        ACC data 1e-10 gave the narrowest band of 1e-8, 1e-10 and 1e-12.
-    noise_tol : float
-        Also stop (after the first inducing input) once the largest residual prior variance
-        at the training inputs is below ``(noise_tol * noise_)^2`` (default 0.1; 0 turns
-        this off): the prior is then resolved at the data to a tenth of the measurement
-        noise, and the band's excess over the exact band near the data is of that order.
-        This keeps components whose GP learned next to nothing (amplitude near or below the
-        noise, such as the exact kinematics of the ACC) from costing ``n_inducing`` points
-        each: there M went from 32 and 32 to 1 and 11, the cached step's arithmetic about
-        eightfold down, and the band of the second kinematic component (exact std 0.09 of
-        the noise) from 1.00 to 2.0 times the exact std (0.03 gives 1.08 with M = 17).
-        Components with a signal far above the noise are governed by ``pivot_tol`` as
-        before. For any choice of inducing inputs the band is proven to contain the exact
-        band.
-    warn : bool
-        Issue the :class:`InducingPointsWarning` (default). False only records its messages
-        in ``width_warnings_``: for callers in threads, where ``warnings.catch_warnings`` is
-        not safe (it swaps process-wide state).
+    With ``[a; G a; C a] = maps k_Z(x)`` and ``r^2 = amp^2 - |a|^2 + round``: mean
+    ``mu + k . wk``, std ``sqrt(r^2 + |G a|^2 + 2 |C a| rho r) + err r / min_beta``
+    (:meth:`arrays`).
 
-    Attributes
-    ----------
-    inducing_ : array of shape (k, M, n)
-        Inducing inputs per learned component (in the units of x); padded rows repeat zeros.
-    n_inducing_ : array of shape (k,)
-        Inducing inputs actually used per component.
-    mean_error_norm_ : array of shape (k,)
-        ``E``: the RKHS norm bounding ``|m - m~| <= E r(x)`` (rounding allowance included).
-    inflation_at_training_ : array of shape (k,)
-        Fraction of training inputs where ``sigma~ > INFLATION_WARN * noise_``.
-    width_warnings_ : tuple of str
-        The messages of the :class:`InducingPointsWarning` (empty when the band is tight).
-
-    Warns
-    -----
-    InducingPointsWarning
-        When ``inflation_at_training_`` exceeds 1 % for some component: increase
-        ``n_inducing``.
-
-    Notes
-    -----
-    Each query costs ``M`` kernel evaluations and a ``3M x M`` matrix-vector product per
-    component (``M`` the largest number of inducing inputs of a component), independent of
-    ``Q``. docs/learning.md proves the two inequalities.
+    Subclasses set ``model`` (a fitted :class:`GaussianProcessModel`: kernel, scaling,
+    hyperparameters), ``min_beta``, ``n_states``, ``components_`` and call :meth:`_pack`.
     """
 
-    def __init__(
-        self,
-        model: GaussianProcessModel,
-        n_inducing: int = 32,
-        *,
-        min_beta: float = 1.0,
-        pivot_tol: float = 1e-10,
-        noise_tol: float = 0.1,
-        warn: bool = True,
-    ) -> None:
-        check_fitted(model)
-        if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
-            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
-        if int(n_inducing) < 1:
-            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
-        check_scalar_range("min_beta", min_beta, lower=0.0, strict_lower=True)
-        check_scalar_range("pivot_tol", pivot_tol, lower=0.0)
-        check_scalar_range("noise_tol", noise_tol, lower=0.0)
-        self.model = model
-        self.min_beta = float(min_beta)
-        self.n_states = model.n_states_
-        self.components_ = model.components_
-        xs = (model.x_train_ - model.x_offset_) / model.x_scale_
-        zs, maps_, ws, errs, rhos, rnds = [], [], [], [], [], []
-        for j in range(len(model.components_)):
-            amp = float(model.amplitude_[j])
-            eps = model.jitter * amp * amp
-            ls_j = jnp.asarray(model.lengthscale_std_[j])
+    model: GaussianProcessModel
+    min_beta: float = 1.0
+    n_states: int
+    components_: Any
 
-            def kfn(x1, x2, amp=amp, ls_j=ls_j):
-                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
-
-            floor = (noise_tol * float(model.noise_[j])) ** 2
-            idx, _ = _pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol, floor)
-            z = xs[idx]
-            m = len(idx)
-            kzz = np.asarray(kfn(z, z))
-            # The pivoted Cholesky kept pivots >= pivot_tol amp^2, so K_ZZ is positive definite
-            # as it is: eps = 0 resolves residuals below the model's jitter (with eps = 1e-10
-            # amp^2 the cache could not see below r ~ 1e-5 amp, 100 times the exact std of the
-            # ACC drag at Q = 2000); the jitter is the fallback.
-            eps = 0.0
-            try:
-                lj = np.linalg.cholesky(kzz)
-            except np.linalg.LinAlgError:
-                eps = model.jitter * amp * amp
-                lj = np.linalg.cholesky(kzz + eps * np.eye(m))
-            li = np.linalg.solve(lj, np.eye(m))  # Lj^-1
-            kzx = np.asarray(kfn(z, xs))
-            # (M, Q): a(x_i) in columns, by a triangular solve (the explicit inverse amplifies
-            # rounding by cond(Lj), up to 1e6 for smooth kernels, into the residuals r(x_i))
-            phi = scipy.linalg.solve_triangular(lj, kzx, lower=True)
-            pmat = np.eye(m) + eps * (li @ li.T)
-            bmat = pmat @ phi
-            chol = jnp.asarray(model.chol_[j])
-            v = np.asarray(jax.scipy.linalg.solve_triangular(chol, bmat.T, lower=True))
-            u = np.asarray(jax.scipy.linalg.solve_triangular(chol.T, v, lower=False))  # A
-            g = _psd_root(np.eye(m) - v.T @ v)  # G^T G >= I - H (negative parts clipped)
-            c = _psd_root(u.T @ u)  # C^T C = A^T A
-            alpha = model.alpha_[j]
-            rnd = _round(m, amp, float(np.linalg.cond(lj)))
-            rnds.append(rnd)
-            r_train = np.sqrt(np.maximum(amp * amp - np.sum(phi * phi, 0), 0.0) + rnd)
-            rho = float(np.sqrt(np.sum(r_train**2)))
-            e_sum = float(np.abs(alpha) @ r_train)
-            b = li.T @ (li @ (kzx @ alpha))
-            gap, err = _rkhs_gap(kfn, xs, alpha, z, b, kzz)
-            e_rkhs = float(np.sqrt(max(gap, 0.0) + err))
-            errs.append(min(e_sum, e_rkhs))
-            rhos.append(rho)
-            # per query: [a; G a; C a] = maps @ k, and m~ = mu + (Lj^-T B alpha) . k
-            maps_.append((li, g @ li, c @ li))
-            ws.append(li.T @ (bmat @ alpha))
-            zs.append(z)
+    def _pack(self, model, zs, maps_, ws, errs, rhos, rnds) -> None:
+        """Pad the per-component arrays to a common ``M`` and stack them into ``_params``."""
         m_max = max(len(z) for z in zs)
-        n = xs.shape[1]
+        n = zs[0].shape[1]
 
         def pad(a, shape):
             return np.pad(a, [(0, s - d) for s, d in zip(shape, a.shape, strict=True)])
@@ -289,37 +172,11 @@ class FastGP:
         self._m = m_max
         self.n_inducing_ = np.array([len(z) for z in zs])
         self.inducing_ = np.asarray(self._z) * model.x_scale_ + model.x_offset_
-        self.mean_error_norm_ = np.array(errs)
-        _, sd_c, merr = self._parts_batch(model.x_train_)
-        comps = list(model.components_)
-        ratio = (np.asarray(sd_c) + np.asarray(merr) / self.min_beta) / model.noise_
-        self.inflation_at_training_ = np.mean(ratio > INFLATION_WARN, axis=0)
-        notes = []
-        for j, (comp, frac) in enumerate(zip(comps, self.inflation_at_training_, strict=True)):
-            if frac > 0.01:
-                floor = np.sqrt(rnds[j]) * (1.0 + errs[j] / self.min_beta)
-                limited = floor > INFLATION_WARN * model.noise_[j]
-                remedy = (
-                    "the float64 rounding floor of the residual dominates (its allowance alone "
-                    f"gives a std of {floor:.2g}): more inducing points will not help; use the "
-                    "exact GP or a calibrated beta"
-                    if limited
-                    else "increase n_inducing"
-                )
-                notes.append(
-                    f"FastGP with n_inducing={n_inducing}: for component {comp}, at "
-                    f"{frac:.0%} of the training inputs the cache's std exceeds "
-                    f"{INFLATION_WARN:g} times the noise std, which bounds the exact posterior "
-                    f"std there: the cache's band is needlessly wide; {remedy}"
-                )
-        self.width_warnings_ = tuple(notes)
-        for note in notes if warn else ():
-            warnings.warn(note, InducingPointsWarning, stacklevel=2)
 
     #: Rounding allowance per query for a lower working precision (``for_precision``).
     work_unit = 0.0
 
-    def for_precision(self, precision: str) -> FastGP:
+    def for_precision(self, precision: str) -> _InducingBand:
         """The cache with a band that holds when the step is evaluated in ``precision``.
 
         ``"double"`` returns ``self``. ``"float"`` returns an :meth:`unpadded` copy whose band
@@ -340,7 +197,7 @@ class FastGP:
         out.work_unit = float(4 * (self._m + 4) * np.finfo(np.float32).eps / 2)
         return out
 
-    def unpadded(self) -> FastGP:
+    def unpadded(self) -> _InducingBand:
         """A copy whose :meth:`mean_std` evaluates each component at its own size.
 
         The same values (to rounding) with fewer operations where components use fewer
@@ -460,6 +317,170 @@ class FastGP:
         mean_scale[:, comps] = mean_mag + np.abs(np.asarray(self.model.mean_))
         std_scale[:, comps] = sd_mag + merr_mag / self.min_beta
         return mean_scale, std_scale
+
+
+class FastGP(_InducingBand):
+    """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
+
+    Parameters
+    ----------
+    model : GaussianProcessModel
+        A fitted model.
+    n_inducing : int
+        ``M``, inducing inputs per component (default 32).
+    min_beta : float
+        The band ``m~ +- beta sigma~`` contains the exact band for every ``beta >= min_beta``
+        (default 1; the mean-error term of ``sigma~`` scales as ``1 / min_beta``).
+    pivot_tol : float
+        Stop adding inducing inputs once the largest residual prior variance is below
+        ``pivot_tol * amplitude^2`` (default 1e-10). Smaller values resolve more but make
+        ``K_ZZ`` worse conditioned, and the rounding allowance grows with ``cond(Lj)``; on the
+        ACC data 1e-10 gave the narrowest band of 1e-8, 1e-10 and 1e-12.
+    noise_tol : float
+        Also stop (after the first inducing input) once the largest residual prior variance
+        at the training inputs is below ``(noise_tol * noise_)^2`` (default 0.1; 0 turns
+        this off): the prior is then resolved at the data to a tenth of the measurement
+        noise, and the band's excess over the exact band near the data is of that order.
+        This keeps components whose GP learned next to nothing (amplitude near or below the
+        noise, such as the exact kinematics of the ACC) from costing ``n_inducing`` points
+        each: there M went from 32 and 32 to 1 and 11, the cached step's arithmetic about
+        eightfold down, and the band of the second kinematic component (exact std 0.09 of
+        the noise) from 1.00 to 2.0 times the exact std (0.03 gives 1.08 with M = 17).
+        Components with a signal far above the noise are governed by ``pivot_tol`` as
+        before. For any choice of inducing inputs the band is proven to contain the exact
+        band.
+    warn : bool
+        Issue the :class:`InducingPointsWarning` (default). False only records its messages
+        in ``width_warnings_``: for callers in threads, where ``warnings.catch_warnings`` is
+        not safe (it swaps process-wide state).
+
+    Attributes
+    ----------
+    inducing_ : array of shape (k, M, n)
+        Inducing inputs per learned component (in the units of x); padded rows repeat zeros.
+    n_inducing_ : array of shape (k,)
+        Inducing inputs actually used per component.
+    mean_error_norm_ : array of shape (k,)
+        ``E``: the RKHS norm bounding ``|m - m~| <= E r(x)`` (rounding allowance included).
+    inflation_at_training_ : array of shape (k,)
+        Fraction of training inputs where ``sigma~ > INFLATION_WARN * noise_``.
+    width_warnings_ : tuple of str
+        The messages of the :class:`InducingPointsWarning` (empty when the band is tight).
+
+    Warns
+    -----
+    InducingPointsWarning
+        When ``inflation_at_training_`` exceeds 1 % for some component: increase
+        ``n_inducing``.
+
+    Notes
+    -----
+    Each query costs ``M`` kernel evaluations and a ``3M x M`` matrix-vector product per
+    component (``M`` the largest number of inducing inputs of a component), independent of
+    ``Q``. docs/learning.md proves the two inequalities.
+    """
+
+    def __init__(
+        self,
+        model: GaussianProcessModel,
+        n_inducing: int = 32,
+        *,
+        min_beta: float = 1.0,
+        pivot_tol: float = 1e-10,
+        noise_tol: float = 0.1,
+        warn: bool = True,
+    ) -> None:
+        check_fitted(model)
+        if isinstance(n_inducing, bool) or not isinstance(n_inducing, int | np.integer):
+            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
+        if int(n_inducing) < 1:
+            raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
+        check_scalar_range("min_beta", min_beta, lower=0.0, strict_lower=True)
+        check_scalar_range("pivot_tol", pivot_tol, lower=0.0)
+        check_scalar_range("noise_tol", noise_tol, lower=0.0)
+        self.model = model
+        self.min_beta = float(min_beta)
+        self.n_states = model.n_states_
+        self.components_ = model.components_
+        xs = (model.x_train_ - model.x_offset_) / model.x_scale_
+        zs, maps_, ws, errs, rhos, rnds = [], [], [], [], [], []
+        for j in range(len(model.components_)):
+            amp = float(model.amplitude_[j])
+            eps = model.jitter * amp * amp
+            ls_j = jnp.asarray(model.lengthscale_std_[j])
+
+            def kfn(x1, x2, amp=amp, ls_j=ls_j):
+                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
+
+            floor = (noise_tol * float(model.noise_[j])) ** 2
+            idx, _ = pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol, floor)
+            z = xs[idx]
+            m = len(idx)
+            kzz = np.asarray(kfn(z, z))
+            # The pivoted Cholesky kept pivots >= pivot_tol amp^2, so K_ZZ is positive definite
+            # as it is: eps = 0 resolves residuals below the model's jitter (with eps = 1e-10
+            # amp^2 the cache could not see below r ~ 1e-5 amp, 100 times the exact std of the
+            # ACC drag at Q = 2000); the jitter is the fallback.
+            eps = 0.0
+            try:
+                lj = np.linalg.cholesky(kzz)
+            except np.linalg.LinAlgError:
+                eps = model.jitter * amp * amp
+                lj = np.linalg.cholesky(kzz + eps * np.eye(m))
+            li = np.linalg.solve(lj, np.eye(m))  # Lj^-1
+            kzx = np.asarray(kfn(z, xs))
+            # (M, Q): a(x_i) in columns, by a triangular solve (the explicit inverse amplifies
+            # rounding by cond(Lj), up to 1e6 for smooth kernels, into the residuals r(x_i))
+            phi = scipy.linalg.solve_triangular(lj, kzx, lower=True)
+            pmat = np.eye(m) + eps * (li @ li.T)
+            bmat = pmat @ phi
+            chol = jnp.asarray(model.chol_[j])
+            v = np.asarray(jax.scipy.linalg.solve_triangular(chol, bmat.T, lower=True))
+            u = np.asarray(jax.scipy.linalg.solve_triangular(chol.T, v, lower=False))  # A
+            g = _psd_root(np.eye(m) - v.T @ v)  # G^T G >= I - H (negative parts clipped)
+            c = _psd_root(u.T @ u)  # C^T C = A^T A
+            alpha = model.alpha_[j]
+            rnd = _round(m, amp, float(np.linalg.cond(lj)))
+            rnds.append(rnd)
+            r_train = np.sqrt(np.maximum(amp * amp - np.sum(phi * phi, 0), 0.0) + rnd)
+            rho = float(np.sqrt(np.sum(r_train**2)))
+            e_sum = float(np.abs(alpha) @ r_train)
+            b = li.T @ (li @ (kzx @ alpha))
+            gap, err = _rkhs_gap(kfn, xs, alpha, z, b, kzz)
+            e_rkhs = float(np.sqrt(max(gap, 0.0) + err))
+            errs.append(min(e_sum, e_rkhs))
+            rhos.append(rho)
+            # per query: [a; G a; C a] = maps @ k, and m~ = mu + (Lj^-T B alpha) . k
+            maps_.append((li, g @ li, c @ li))
+            ws.append(li.T @ (bmat @ alpha))
+            zs.append(z)
+        self._pack(model, zs, maps_, ws, errs, rhos, rnds)
+        self.mean_error_norm_ = np.array(errs)
+        _, sd_c, merr = self._parts_batch(model.x_train_)
+        comps = list(model.components_)
+        ratio = (np.asarray(sd_c) + np.asarray(merr) / self.min_beta) / model.noise_
+        self.inflation_at_training_ = np.mean(ratio > INFLATION_WARN, axis=0)
+        notes = []
+        for j, (comp, frac) in enumerate(zip(comps, self.inflation_at_training_, strict=True)):
+            if frac > 0.01:
+                floor = np.sqrt(rnds[j]) * (1.0 + errs[j] / self.min_beta)
+                limited = floor > INFLATION_WARN * model.noise_[j]
+                remedy = (
+                    "the float64 rounding floor of the residual dominates (its allowance alone "
+                    f"gives a std of {floor:.2g}): more inducing points will not help; use the "
+                    "exact GP or a calibrated beta"
+                    if limited
+                    else "increase n_inducing"
+                )
+                notes.append(
+                    f"FastGP with n_inducing={n_inducing}: for component {comp}, at "
+                    f"{frac:.0%} of the training inputs the cache's std exceeds "
+                    f"{INFLATION_WARN:g} times the noise std, which bounds the exact posterior "
+                    f"std there: the cache's band is needlessly wide; {remedy}"
+                )
+        self.width_warnings_ = tuple(notes)
+        for note in notes if warn else ():
+            warnings.warn(note, InducingPointsWarning, stacklevel=2)
 
     def mean_error_bound(self, x: Any) -> np.ndarray:
         """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""

@@ -1,0 +1,201 @@
+"""A GP for large data: inducing points with the DTC/VFE posterior, cost O(Q M^2) to fit.
+
+The exact GP conditions on all ``Q`` rows with one ``Q x Q`` Cholesky factor per component
+(``O(Q^3)`` time, ``8 Q^2`` bytes: 80 GB at ``Q = 100,000``). :class:`SparseGP` instead
+
+1. fits the hyperparameters on a random subset of ``hyper_subset`` rows (as
+   ``GaussianProcessModel.fit(..., hyper_subset=...)`` does), then
+2. picks ``M`` inducing inputs ``Z`` among all training inputs (greedy pivoted Cholesky of the
+   prior, the rules of :class:`~safestab.learning.FastGP`), and
+3. conditions the inducing values on all ``Q`` rows with the deterministic training
+   conditional (DTC; the predictive of Titsias's variational bound): with
+   ``Lj Lj^T = K_ZZ + eps I``, ``a(x) = Lj^-1 k_Z(x)``, ``V = Lj^-1 K_ZX`` (accumulated over
+   row chunks, never stored) and ``B = I + V V^T / s^2 = LB LB^T``:
+
+       mean(x) = mu + a(x) . B^-1 V (y - mu) / s^2
+       var(x)  = k(x, x) - |a(x)|^2 + |LB^-1 a(x)|^2.
+
+   The first two terms of the variance are the prior's residual given the inducing values,
+   the last the posterior variance of the inducing part. With ``Z`` all training inputs the
+   two formulas are the exact posterior.
+
+There is **no proof** that this band contains the exact posterior band (the DTC variance
+can be below the exact one, and its mean differs from the exact mean). Use it with a
+calibrated ``beta``: :func:`~safestab.learning.conformal_beta` on trajectories not used to
+fit gives the guarantee ``P(a new trajectory inside m +- beta sigma) >= 1 - delta``
+(docs/learning.md, "Large data").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from .._validation import check_finite, check_real, check_scalar_range
+from ..errors import DimensionError, ParameterError
+from ._checks import check_count, check_fitted, check_seed
+from ._posterior import kernel_matrix
+from .fast import _InducingBand, pivoted_cholesky
+from .gp import GaussianProcessModel
+
+__all__ = ["SparseGP"]
+
+
+class SparseGP(_InducingBand):
+    """Inducing-point GP (DTC/VFE posterior) for ``Q`` up to 1e5 rows and more.
+
+    Parameters
+    ----------
+    n_inducing : int
+        ``M``, most inducing inputs per component (default 256). The pivoted Cholesky stops
+        earlier once the prior is resolved at the data (``pivot_tol``, ``noise_tol`` as in
+        :class:`~safestab.learning.FastGP`).
+    kernel : {"se", "matern52"}
+    hyper_subset : int
+        Rows (drawn at random) on which the hyperparameters are fitted (default 500, as the
+        ACC presets: the fit costs O(hyper_subset^3) per likelihood evaluation).
+    pivot_tol, noise_tol : float
+        The pivoted Cholesky's stopping rules (defaults 1e-10 and 0.1).
+    chunk : int
+        Rows per block when the inducing values are conditioned on the data (default 8192):
+        memory ``O(M chunk)`` besides the data.
+
+    Attributes
+    ----------
+    model : GaussianProcessModel
+        The GP fitted on the hyperparameter subset (kernel, input scaling, hyperparameters).
+    n_inducing_ : array of shape (k,)
+        Inducing inputs used per learned component.
+    inducing_ : array of shape (k, M, n)
+        The inducing inputs, padded with zeros to a common ``M``.
+    n_samples_ : int
+        ``Q``, the rows conditioned on.
+
+    Notes
+    -----
+    A query costs ``M`` kernel evaluations and a ``2M x M`` matrix-vector product per
+    component, as :class:`~safestab.learning.FastGP`'s; ``mean_std`` is jittable, so the
+    controllers use it as any uncertainty model. Its std is not a proven bound on the
+    exact posterior std: calibrate ``beta`` (module docstring).
+    """
+
+    def __init__(
+        self,
+        n_inducing: int = 256,
+        *,
+        kernel: str = "se",
+        hyper_subset: int = 500,
+        pivot_tol: float = 1e-10,
+        noise_tol: float = 0.1,
+        chunk: int = 8192,
+    ) -> None:
+        self.n_inducing = check_count("n_inducing", n_inducing)
+        if kernel not in ("se", "matern52"):
+            raise ParameterError(f"kernel must be 'se' or 'matern52', got {kernel!r}")
+        self.kernel = kernel
+        self.hyper_subset = check_count("hyper_subset", hyper_subset)
+        if self.hyper_subset < 2:
+            raise ParameterError(f"hyper_subset must be an integer >= 2, got {hyper_subset!r}")
+        check_scalar_range("pivot_tol", pivot_tol, lower=0.0)
+        check_scalar_range("noise_tol", noise_tol, lower=0.0)
+        self.pivot_tol, self.noise_tol = float(pivot_tol), float(noise_tol)
+        self.chunk = check_count("chunk", chunk)
+        self.min_beta = 1.0
+
+    def fit(self, x: Any, y: Any, *, seed: int = 0) -> SparseGP:
+        """Fit the hyperparameters on a subset, then condition on all rows.
+
+        Parameters
+        ----------
+        x, y : arrays of shape (Q, n)
+            States and targets (``y`` the measured ``omega``; columns that are all zero are
+            not learned, as in :class:`~safestab.learning.GaussianProcessModel`).
+        seed : int
+            Draws the hyperparameter subset and seeds the fit's restarts.
+
+        Raises
+        ------
+        InputTypeError, DimensionError, NonFiniteError
+            For bad ``x`` or ``y`` (named).
+        """
+        check_real("x", x)
+        check_real("y", y)
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        if x.ndim != 2 or y.shape != x.shape:
+            raise DimensionError(
+                f"x and y must have the same shape (Q, n), got {x.shape} and {y.shape}"
+            )
+        check_finite("x", x)
+        check_finite("y", y)
+        seed = check_seed("seed", seed)
+        q = x.shape[0]
+        rng = np.random.default_rng(seed)
+        sub = np.sort(rng.choice(q, size=min(self.hyper_subset, q), replace=False))
+        model = GaussianProcessModel(kernel=self.kernel)
+        model.fit(x[sub], y[sub], hyper_subset=len(sub), seed=seed)
+        self.model = model
+        self.n_states = model.n_states_
+        self.components_ = model.components_
+        self.n_samples_ = q
+        xs = (x - model.x_offset_) / model.x_scale_
+        zs, maps_, ws = [], [], []
+        for j, comp in enumerate(model.components_):
+            amp = float(model.amplitude_[j])
+            ls_j = jnp.asarray(model.lengthscale_std_[j])
+
+            def kfn(x1, x2, amp=amp, ls_j=ls_j):
+                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=self.kernel)
+
+            noise = float(model.noise_[j])
+            floor = (self.noise_tol * noise) ** 2
+            idx, _ = pivoted_cholesky(kfn, xs, amp * amp, self.n_inducing, self.pivot_tol, floor)
+            z = xs[idx]
+            m = len(idx)
+            kzz = np.asarray(kfn(z, z))
+            try:
+                lj = np.linalg.cholesky(kzz)
+            except np.linalg.LinAlgError:
+                lj = np.linalg.cholesky(kzz + model.jitter * amp * amp * np.eye(m))
+            target = y[:, comp] - float(model.mean_[j])
+            vvt, vy = np.zeros((m, m)), np.zeros(m)
+            for s in range(0, q, self.chunk):
+                v = scipy.linalg.solve_triangular(
+                    lj, np.asarray(kfn(z, xs[s : s + self.chunk])), lower=True
+                )
+                vvt += v @ v.T
+                vy += v @ target[s : s + self.chunk]
+            lb = np.linalg.cholesky(np.eye(m) + vvt / noise**2)
+            li = scipy.linalg.solve_triangular(lj, np.eye(m), lower=True)  # Lj^-1
+            w = scipy.linalg.cho_solve((lb, True), vy) / noise**2  # B^-1 V (y - mu) / s^2
+            g = scipy.linalg.solve_triangular(lb, li, lower=True)  # LB^-1 Lj^-1
+            maps_.append((li, g, np.zeros((m, m))))
+            ws.append(li.T @ w)
+            zs.append(z)
+        k = len(zs)
+        # no cross term, no mean-error term, no rounding allowance: the DTC band itself
+        self._pack(model, zs, maps_, ws, [0.0] * k, [0.0] * k, [0.0] * k)
+        return self
+
+    def _require_fit(self) -> None:
+        check_fitted(self, "_params")
+
+    def mean_std(self, x: Any) -> tuple[Any, Any]:
+        """Mean and std (the DTC band, not a proven bound) at one state (n,); jittable."""
+        self._require_fit()
+        return super().mean_std(x)
+
+    def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std at states of shape (N, n), each (N, n); compiled once per ``N``.
+
+        Raises
+        ------
+        RuntimeError
+            Before :meth:`fit`.
+        InputTypeError, DimensionError, NonFiniteError
+            For a bad ``x``.
+        """
+        self._require_fit()
+        return super().predict(x)

@@ -1,0 +1,79 @@
+"""SparseGP (inducing points, DTC posterior) against the exact GP and by its rules."""
+
+import jax
+import numpy as np
+import pytest
+
+from safestab.errors import DimensionError, NonFiniteError, ParameterError
+from safestab.learning import GaussianProcessModel, InducingCache, SparseGP, conformal_beta
+
+
+def _data(q, seed=0, noise=0.05):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-2, 2, size=(q, 2))
+    omega = np.stack([np.sin(x[:, 0]) * np.cos(x[:, 1]), 0.5 * x[:, 0] * x[:, 1]], 1)
+    return x, omega + noise * rng.standard_normal(omega.shape), omega
+
+
+def test_with_every_training_input_inducing_it_is_the_exact_gp():
+    x, y, _ = _data(120)
+    # all rows for the hyperparameters, no stopping rule: Z = X, and DTC is exact
+    sp = SparseGP(120, hyper_subset=120, pivot_tol=0.0, noise_tol=0.0).fit(x, y, seed=3)
+    exact = GaussianProcessModel().fit(x, y, hyper_subset=120, seed=3)
+    np.testing.assert_allclose(sp.model.amplitude_, exact.amplitude_, rtol=1e-12)
+    assert list(sp.n_inducing_) == [120, 120]
+    xt = np.random.default_rng(1).uniform(-3, 3, size=(200, 2))
+    m_s, s_s = sp.predict(xt)
+    m_e, v_e = (np.asarray(a) for a in exact.predict(xt))
+    # equal in real arithmetic; in float64 the DTC path solves with K_ZZ (all 120 inputs, no
+    # noise on the diagonal), whose condition number amplifies rounding: 1e-5 relative here
+    np.testing.assert_allclose(m_s, m_e, atol=1e-4 * np.abs(m_e).max())
+    np.testing.assert_allclose(s_s, np.sqrt(v_e), rtol=1e-2, atol=1e-4 * np.sqrt(v_e).max())
+    # the jittable single-state form agrees with the batched one (the std to the rounding of
+    # amp^2 - |a|^2, whose terms are about amp^2)
+    m1, s1 = jax.jit(sp.mean_std)(xt[7])
+    scale = float(np.max(sp.model.amplitude_)) ** 2
+    np.testing.assert_allclose(np.asarray(m1), m_s[7], rtol=1e-10, atol=1e-12 * scale)
+    np.testing.assert_allclose(np.asarray(s1) ** 2, s_s[7] ** 2, atol=1e-11 * scale)
+    # and the Monte Carlo's batched form of the same arrays
+    mb, sb = (np.asarray(a) for a in InducingCache.from_fastgp(sp).mean_std_batch(xt))
+    np.testing.assert_allclose(mb, m_s, rtol=1e-9, atol=1e-12 * scale)
+    np.testing.assert_allclose(sb**2, s_s**2, atol=1e-11 * scale)
+
+
+def test_fewer_inducing_inputs_stay_close_and_a_conformal_beta_covers():
+    x, y, _ = _data(3000, seed=1)
+    sp = SparseGP(64, hyper_subset=400).fit(x, y, seed=0)
+    assert sp.n_samples_ == 3000 and np.all(sp.n_inducing_ <= 64)
+    exact = GaussianProcessModel().fit(x, y, hyper_subset=400, seed=0)
+    xt, _, omega_t = _data(500, seed=2)
+    m_s, s_s = sp.predict(xt)
+    m_e, v_e = (np.asarray(a) for a in exact.predict(xt))
+    # same hyperparameters (the same 400 rows are not guaranteed): compare the fits' errors
+    err_s = np.sqrt(np.mean((m_s - omega_t) ** 2, 0))
+    err_e = np.sqrt(np.mean((m_e - omega_t) ** 2, 0))
+    assert np.all(err_s <= 2 * err_e + 1e-3), (err_s, err_e)
+    # split conformal on fresh points, checked on more fresh points
+    xc, _, omega_c = _data(400, seed=3)
+    beta = conformal_beta(sp, xc, omega_c, 0.05).beta
+    inside = np.all(np.abs(omega_t - m_s) <= beta * s_s, 1)
+    assert inside.mean() >= 0.9
+
+
+def test_bad_input_is_refused_with_its_name():
+    with pytest.raises(ParameterError, match="n_inducing must be an integer >= 1"):
+        SparseGP(0)
+    with pytest.raises(ParameterError, match="kernel must be 'se' or 'matern52', got 'rbf'"):
+        SparseGP(kernel="rbf")
+    with pytest.raises(ParameterError, match="hyper_subset must be an integer >= 2"):
+        SparseGP(hyper_subset=1)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        SparseGP().predict(np.zeros((1, 2)))
+    x, y, _ = _data(50)
+    with pytest.raises(DimensionError, match=r"x and y must have the same shape"):
+        SparseGP().fit(x, y[:, :1])
+    y[3, 1] = np.nan
+    with pytest.raises(NonFiniteError, match="y"):
+        SparseGP().fit(x, y)
+    with pytest.raises(ParameterError, match="seed"):
+        SparseGP().fit(x, np.nan_to_num(y), seed=-1)

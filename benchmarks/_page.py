@@ -73,3 +73,12 @@ def median_us(fn, args, repeat):
         fn(args[i % len(args)])
         times.append(time.perf_counter() - t0)
     return float(np.median(times) * 1e6)
+
+
+def measured(r: dict) -> str:
+    """ "Measured DATE, N CPUs, load average X at the start" for a result with ``machine``."""
+    m = r["machine"]
+    return (
+        f"Measured {r['date']}, {m['cpus']} CPUs, load average "
+        f"{m['load_average_at_start']:.1f} at the start"
+    )

@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _page import machine, save_results
+from _page import machine, measured, save_results
 
 BEGIN, END = "<!-- first-run:begin -->", "<!-- first-run:end -->"
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,13 +98,11 @@ def bench(tests: bool) -> dict:
 
 
 def markdown(r: dict) -> str:
-    m = r["machine"]
     lines = [
         BEGIN,
         "## First run and second run (issue 22; `python benchmarks/first_run.py --tests`)",
         "",
-        f"Measured {r['date']}, {m['cpus']} CPUs, load average {m['load_average_at_start']:.1f} "
-        f"at the start and {r['load_average_at_end']:.1f} at the end. Each command is a fresh "
+        f"{measured(r)} and {r['load_average_at_end']:.1f} at the end. Each command is a fresh "
         "process; the first run starts with an empty compilation cache "
         "(`SAFESTAB_COMPILATION_CACHE` set to a new folder), the second reuses the first's. "
         "Installation excluded.",

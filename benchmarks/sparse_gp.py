@@ -93,13 +93,13 @@ def bench(qs: list[int]) -> dict:
 
 
 def markdown(r: dict) -> str:
-    m = r["machine"]
+    from _page import measured
+
     lines = [
         BEGIN,
         "## Large data: `SparseGP` (issue 23; `python benchmarks/sparse_gp.py`)",
         "",
-        f"Measured {r['date']}, {m['cpus']} CPUs, load average {m['load_average_at_start']:.1f} "
-        f"at the start. ACC `stress` excitation data (collecting the largest set took "
+        f"{measured(r)}. ACC `stress` excitation data (collecting the largest set took "
         f"{r['collect_s']:.0f} s, not counted); hyperparameters from 500 random rows, at most "
         f"{r['n_inducing_max']} inducing inputs per component, DTC posterior on all Q rows; "
         "each fit in a fresh process (peak RSS includes the imports). RMSE and coverage on "

@@ -244,12 +244,12 @@ def test_maps_agree_pointwise_with_the_public_verdicts(sc):
     )
     np.testing.assert_array_equal(maps.robust_updated.reshape(-1), np.asarray(pc.updated))
     np.testing.assert_array_equal(maps.robust_lemma4.reshape(-1), np.asarray(pc.lemma4))
-    # the preset's conformal beta holds for both components at once; Lemma 2's per component
-    assert small.beta_method == "conformal"
-    assert maps.probability == pytest.approx(1 - small.delta, rel=1e-15)
-    chosen = compatibility_maps(small.replace(beta_method="chosen"), band)
-    assert chosen.probability == pytest.approx((1 - small.delta) ** 2, rel=1e-15)
-    np.testing.assert_array_equal(chosen.robust_updated, maps.robust_updated)
+    # a beta not calibrated (the preset's gp_beta = 2 as it stands) states Lemma 2's
+    # (1 - delta)^2; a calibrated one holds for both components at once: 1 - delta
+    assert maps.probability == pytest.approx((1 - small.delta) ** 2, rel=1e-15)
+    calibrated = compatibility_maps(small, band, calibrated=True)
+    assert calibrated.probability == pytest.approx(1 - small.delta, rel=1e-15)
+    np.testing.assert_array_equal(calibrated.robust_updated, maps.robust_updated)
     # the grid holds the axis, so the maps do show incompatible points behind the obstacle
     axis = np.isclose(x2, 0.0, atol=0)
     assert axis.sum() == 1
@@ -340,14 +340,12 @@ def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
     # states and both components, then the ceil((N + 1)(1 - delta))-th smallest
     cal_seed = int(np.random.SeedSequence([small.seed, 1]).generate_state(1)[0])
     cal = small.trial_study().collect(100 * 20, cal_seed)
-    cal = cal.take(np.arange(0, len(cal), 10))
+    cal = cal.take(np.arange(0, len(cal), 10))  # 20 rows per trajectory: rows 0 and 10 of each
     mean, std = (np.asarray(a) for a in model.predict(cal.x))
     score = np.abs(np.asarray(small.omega(cal.x)) - mean) / std
     per_traj = np.array([score[cal.trajectory == t].max() for t in np.unique(cal.trajectory)])
     k = int(np.ceil((len(per_traj) + 1) * (1 - small.delta)))
     assert rep["beta"] == pytest.approx(np.sort(per_traj)[k - 1], rel=1e-12)
-    # and the band m +- beta sigma holds on that many of the calibration trajectories
-    assert np.sum(per_traj <= rep["beta"] * (1 + 1e-12)) >= k
 
 
 def test_kind_dispatch_and_errors(tmp_path):
@@ -391,8 +389,8 @@ def test_overrides_are_checked_like_the_file(sc):
 @pytest.fixture(scope="module")
 def study(sc):
     """The preset study (a coarser map grid): about 1.5 to 5 minutes on 2 shared cores."""
-    # the preset's cache (up to 256 inducing points; the pivot rule takes 101 and 190) is
-    # within 1.1 times the exact std at the training inputs: FastGP must not warn
+    # the preset's cache (up to 256 inducing points; at seed 0 the pivot rules take 84 and
+    # 254) is tight at the training inputs (docs/obstacle.md's obstacle-gp table): no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error", InducingPointsWarning)
         return run_obstacle_study(sc.replace(map_n_x1=61, map_n_x2=41))

@@ -41,6 +41,60 @@ def test_with_every_training_input_inducing_it_is_the_exact_gp():
     np.testing.assert_allclose(sb**2, s_s**2, atol=1e-11 * scale)
 
 
+def _dtc_by_hand(sp, x, y, xt):
+    """The DTC posterior written out from the fit's hyperparameters and inducing inputs, in
+    40-digit arithmetic on the same float64 kernel values (its normal equations square
+    cond(K_ZZ): in float64 they lose several digits here): ``mean = mu + k_tZ S K_ZX (y - mu)``,
+    ``var = k_tt - k_tZ K_ZZ^-1 k_Zt + s^2 k_tZ S k_Zt``, ``S = (s^2 K_ZZ + K_ZX K_XZ)^-1``.
+    """
+    import mpmath as mp
+
+    from safestab.learning._posterior import kernel_matrix
+
+    mp.mp.dps = 40
+    g = sp.model
+    xs, ts = ((a - g.x_offset_) / g.x_scale_ for a in (x, xt))
+    means, stds = [], []
+    for j, comp in enumerate(g.components_):
+        amp, ls, s2 = g.amplitude_[j], g.lengthscale_std_[j], mp.mpf(g.noise_[j]) ** 2
+        z = np.asarray(sp._z[j, : sp.n_inducing_[j]])
+
+        def k(a, b, amp=amp, ls=ls):
+            return mp.matrix(np.asarray(kernel_matrix(amp, ls, a, b, kind=g.kernel)).tolist())
+
+        kzz, kzx, ktz = k(z, z), k(z, xs), k(ts, z)
+        s_inv = mp.inverse(s2 * kzz + kzx * kzx.T)
+        r = mp.matrix((y[:, comp] - g.mean_[j]).tolist())
+        mean = ktz * (s_inv * (kzx * r))
+        a = ktz * mp.inverse(kzz)
+        b = ktz * s_inv
+        var = [
+            mp.mpf(amp) ** 2
+            - sum(a[i, c] * ktz[i, c] for c in range(ktz.cols))
+            + s2 * sum(b[i, c] * ktz[i, c] for c in range(ktz.cols))
+            for i in range(ktz.rows)
+        ]
+        means.append([float(g.mean_[j] + mean[i]) for i in range(ktz.rows)])
+        stds.append([float(mp.sqrt(v)) for v in var])
+    return np.array(means).T, np.array(stds).T
+
+
+def test_dtc_posterior_against_the_formula_written_out_and_chunks_do_not_matter():
+    x, y, _ = _data(200, seed=4)
+    sp = SparseGP(16, hyper_subset=150, pivot_tol=1e-6).fit(x, y, seed=1)
+    assert np.all(sp.n_inducing_ <= 16)
+    xt = np.random.default_rng(5).uniform(-2.5, 2.5, size=(20, 2))
+    m_s, s_s = sp.predict(xt)
+    m_h, s_h = _dtc_by_hand(sp, x, y, xt)
+    np.testing.assert_allclose(m_s, m_h, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(s_s, s_h, rtol=1e-4, atol=1e-6)
+    # conditioning by row blocks of 7 (the last one short) gives the same posterior
+    sp7 = SparseGP(16, hyper_subset=150, pivot_tol=1e-6, chunk=7).fit(x, y, seed=1)
+    m7, s7 = sp7.predict(xt)
+    np.testing.assert_allclose(m7, m_s, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(s7, s_s, rtol=1e-9, atol=1e-12)
+
+
 def test_fewer_inducing_inputs_stay_close_and_a_conformal_beta_covers():
     x, y, _ = _data(3000, seed=1)
     sp = SparseGP(64, hyper_subset=400).fit(x, y, seed=0)

@@ -229,7 +229,8 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
         (robust_class, ["black", "#fdae6b", "#9ecae1"], "GP-robust",
          f"eq. (20), GP-robust terms ($\\beta$ = {sc.gp_beta:.3g}"
          + (", conformal), stated probability $1-\\delta$"
-            if sc.beta_method == "conformal" else "), stated probability $(1-\\delta)^2$")
+            if result.coverage.get("beta_method") == "conformal"
+            else "), stated probability $(1-\\delta)^2$")
          + f" = {maps.probability:.4f}",
          ["incompatible", "compatible (eq. 20)", "compatible (eq. 20 and Lemma 4)"]),
     ]  # fmt: skip

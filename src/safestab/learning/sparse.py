@@ -76,8 +76,9 @@ class SparseGP(_InducingBand):
 
     Notes
     -----
-    A query costs ``M`` kernel evaluations and a ``2M x M`` matrix-vector product per
-    component, as :class:`~safestab.learning.FastGP`'s; ``mean_std`` is jittable, so the
+    A query costs ``M`` kernel evaluations and a ``3M x M`` matrix-vector product per
+    component (:class:`~safestab.learning.FastGP`'s evaluation, whose third block, the cross
+    term's, is zero here); ``mean_std`` is jittable, so the
     controllers use it as any uncertainty model. Its std is not a proven bound on the
     exact posterior std: calibrate ``beta`` (module docstring).
     """
@@ -186,6 +187,15 @@ class SparseGP(_InducingBand):
         """Mean and std (the DTC band, not a proven bound) at one state (n,); jittable."""
         self._require_fit()
         return super().mean_std(x)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Copies of the arrays, keys as :meth:`FastGP.arrays`.
+
+        ``err``, ``rho``, ``round`` and the third block of ``maps`` are zero: the DTC band,
+        not a proven one.
+        """
+        self._require_fit()
+        return super().arrays()
 
     def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std at states of shape (N, n), each (N, n); compiled once per ``N``.

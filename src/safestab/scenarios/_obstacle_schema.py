@@ -8,6 +8,7 @@ lists the keys. The machinery (messages, structure, limits) is shared with the A
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -34,6 +35,8 @@ KIND = "obstacle"
 #: by split conformal prediction on fresh trajectories ("conformal", docs/obstacle.md).
 BETA_METHODS = ("chosen", "conformal")
 MAX_GRID = 1000  # points per axis of the start grid and the map grid
+#: Most calibration trajectories ``beta_method = "conformal"`` may collect (ceil(1/delta)).
+MAX_CALIBRATION_TRAJECTORIES = 10_000
 
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
 _POS, _NONNEG, _SIGNED = real(_SMALL), real(0.0), real(-_BIG)
@@ -138,4 +141,12 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
             f"origin, must lie outside the obstacle), got {r!r}"
         )
     check_learning_counts(v, source)
+    if v.get("learning.beta_method") == "conformal" and math.ceil(1 / v["learning.delta"]) > (
+        MAX_CALIBRATION_TRAJECTORIES
+    ):
+        raise ScenarioError(
+            f"{source}: learning.delta must be >= {1 / MAX_CALIBRATION_TRAJECTORIES:g} with "
+            f"learning.beta_method = 'conformal' (it needs ceil(1/delta) calibration "
+            f"trajectories, at most {MAX_CALIBRATION_TRAJECTORIES:,}), got {v['learning.delta']!r}"
+        )
     return v

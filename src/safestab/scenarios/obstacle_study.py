@@ -155,8 +155,15 @@ def _terms(sc: ObstacleScenario, which: str, x: jax.Array) -> LieTerms:
     return jax.jit(jax.vmap(lambda s: lie_terms_point(system, clf, cbf, s)))(x)
 
 
-def _robust(sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerms) -> Any:
-    """:func:`probabilistic_compatibility` of the GP-robust terms at states (N, 2)."""
+def _robust(
+    sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerms, calibrated: bool = False
+) -> Any:
+    """:func:`probabilistic_compatibility` of the GP-robust terms at states (N, 2).
+
+    ``calibrated``: ``sc.gp_beta`` is a conformal beta (:func:`calibrate_beta`), which holds
+    for both components at once, so the stated probability is ``1 - delta``; otherwise it is
+    Lemma 2's ``(1 - delta)^2``, nominal unless ``gp_beta`` meets the lemma's bound.
+    """
     clf, cbf = sc.certificates()
 
     @jax.jit
@@ -164,9 +171,7 @@ def _robust(sc: ObstacleScenario, uncertainty: Any, x: jax.Array, terms: LieTerm
         mean, std = jax.vmap(uncertainty.mean_std)(x)
         return robust_margins(clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta))
 
-    # Lemma 2's beta holds per component with 1 - delta: (1 - delta)^2 jointly; the conformal
-    # beta holds for both components at once (one score per unit): 1 - delta
-    n_bounds = 1 if sc.beta_method == "conformal" else 2
+    n_bounds = 1 if calibrated else 2
     return probabilistic_compatibility(
         terms, margins(x), **_params(sc), delta=sc.delta, n_components=n_bounds
     )
@@ -327,7 +332,8 @@ class CompatibilityMaps:
     robust_lemma4 : bool array of shape (n1, n2)
         Lemma 4's sufficient condition (nominal compatibility and eqs. (18), (19)).
     probability : float
-        ``(1 - delta)^2``, the probability stated with the robust verdict.
+        The probability stated with the robust verdict: ``(1 - delta)^2`` (Lemma 2, per
+        component), or ``1 - delta`` for a calibrated beta (:func:`compatibility_maps`).
     """
 
     x1: np.ndarray
@@ -339,7 +345,9 @@ class CompatibilityMaps:
     probability: float
 
 
-def compatibility_maps(sc: ObstacleScenario, uncertainty: Any) -> CompatibilityMaps:
+def compatibility_maps(
+    sc: ObstacleScenario, uncertainty: Any, *, calibrated: bool = False
+) -> CompatibilityMaps:
     """Evaluate the Lemma 1 and the probabilistic verdicts over the map grid.
 
     Parameters
@@ -347,6 +355,10 @@ def compatibility_maps(sc: ObstacleScenario, uncertainty: Any) -> CompatibilityM
     sc : ObstacleScenario
     uncertainty : UncertaintyModel
         The model of ``omega`` the GP-robust controller uses.
+    calibrated : bool
+        True when ``sc.gp_beta`` came from :func:`calibrate_beta`: the stated probability
+        is then ``1 - delta`` (about the calibration's excitation trajectories), else
+        ``(1 - delta)^2``.
     """
     x1, x2 = sc.map_axes()
     grid = jnp.asarray(np.stack(np.meshgrid(x1, x2, indexing="ij"), -1).reshape(-1, 2))
@@ -354,7 +366,7 @@ def compatibility_maps(sc: ObstacleScenario, uncertainty: Any) -> CompatibilityM
     params = _params(sc)
     comp = compatibility(*terms, **params)
     region = clf_cbf(*terms, **params).region
-    pc = _robust(sc, uncertainty, grid, terms)
+    pc = _robust(sc, uncertainty, grid, terms, calibrated)
     shape = (len(x1), len(x2))
     return CompatibilityMaps(
         x1=x1,
@@ -398,7 +410,9 @@ class ObstacleStudyResult:
                 "t_final_s": sc.t_final,
                 "dt_s": sc.dt,
                 "n_starts": int(len(sc.start_states())),
-                "gp_controller": "exact" if sc.n_inducing == 0 else f"FastGP M={sc.n_inducing}",
+                "gp_controller": (
+                    "exact" if sc.n_inducing == 0 else f"FastGP n_inducing<={sc.n_inducing}"
+                ),  # the inputs used per component: gp.cache.n_inducing
             },
             "doa_c_star_m2": self.doa,
             "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},
@@ -422,7 +436,7 @@ class ObstacleStudyResult:
         atomic_write_json(path, self.metrics_document())
 
 
-def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray) -> dict[str, Any]:
+def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray, calibrated: bool) -> dict[str, Any]:
     """Held-out coverage of ``|omega_i - m_i| <= beta sigma_i`` against the true current."""
     mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
     err = np.abs(np.asarray(sc.omega(x)) - np.asarray(mean))
@@ -433,11 +447,11 @@ def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray) -> dict[str, Any]
         "joint": float(np.all(inside, -1).mean()),
         "rmse_mps": np.sqrt((err**2).mean(0)).tolist(),
         "beta": sc.gp_beta,
-        "beta_method": sc.beta_method,
+        "beta_method": "conformal" if calibrated else "chosen",
         "delta": sc.delta,
         # chosen: Lemma 2's (1 - delta)^2, nominal unless beta meets the lemma's bound;
         # conformal: the calibrated joint probability (calibrate_beta)
-        "stated_probability": (1 - sc.delta) ** (1 if sc.beta_method == "conformal" else 2),
+        "stated_probability": (1 - sc.delta) ** (1 if calibrated else 2),
     }
 
 
@@ -464,13 +478,15 @@ def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
     ``max(CONFORMAL_MIN_TRAJECTORIES, ceil(1 / delta))`` excitation trajectories of the
     scenario's horizon are collected with the seed ``SeedSequence([seed, 1])``, a stream
     independent of the fitting and held-out rows (``seed``), and thinned to one state per
-    second; each trajectory is one calibration unit (``groups``). The score of a unit is the
+    second (the same times in every trajectory: 0 and 1 s of the preset's 2 s runs); each
+    trajectory is one calibration unit (``groups``). The score of a unit is the
     largest ``|omega_i - m_i| / sigma_i`` over its states and both components, against the
     true ``omega``; ``beta`` is the ``ceil((N + 1)(1 - delta))``-th smallest score
     (:func:`~safestab.learning.conformal_beta`). The guarantee: a new trajectory of the same
-    excitation lies inside ``m +- beta sigma`` (both components, every state) with
-    probability at least ``1 - delta``. Closed-loop states are another distribution, which
-    the guarantee does not cover.
+    excitation lies inside ``m +- beta sigma`` (both components) at its kept states (the
+    thinned times) with probability at least ``1 - delta``. States of the
+    plane off those trajectories, and closed-loop states, are other distributions, which the
+    guarantee does not cover.
 
     Returns
     -------
@@ -482,7 +498,8 @@ def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
     n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / sc.delta)))
     cal_seed = int(np.random.SeedSequence([sc.seed, 1]).generate_state(1)[0])
     cal = sc.trial_study().collect(n_traj * per_traj, cal_seed)
-    cal = cal.take(np.arange(0, len(cal), stride))
+    # the same states of every trajectory (its rows are contiguous): 0, stride, 2 stride, ...
+    cal = cal.take(np.flatnonzero(np.arange(len(cal)) % per_traj % stride == 0))
     rep = conformal_beta(model, cal.x, np.asarray(sc.omega(cal.x)), sc.delta, groups=cal.trajectory)
     return {
         "beta": float(np.max(rep.beta)),
@@ -620,7 +637,7 @@ def run_obstacle_study(
         # every GP-robust use below (verdicts, maps, controllers, coverage) reads gp_beta
         sc = sc.replace(gp_beta=calibrated["beta"])
         timings["calibrate_beta"] = time.perf_counter() - t0
-    coverage = _coverage(sc, uncertainty, data.x[q : q + n_test])
+    coverage = _coverage(sc, uncertainty, data.x[q : q + n_test], calibrated is not None)
     if calibrated is not None:
         coverage["calibration"] = calibrated
     if isinstance(uncertainty, FastGP):
@@ -632,7 +649,7 @@ def run_obstacle_study(
     pset = sc.parallel_set()
     pverd = {c: verdict(sc, c, pset, unc_of[c]) for c in CONTROLLERS}
     doa = {c: doa_level(sc, c, verdicts=pverd[c]) for c in CONTROLLERS}
-    maps = compatibility_maps(sc, uncertainty)
+    maps = compatibility_maps(sc, uncertainty, calibrated=calibrated is not None)
     timings["doa_and_maps"] = time.perf_counter() - t0
 
     x0 = sc.start_states()

@@ -57,7 +57,7 @@ def _dtc_by_hand(sp, x, y, xt):
     means, stds = [], []
     for j, comp in enumerate(g.components_):
         amp, ls, s2 = g.amplitude_[j], g.lengthscale_std_[j], mp.mpf(g.noise_[j]) ** 2
-        z = np.asarray(sp._z[j, : sp.n_inducing_[j]])
+        z = sp.arrays()["z"][j, : sp.n_inducing_[j]]  # standardised, as the fit used them
 
         def k(a, b, amp=amp, ls=ls):
             return mp.matrix(np.asarray(kernel_matrix(amp, ls, a, b, kind=g.kernel)).tolist())

@@ -122,7 +122,7 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
-class _InducingBand:
+class InducingBand:
     """A band evaluated from ``M`` inducing inputs per component (FastGP, SparseGP).
 
     With ``[a; G a; C a] = maps k_Z(x)`` and ``r^2 = amp^2 - |a|^2 + round``: mean
@@ -176,7 +176,7 @@ class _InducingBand:
     #: Rounding allowance per query for a lower working precision (``for_precision``).
     work_unit = 0.0
 
-    def for_precision(self, precision: str) -> _InducingBand:
+    def for_precision(self, precision: str) -> InducingBand:
         """The cache with a band that holds when the step is evaluated in ``precision``.
 
         ``"double"`` returns ``self``. ``"float"`` returns an :meth:`unpadded` copy whose band
@@ -197,7 +197,7 @@ class _InducingBand:
         out.work_unit = float(4 * (self._m + 4) * np.finfo(np.float32).eps / 2)
         return out
 
-    def unpadded(self) -> _InducingBand:
+    def unpadded(self) -> InducingBand:
         """A copy whose :meth:`mean_std` evaluates each component at its own size.
 
         The same values (to rounding) with fewer operations where components use fewer
@@ -319,7 +319,7 @@ class _InducingBand:
         return mean_scale, std_scale
 
 
-class FastGP(_InducingBand):
+class FastGP(InducingBand):
     """Inducing-point cache of a fitted GP whose band contains the exact GP's band.
 
     Parameters

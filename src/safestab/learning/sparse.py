@@ -38,13 +38,13 @@ from .._validation import check_finite, check_real, check_scalar_range
 from ..errors import DimensionError, ParameterError
 from ._checks import check_count, check_fitted, check_seed
 from ._posterior import kernel_matrix
-from .fast import _InducingBand, pivoted_cholesky
+from .fast import InducingBand, pivoted_cholesky
 from .gp import GaussianProcessModel
 
 __all__ = ["SparseGP"]
 
 
-class SparseGP(_InducingBand):
+class SparseGP(InducingBand):
     """Inducing-point GP (DTC/VFE posterior) for ``Q`` up to 1e5 rows and more.
 
     Parameters

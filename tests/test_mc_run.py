@@ -308,3 +308,26 @@ def test_cli_mc_writes_all_outputs(tmp_path):
     with np.load(out / "mc_tiny_trials.npz") as z:
         assert z["min_h"].shape == (6, 2)
     assert (out / "mc_tiny.png").stat().st_size > 0
+
+
+def test_calibration_draw_keeps_the_same_times_of_every_trajectory():
+    """Thinning by position within the trajectory: 5 rows per trajectory, stride 2 keeps
+    rows 0, 2 and 4 of each (thinning the concatenated rows would keep 0, 2, 4 of the first
+    and 1, 3 of the second)."""
+    from safestab.learning import Dataset
+
+    class Stub:
+        spec = SPEC.replace(delta=0.05)
+
+        def calibration_shape(self):
+            return 5, 2
+
+        def collect(self, n, seed):
+            t = np.tile(np.arange(5) * 0.1, n // 5)
+            z = np.zeros((n, 1))
+            return Dataset(x=t[:, None], u=z, xdot=z, y=z, t=t, trajectory=np.arange(n) // 5)
+
+    cal = calibration_draw(Stub(), 0, 0)
+    assert len(np.unique(cal.trajectory)) == 100
+    for k in np.unique(cal.trajectory):
+        np.testing.assert_allclose(cal.t[cal.trajectory == k], [0.0, 0.2, 0.4])

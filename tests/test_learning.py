@@ -575,3 +575,22 @@ def test_conformal_beta_per_trajectory_and_errors():
         conformal_beta(gp, xc, yc, 0.1, groups=groups[:5])
     with pytest.raises(DimensionError, match=r"x and y must both have shape"):
         conformal_beta(gp, xc, yc[:5], 0.1)
+
+
+def test_dataset_thin_counts_from_each_trajectorys_first_row():
+    from safestab.learning import Dataset
+
+    traj = np.array([0, 0, 0, 0, 0, 1, 1, 1, 2, 2, 2, 2])  # lengths 5, 3, 4
+    t = np.concatenate([np.arange(5), np.arange(3), np.arange(4)]) * 0.1
+    z = np.zeros((12, 1))
+    data = Dataset(x=np.arange(12.0)[:, None], u=z, xdot=z, y=z, t=t, trajectory=traj)
+    kept = data.thin(2)
+    # by hand: rows 0, 2, 4 of the first, 5, 7 of the second, 8, 10 of the third
+    np.testing.assert_array_equal(kept.x[:, 0], [0, 2, 4, 5, 7, 8, 10])
+    np.testing.assert_array_equal(kept.trajectory, [0, 0, 0, 1, 1, 2, 2])
+    np.testing.assert_allclose(kept.t, [0, 0.2, 0.4, 0, 0.2, 0, 0.2])
+    np.testing.assert_array_equal(data.thin(1).x, data.x)
+    with pytest.raises(ParameterError, match="stride must be an integer >= 1"):
+        data.thin(0)
+    with pytest.raises(ParameterError, match="thin needs trajectory labels"):
+        Dataset(x=z, u=z, xdot=z, y=z, t=t).thin(2)

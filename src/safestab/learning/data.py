@@ -80,6 +80,27 @@ class Dataset:
         traj = None if self.trajectory is None else self.trajectory[idx]
         return Dataset(self.x[idx], self.u[idx], self.xdot[idx], self.y[idx], self.t[idx], traj)
 
+    def thin(self, stride: int) -> Dataset:
+        """Every ``stride``-th row of each trajectory, counted from the trajectory's first row.
+
+        The rows of one trajectory must be contiguous (as :func:`collect_data` returns them);
+        every trajectory then keeps the same sample times, also when its length is not a
+        multiple of ``stride`` (thinning the concatenated rows would not: what keeps
+        per-trajectory calibration units exchangeable).
+
+        Raises
+        ------
+        ParameterError
+            If ``stride`` is not an integer >= 1, or the data set has no trajectory labels.
+        """
+        stride = check_count("stride", stride)
+        if self.trajectory is None:
+            raise ParameterError("thin needs trajectory labels; this data set has none")
+        n = len(self)
+        starts = np.r_[0, np.flatnonzero(np.diff(self.trajectory)) + 1]
+        first = np.repeat(starts, np.diff(np.r_[starts, n]))  # each row's block start
+        return self.take(np.flatnonzero((np.arange(n) - first) % stride == 0))
+
 
 def _x0_sampler(x0: Any, n_states: int) -> Callable[[jax.Array, int], jax.Array]:
     if callable(x0):

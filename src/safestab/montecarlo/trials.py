@@ -113,10 +113,7 @@ def calibration_draw(study: TrialStudy, seed: int, index: int) -> Any:
     per_traj, stride = study.calibration_shape()
     n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / study.spec.delta)))
     cal_seed = int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
-    cal = study.collect(n_traj * per_traj, cal_seed)
-    # the same times of every trajectory (its rows are contiguous), also when per_traj is not
-    # a multiple of the stride: the units stay exchangeable
-    return cal.take(np.flatnonzero(np.arange(len(cal)) % per_traj % stride == 0))
+    return study.collect(n_traj * per_traj, cal_seed).thin(stride)
 
 
 def dataset_draw(study: TrialStudy, seed: int, index: int) -> Any:

@@ -494,12 +494,11 @@ def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
         ``beta``, ``chosen_beta`` (``gp_beta``), ``delta``, ``probability``,
         ``n_trajectories``, ``states_per_trajectory``, ``statement``: strict JSON data.
     """
-    per_traj, stride = sc.trial_study().calibration_shape()
+    study = sc.trial_study()
+    per_traj, stride = study.calibration_shape()
     n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / sc.delta)))
     cal_seed = int(np.random.SeedSequence([sc.seed, 1]).generate_state(1)[0])
-    cal = sc.trial_study().collect(n_traj * per_traj, cal_seed)
-    # the same states of every trajectory (its rows are contiguous): 0, stride, 2 stride, ...
-    cal = cal.take(np.flatnonzero(np.arange(len(cal)) % per_traj % stride == 0))
+    cal = study.collect(n_traj * per_traj, cal_seed).thin(stride)
     rep = conformal_beta(model, cal.x, np.asarray(sc.omega(cal.x)), sc.delta, groups=cal.trajectory)
     return {
         "beta": float(np.max(rep.beta)),

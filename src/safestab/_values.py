@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
 
-__all__ = ["PytreeValue", "ControllerValue", "Template", "static_key"]
+__all__ = ["PytreeValue", "ControllerValue", "Template", "register_model", "static_key"]
 
 
 def static_key(value: Any) -> Any:
@@ -73,6 +74,47 @@ class Template:
         if self.key is None or other.key is None:
             return other.obj is self.obj
         return self.key == other.key
+
+
+def register_model(
+    cls: type, arrays: Callable[[Any], dict[str, Any]], key: Callable[[Any], Any]
+) -> None:
+    """Register an uncertainty model class as a pytree whose leaves are its arrays.
+
+    A fitted model (a GP's posterior, a cache) is then data: :func:`~safestab.simulate`
+    passes its arrays to the compiled closed loop as arguments instead of baking them into
+    the program as constants, so the loop compiles in the time its operations take (not its
+    data's size), and the persistent compilation cache serves every model of the same shapes.
+
+    Parameters
+    ----------
+    cls : type
+    arrays : callable
+        ``arrays(model)`` -> ``{attribute: pytree of arrays}``: what a model of these shapes
+        needs to evaluate (empty before it is fitted).
+    key : callable
+        ``key(model)`` -> a hashable value naming everything else ``mean_std`` reads (kernel,
+        dimensions, components): models with equal keys and array shapes share one
+        compiled program. ``None`` compares by identity.
+
+    Notes
+    -----
+    Unflattening copies the first model of that key (no constructor) and sets the arrays, as
+    :class:`ControllerValue` does for a controller's parameters.
+    """
+
+    def flatten(model: Any) -> tuple[tuple[Any, ...], tuple[Template, tuple[str, ...]]]:
+        parts = arrays(model)
+        return tuple(parts.values()), (Template(model, key(model) if parts else None), tuple(parts))
+
+    def unflatten(aux: tuple[Template, tuple[str, ...]], leaves: Any) -> Any:
+        template, names = aux
+        new = copy.copy(template.obj)
+        for name, value in zip(names, leaves, strict=True):
+            setattr(new, name, value)
+        return new
+
+    jax.tree_util.register_pytree_node(cls, flatten, unflatten)
 
 
 class PytreeValue:

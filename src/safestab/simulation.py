@@ -317,6 +317,13 @@ def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]
     return None, params_at
 
 
+def _model_as_data(model: Any) -> Any:
+    """``model`` if it is a pytree with array leaves (a fitted GP or cache), else ``None``."""
+    if model is None or jax.tree_util.treedef_is_leaf(jax.tree_util.tree_structure(model)):
+        return None
+    return model if jax.tree_util.tree_leaves(model) else None
+
+
 def simulate(
     controller: Controller,
     x0: Any,
@@ -440,19 +447,30 @@ def simulate(
     spec = merge_specs([getattr(controller, "params_spec", None), plant.params_spec])
     params, params_at = _params_of_time(spec, params)
 
-    def step(t, x, data):
-        p = params_at(t, data)
-        return controller.step_fn(x) if p is None else controller.step_fn(x, p)
-
     def rhs(t, x, out, data):
         p = params_at(t, data)
         xdot = plant.f_of(x, p) + plant.g_of(x, p) @ out.u
         return xdot if exogenous is None else xdot + exogenous(t)
 
-    recorder = TrajectoryRecorder(controller, params_at)
-    run = closed_loop(step, rhs, recorder, n_steps=n_steps, dt=float(dt))
-    fn = jax.jit(jax.vmap(run, in_axes=(0, None)) if x0.ndim == 2 else run)
-    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0, params)
+    def loop(ctrl: Any) -> Callable[[jax.Array, Any], Any]:
+        def step(t, x, data):
+            p = params_at(t, data)
+            return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
+
+        return closed_loop(
+            step, rhs, TrajectoryRecorder(ctrl, params_at), n_steps=n_steps, dt=float(dt)
+        )
+
+    def run(x0: jax.Array, params: Any, model: Any) -> Any:
+        # the uncertainty model's arrays are arguments of the compiled loop, not constants
+        # baked into it (a GP's Q x Q factor made the program, and its compilation, as large as
+        # the data); a model that is not a pytree stays where the controller holds it
+        ctrl = controller if model is None else controller.replace(uncertainty=model)
+        return loop(ctrl)(x0, params)
+
+    model = _model_as_data(getattr(controller, "uncertainty", None))
+    fn = jax.jit(jax.vmap(run, in_axes=(0, None, None)) if x0.ndim == 2 else run)
+    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0, params, model)
     traj = Trajectory(
         t=jnp.arange(n_steps + 1) * dt,
         x=xs,
@@ -463,7 +481,7 @@ def simulate(
         compatible=comps,
         cbf_satisfied=sats,
         status=stats,
-        multi=recorder.multi,
+        multi=isinstance(controller.formula, MultiFormula),
     )
     if traced_results((xs, us, stats), strict, "simulate"):  # the statuses are the record
         return traj

@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._values import register_model
 from ._posterior import band_products, bucket, exact_products
 from .fast import FastGP
 from .gp import GaussianProcessModel
@@ -387,6 +388,13 @@ class BatchedUncertainty:
         traced again for every cache: a Monte Carlo study calls it once per data set.
         """
         return _mean_std_batch(self.cache, jnp.asarray(x, dtype=float))
+
+
+register_model(
+    BatchedUncertainty,
+    lambda u: {"cache": u.cache},
+    lambda u: (BatchedUncertainty, u.n_states, tuple(u.components_)),
+)
 
 
 @jax.jit

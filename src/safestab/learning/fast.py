@@ -33,6 +33,7 @@ import numpy as np
 import scipy.linalg
 
 from .._validation import check_finite, check_real, check_scalar_range
+from .._values import register_model
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
 from ._checks import check_fitted
 from ._posterior import (
@@ -138,6 +139,24 @@ class InducingBand:
     n_states: int
     components_: Any
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        # a fitted cache is data: its arrays are the pytree's leaves (the closed loop takes
+        # them as arguments); kernel, dimensions, sizes and the band's numbers are static
+        super().__init_subclass__(**kwargs)
+        register_model(cls, InducingBand._leaves, InducingBand._static)
+
+    def _leaves(self) -> dict[str, Any]:
+        if not hasattr(self, "_params"):
+            return {}
+        return {"_params": self._params, "_unpadded": self._unpadded, "_mu": self._mu}
+
+    def _static(self) -> tuple:
+        return (
+            type(self), self.model.kernel, self.n_states, tuple(self.components_),
+            float(self.min_beta), float(self.work_unit), self._m,
+            tuple(int(m) for m in self.n_inducing_),
+        )  # fmt: skip
+
     def _pack(self, model, zs, maps_, ws, errs, rhos, rnds) -> None:
         """Pad the per-component arrays to a common ``M`` and stack them into ``_params``."""
         m_max = max(len(z) for z in zs)
@@ -169,6 +188,7 @@ class InducingBand:
             "rho": self._rho,
             "round": self._round,
         }
+        self._mu = jnp.asarray(model.mean_, dtype=float)
         self._m = m_max
         self.n_inducing_ = np.array([len(z) for z in zs])
         self.inducing_ = np.asarray(self._z) * model.x_scale_ + model.x_offset_
@@ -251,7 +271,7 @@ class InducingBand:
         """
         mean_c, sd_c, merr = self._mean_std_parts(x)
         comps = jnp.asarray(self.components_)
-        mean = jnp.zeros(self.n_states).at[comps].set(mean_c + jnp.asarray(self.model.mean_))
+        mean = jnp.zeros(self.n_states).at[comps].set(mean_c + self._mu)
         std = jnp.zeros(self.n_states).at[comps].set(sd_c + merr / self.min_beta)
         return mean, std
 

@@ -22,6 +22,7 @@ from jax.scipy.linalg import solve_triangular
 
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
+from .._values import register_model
 from ..errors import (
     DataWarning,
     DimensionError,
@@ -30,7 +31,7 @@ from ..errors import (
 )
 from ._checks import check_fitted, check_seed
 from ._likelihood import fit_component
-from ._posterior import exact_point, factor, predict_batch
+from ._posterior import exact_point, factor, panels, predict_batch
 
 __all__ = [
     "GaussianProcessModel",
@@ -486,6 +487,7 @@ class GaussianProcessModel:
         del chols, chol  # one (k, Q, Q) factor in memory, not two (6 GB at Q = 10,000)
         alpha_all = jnp.stack(alphas)
         self.chol_ = np.asarray(chol_all)  # a read-only view of the same buffer on CPU
+        self._panels = None  # made from this factor when first needed (_point_posterior)
         self.alpha_ = np.asarray(alpha_all)
         self.posterior_ = {
             "xs": xs,
@@ -561,8 +563,21 @@ class GaussianProcessModel:
         check_fitted(self)
         if is_concrete(x):
             check_finite("x", x)
-        mean, var = exact_point(self.posterior_, x, self.kernel, self.n_states_)
+        mean, var = exact_point(self._point_posterior(), x, self.kernel, self.n_states_)
         return mean, safe_sqrt(var)  # derivative 0, not NaN, where the std is 0
+
+    _panels: Any = None
+
+    def _point_posterior(self) -> dict[str, Any]:
+        """:attr:`posterior_` with the factor also as row panels, for one state at a time.
+
+        The panels (``_posterior.panels``: the lower triangles again, half the factor's
+        memory) are made on the first call; a closed loop solves with them 2.7 times faster
+        than with the whole factor (``PANEL_ROWS``). :meth:`predict` keeps the factor.
+        """
+        if self._panels is None:
+            self._panels = panels(self.chol_)
+        return {**self.posterior_, "panels": self._panels}
 
     @property
     def n_states(self) -> int:
@@ -629,3 +644,19 @@ class GaussianProcessModel:
             model.optimizer_status_ = tuple(meta.get("optimizer_status", ()))
         model._condition()
         return model
+
+
+# A fitted model is data: its posterior arrays are the pytree's leaves (the closed loop takes
+# them as arguments), the kernel, the dimension and the components its static part.
+def _model_arrays(model: GaussianProcessModel) -> dict[str, Any]:
+    if not hasattr(model, "posterior_"):
+        return {}
+    model._point_posterior()  # the panels, made once
+    return {"posterior_": model.posterior_, "_panels": model._panels}
+
+
+register_model(
+    GaussianProcessModel,
+    _model_arrays,
+    lambda m: (GaussianProcessModel, m.kernel, m.n_states_, tuple(m.components_)),
+)

@@ -2,7 +2,9 @@
 compilation cache, then a second run that reuses it (issue 22's targets).
 
     python benchmarks/first_run.py            # main job (paper, stress, obstacle) and mc
-    python benchmarks/first_run.py --tests    # also the default test run, twice (~20 min)
+    python benchmarks/first_run.py --tests    # also the default test run, twice (~35 min)
+
+Without ``--tests`` the test run's row of the previous results is kept, with its own date.
 
 Each command runs as a new process with ``SAFESTAB_COMPILATION_CACHE`` set to a fresh
 temporary folder: the first run finds it empty (every program compiled), the second finds the
@@ -13,6 +15,7 @@ first run's programs. Installation is excluded (the environment must exist). Wri
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -91,9 +94,22 @@ def bench(tests: bool) -> dict:
                 runs.append(parts)
                 print(f"{name}, {attempt} run: {sum(parts):.1f} s {[round(p, 1) for p in parts]}")
             results["rows"].append(
-                {"name": name, "first_s": runs[0], "second_s": runs[1], "target_s": TARGETS[name]}
-            )
+                {"name": name, "first_s": runs[0], "second_s": runs[1],
+                 "target_s": TARGETS[name], "date": results["date"]}
+            )  # fmt: skip
     results["load_average_at_end"] = os.getloadavg()[0]
+    return results
+
+
+def keep_rows(results: dict, previous: Path) -> dict:
+    """Add the rows of ``previous`` results that this run did not measure (the test run)."""
+    if not previous.exists():
+        return results
+    old = json.loads(previous.read_text())
+    have = {row["name"] for row in results["rows"]}
+    for row in old.get("rows", []):
+        if row["name"] not in have:
+            results["rows"].append({**row, "date": row.get("date", old["date"])})
     return results
 
 
@@ -120,8 +136,10 @@ def markdown(r: dict) -> str:
             else ""
         )
         met = "yes" if first <= t1 and second <= t2 else "no"
+        when = f" (measured {row['date']})" if row.get("date", r["date"]) != r["date"] else ""
         lines.append(
-            f"| {row['name']}{parts} | {first:.0f} | {second:.0f} | {t1:.0f} / {t2:.0f} | {met} |"
+            f"| {row['name']}{parts}{when} | {first:.0f} | {second:.0f} | {t1:.0f} / {t2:.0f} "
+            f"| {met} |"
         )
     return "\n".join([*lines, "", END])
 
@@ -131,7 +149,7 @@ def main() -> None:
     parser.add_argument("--tests", action="store_true", help="also time the default test run")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     args = parser.parse_args()
-    results = bench(args.tests)
+    results = keep_rows(bench(args.tests), args.out / "performance_first_run.json")
     save_results(args.out, "performance_first_run.json", results, markdown, BEGIN, END)
 
 

@@ -665,11 +665,12 @@ def write_page(results, out):
 
     The Monte Carlo, several-CBF, filter and first-run blocks come from their own runs
     (performance_mc.json, performance_multi.json, performance_filter.json,
-    performance_first_run.json, performance_sparse.json) and are put back,
-    so a partial rerun loses none.
+    performance_first_run.json, performance_sparse.json, performance_gp_step.json) and are
+    put back, so a partial rerun loses none.
     """
     import filter as filter_rows
     import first_run
+    import gp_step
     import mc_rows
     import multi
     import sparse_gp
@@ -686,6 +687,10 @@ def write_page(results, out):
     update_block(
         out / "performance.md", out / "performance_sparse.json", sparse_gp.markdown,
         sparse_gp.BEGIN, sparse_gp.END,
+    )  # fmt: skip
+    update_block(
+        out / "performance.md", out / "performance_gp_step.json", gp_step.markdown,
+        gp_step.BEGIN, gp_step.END,
     )  # fmt: skip
 
 

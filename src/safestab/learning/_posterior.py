@@ -189,10 +189,10 @@ def factor(amp, ls, nz, xs, y, mu, *, kind):
     return chol_alpha(noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
 
 
-#: Rows per panel of :func:`panels`. Measured on this 2-core machine, the paper preset's
-#: factor (3 components, Q = 2,000) in a closed loop (``lax.scan``), per step: 3.0 ms with
-#: 128 rows, 3.3 ms with 256, 4.1 ms with 500; XLA's own solve of the whole factor 8.0 ms,
-#: and a product with the whole factor (the cost of an explicit inverse) 3.2 ms.
+#: Rows per panel of :func:`panels`: the fastest of 64 to 500 rows on the paper preset's
+#: factor (3 components, Q = 2,000) in a compiled loop, where it takes about a third of the
+#: time of XLA's solve of the whole factor (``python benchmarks/gp_step.py``, its block in
+#: docs/performance.md).
 PANEL_ROWS = 128
 
 
@@ -202,8 +202,8 @@ def panels(chol, rows=PANEL_ROWS):
     Returns, per component, a list of ``(off, diag)``: ``off = L[s:e, :s]`` and ``diag =
     L[s:e, s:e]`` for consecutive row blocks ``[s, e)`` of ``rows`` rows: the lower triangle
     only, each block contiguous. A closed loop solves with a loop-invariant factor at every
-    step: XLA's triangular solve of the whole factor reads it (and more) each time and takes
-    2.7 times as long as the panels (:data:`PANEL_ROWS`).
+    step: XLA's triangular solve of the whole factor takes about three times as long as the
+    panels (:data:`PANEL_ROWS`).
     """
     chol = np.asarray(chol)
     q = chol.shape[-1]
@@ -240,7 +240,7 @@ def exact_point(post, x, kind, n):
         ``xs`` (Q, n), ``offset`` and ``scale`` (n,), ``chol`` (k, Q, Q), ``alpha`` (k, Q),
         ``amp`` and ``mu`` (k,), ``ls`` (k, n), ``comps`` (k,); optionally ``panels``, the
         factors as :func:`panels` (then solved with :func:`solve_panels`: the same values to
-        rounding, 2.7 times faster in a closed loop).
+        rounding, faster in a closed loop).
     x : array of shape (n,)
     kind : {"se", "matern52"}
     n : int

@@ -572,8 +572,8 @@ class GaussianProcessModel:
         """:attr:`posterior_` with the factor also as row panels, for one state at a time.
 
         The panels (``_posterior.panels``: the lower triangles again, half the factor's
-        memory) are made on the first call; a closed loop solves with them 2.7 times faster
-        than with the whole factor (``PANEL_ROWS``). :meth:`predict` keeps the factor.
+        memory) are made on the first call; a closed loop solves with them about three times
+        faster than with the whole factor (``PANEL_ROWS``). :meth:`predict` keeps the factor.
         """
         if self._panels is None:
             self._panels = panels(self.chol_)

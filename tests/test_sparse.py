@@ -121,8 +121,16 @@ def test_bad_input_is_refused_with_its_name():
         SparseGP(kernel="rbf")
     with pytest.raises(ParameterError, match="hyper_subset must be an integer >= 2"):
         SparseGP(hyper_subset=1)
-    with pytest.raises(RuntimeError, match="not fitted"):
-        SparseGP().predict(np.zeros((1, 2)))
+    for use in (
+        lambda sp: sp.predict(np.zeros((1, 2))),
+        lambda sp: sp.mean_std(np.zeros(2)),
+        lambda sp: sp.arrays(),
+        lambda sp: sp.for_precision("float"),
+        lambda sp: sp.unpadded(),
+        lambda sp: sp.rounding_scales(np.zeros((1, 2))),
+    ):
+        with pytest.raises(RuntimeError, match="not fitted"):
+            use(SparseGP())
     x, y, _ = _data(50)
     with pytest.raises(DimensionError, match=r"x and y must have the same shape"):
         SparseGP().fit(x, y[:, :1])

@@ -123,6 +123,47 @@ def _rkhs_gap(kfn, xs, alpha, z, b, kzz, chunk: int = 1024) -> tuple[float, floa
     return float(a_term - 2 * b_term + c_term), float(err)
 
 
+def inducing_inputs(model, j, xs, n_inducing, pivot_tol, noise_tol):
+    """Component ``j``'s kernel, its inducing inputs and the Cholesky factor of ``K_ZZ``.
+
+    The inputs are the pivots of :func:`pivoted_cholesky` over the standardised rows ``xs``
+    (at most ``n_inducing``; stopping at ``pivot_tol amp^2`` or, for the residual, at
+    ``(noise_tol noise)^2``), as FastGP and SparseGP choose them.
+
+    Returns
+    -------
+    kfn : callable
+        ``kfn(x1, x2)``: the component's kernel matrix of standardised inputs.
+    z : array of shape (M, n)
+    kzz : array of shape (M, M)
+    lj : array of shape (M, M)
+        Lower Cholesky factor of ``K_ZZ + eps I``.
+    eps : float
+        0, or the model's jitter times ``amp^2`` where ``K_ZZ`` alone did not factor.
+    """
+    amp = float(model.amplitude_[j])
+    ls_j = jnp.asarray(model.lengthscale_std_[j])
+
+    def kfn(x1, x2):
+        return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
+
+    floor = (noise_tol * float(model.noise_[j])) ** 2
+    idx, _ = pivoted_cholesky(kfn, xs, amp * amp, n_inducing, pivot_tol, floor)
+    z = xs[idx]
+    kzz = np.asarray(kfn(z, z))
+    # The pivoted Cholesky kept pivots >= pivot_tol amp^2, so K_ZZ is positive definite as it
+    # is: eps = 0 resolves residuals below the model's jitter (with eps = 1e-10 amp^2 the
+    # cache could not see below r ~ 1e-5 amp, 100 times the exact std of the ACC drag at
+    # Q = 2000); the jitter is the fallback.
+    eps = 0.0
+    try:
+        lj = np.linalg.cholesky(kzz)
+    except np.linalg.LinAlgError:
+        eps = model.jitter * amp * amp
+        lj = np.linalg.cholesky(kzz + eps * np.eye(len(z)))
+    return kfn, z, kzz, lj, eps
+
+
 class InducingBand:
     """A band evaluated from ``M`` inducing inputs per component (FastGP, SparseGP).
 
@@ -207,8 +248,16 @@ class InducingBand:
         (``amp^2 - |a|^2`` cancels digits that float does not have): this copy then reports
         the width float can vouch for instead of a rounding artefact, so the float step's
         GP-robust terms stay on the safe side of the exact ones (docs/export.md, "Float that
-        stays safe").
+        stays safe"). For a :class:`~safestab.learning.SparseGP`, whose DTC band is not a
+        proven bound, the same allowance keeps the float band no narrower than the double
+        one.
+
+        Raises
+        ------
+        RuntimeError
+            Before a :class:`~safestab.learning.SparseGP` is fitted.
         """
+        self._require_fit()
         if precision == "double":
             return self
         if precision != "float":
@@ -225,6 +274,7 @@ class InducingBand:
         for a microcontroller wants (``safestab export --target``). Batched evaluation
         (:meth:`predict`) is unchanged.
         """
+        self._require_fit()
         out = copy.copy(self)
         p, mm, comps = self._params, self._m, []
         for j, m in enumerate(self.n_inducing_):
@@ -237,6 +287,10 @@ class InducingBand:
         return out
 
     _unpadded: list | None = None
+
+    def _require_fit(self) -> None:
+        """Raise a RuntimeError naming the class before its arrays exist (SparseGP.fit)."""
+        check_fitted(self, "_params")
 
     def _mean_std_parts(self, x: jax.Array):
         if self._unpadded is not None:
@@ -261,6 +315,7 @@ class InducingBand:
         2 |C a| rho r) + err r / min_beta`` (module docstring); batched by
         :class:`~safestab.learning.InducingCache`.
         """
+        self._require_fit()
         return {key: np.array(value) for key, value in self._params.items()}
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -269,6 +324,7 @@ class InducingBand:
         The std is ``sqrt(v_Z) + E r / min_beta`` (module docstring): for every
         ``beta >= min_beta``, ``m~ +- beta std`` contains the exact ``m +- beta sigma``.
         """
+        self._require_fit()
         mean_c, sd_c, merr = self._mean_std_parts(x)
         comps = jnp.asarray(self.components_)
         mean = jnp.zeros(self.n_states).at[comps].set(mean_c + self._mu)
@@ -287,6 +343,7 @@ class InducingBand:
         NonFiniteError
             If ``x`` contains NaN or inf.
         """
+        self._require_fit()
         check_real("x", x)
         x = np.asarray(x, float)
         if x.ndim != 2 or x.shape[1] != self.n_states:
@@ -313,7 +370,9 @@ class InducingBand:
         posterior variance is far below the prior one (the stress preset's drag, Q = 2000:
         std 0.01 from ``amp^2 = 1143``), the std's scale is about 1e5 times the std: both
         evaluations carry that rounding, neither is more accurate. The cache's allowance
-        ``round`` (cond(Lj)-based, a proven bound) is far larger still (docs/export.md).
+        ``round`` (cond(Lj)-based, a proven bound) is far larger still (docs/export.md). A
+        :class:`~safestab.learning.SparseGP` has no such allowance (its band is not proven):
+        these scales then say only how far two evaluations may differ.
 
         Parameters
         ----------
@@ -323,7 +382,13 @@ class InducingBand:
         -------
         (mean_scale, std_scale) : arrays of shape (N, n)
             Zero for components that are not learned.
+
+        Raises
+        ------
+        RuntimeError
+            Before a :class:`~safestab.learning.SparseGP` is fitted.
         """
+        self._require_fit()
         x = np.asarray(x, float)
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
@@ -426,27 +491,10 @@ class FastGP(InducingBand):
         zs, maps_, ws, errs, rhos, rnds = [], [], [], [], [], []
         for j in range(len(model.components_)):
             amp = float(model.amplitude_[j])
-            eps = model.jitter * amp * amp
-            ls_j = jnp.asarray(model.lengthscale_std_[j])
-
-            def kfn(x1, x2, amp=amp, ls_j=ls_j):
-                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
-
-            floor = (noise_tol * float(model.noise_[j])) ** 2
-            idx, _ = pivoted_cholesky(kfn, xs, amp * amp, int(n_inducing), pivot_tol, floor)
-            z = xs[idx]
-            m = len(idx)
-            kzz = np.asarray(kfn(z, z))
-            # The pivoted Cholesky kept pivots >= pivot_tol amp^2, so K_ZZ is positive definite
-            # as it is: eps = 0 resolves residuals below the model's jitter (with eps = 1e-10
-            # amp^2 the cache could not see below r ~ 1e-5 amp, 100 times the exact std of the
-            # ACC drag at Q = 2000); the jitter is the fallback.
-            eps = 0.0
-            try:
-                lj = np.linalg.cholesky(kzz)
-            except np.linalg.LinAlgError:
-                eps = model.jitter * amp * amp
-                lj = np.linalg.cholesky(kzz + eps * np.eye(m))
+            kfn, z, kzz, lj, eps = inducing_inputs(
+                model, j, xs, int(n_inducing), pivot_tol, noise_tol
+            )
+            m = len(z)
             li = np.linalg.solve(lj, np.eye(m))  # Lj^-1
             kzx = np.asarray(kfn(z, xs))
             # (M, Q): a(x_i) in columns, by a triangular solve (the explicit inverse amplifies

@@ -30,15 +30,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
 from .._validation import check_finite, check_real, check_scalar_range
 from ..errors import DimensionError, ParameterError
-from ._checks import check_count, check_fitted, check_seed
-from ._posterior import kernel_matrix
-from .fast import InducingBand, pivoted_cholesky
+from ._checks import check_count, check_seed
+from .fast import InducingBand, inducing_inputs
 from .gp import GaussianProcessModel
 
 __all__ = ["SparseGP"]
@@ -144,22 +142,11 @@ class SparseGP(InducingBand):
         xs = (x - model.x_offset_) / model.x_scale_
         zs, maps_, ws = [], [], []
         for j, comp in enumerate(model.components_):
-            amp = float(model.amplitude_[j])
-            ls_j = jnp.asarray(model.lengthscale_std_[j])
-
-            def kfn(x1, x2, amp=amp, ls_j=ls_j):
-                return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=self.kernel)
-
             noise = float(model.noise_[j])
-            floor = (self.noise_tol * noise) ** 2
-            idx, _ = pivoted_cholesky(kfn, xs, amp * amp, self.n_inducing, self.pivot_tol, floor)
-            z = xs[idx]
-            m = len(idx)
-            kzz = np.asarray(kfn(z, z))
-            try:
-                lj = np.linalg.cholesky(kzz)
-            except np.linalg.LinAlgError:
-                lj = np.linalg.cholesky(kzz + model.jitter * amp * amp * np.eye(m))
+            kfn, z, _, lj, _ = inducing_inputs(
+                model, j, xs, self.n_inducing, self.pivot_tol, self.noise_tol
+            )
+            m = len(z)
             target = y[:, comp] - float(model.mean_[j])
             vvt, vy = np.zeros((m, m)), np.zeros(m)
             for s in range(0, q, self.chunk):
@@ -180,12 +167,8 @@ class SparseGP(InducingBand):
         self._pack(model, zs, maps_, ws, [0.0] * k, [0.0] * k, [0.0] * k)
         return self
 
-    def _require_fit(self) -> None:
-        check_fitted(self, "_params")
-
     def mean_std(self, x: Any) -> tuple[Any, Any]:
         """Mean and std (the DTC band, not a proven bound) at one state (n,); jittable."""
-        self._require_fit()
         return super().mean_std(x)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -194,7 +177,6 @@ class SparseGP(InducingBand):
         ``err``, ``rho``, ``round`` and the third block of ``maps`` are zero: the DTC band,
         not a proven one.
         """
-        self._require_fit()
         return super().arrays()
 
     def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -207,5 +189,4 @@ class SparseGP(InducingBand):
         InputTypeError, DimensionError, NonFiniteError
             For a bad ``x``.
         """
-        self._require_fit()
         return super().predict(x)

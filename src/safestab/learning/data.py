@@ -246,18 +246,14 @@ def collect_data(
     sampler = _x0_sampler(x0, n)
     kinds = jnp.array([EXCITATIONS.index(e) for e in excitations])
     key = jax.random.PRNGKey(seed)
-    k_x0, k_kind, k_lv, k_sw, k_fr, k_ph, k_noise, k_y = jax.random.split(key, 8)
+    k_x0, *keys = jax.random.split(key, 8)
     x0s = jnp.asarray(sampler(k_x0, n_traj), dtype=float)
     if x0s.shape != (n_traj, n):
         raise DimensionError(f"the x0 sampler must return shape ({n_traj}, {n}), got {x0s.shape}")
-    params = {
-        "kind": kinds[jax.random.randint(k_kind, (n_traj,), 0, len(kinds))],
-        "levels": jax.random.uniform(k_lv, (n_traj, 2, m), minval=low, maxval=high),
-        "switch": jax.random.uniform(k_sw, (n_traj,), minval=0.1, maxval=0.9) * horizon,
-        "freq": jax.random.uniform(k_fr, (n_traj, m), minval=0.05, maxval=1.0),
-        "phase": jax.random.uniform(k_ph, (n_traj, m), maxval=2 * np.pi),
-        "noise": jax.random.normal(k_noise, (n_traj, per_traj, m)),
-    }
+    params, y_noise = _draws(
+        jnp.stack(keys), kinds, jnp.asarray(low), jnp.asarray(high), jnp.asarray(float(horizon)),
+        shape=(n_traj, per_traj, m, int(n_samples), n),
+    )  # fmt: skip
     run = _trajectories(
         true_system, exogenous, controller, m, per_traj, substeps, period, h,
         float(controller_noise), tuple(low.tolist()), tuple(high.tolist()),
@@ -283,10 +279,29 @@ def collect_data(
     g_nom = np.asarray(nominal.input_matrix(jnp.asarray(x)))
     e = np.zeros_like(x) if exogenous is None else np.asarray(jax.vmap(exogenous)(jnp.asarray(t)))
     y = xdot - f_nom - np.einsum("qij,qj->qi", g_nom, u) - e
-    noise = np.asarray(jax.random.normal(k_y, y.shape)) * np.broadcast_to(
-        np.asarray(noise_std, float), (n,)
-    )
+    noise = np.asarray(y_noise) * np.broadcast_to(np.asarray(noise_std, float), (n,))
     return Dataset(x=x, u=u, xdot=xdot, y=y + noise, t=t, trajectory=traj)
+
+
+@functools.partial(jax.jit, static_argnames=("shape",))
+def _draws(keys, kinds, low, high, horizon, *, shape):
+    """The random excitation parameters of :func:`collect_data` and the measurement noise.
+
+    One compiled program for the seven draws: drawn one by one, each was compiled on its own
+    on a first run (the same numbers, bit for bit). ``shape`` is ``(trajectories, samples
+    per trajectory, m, n_samples, n)``.
+    """
+    n_traj, per_traj, m, n_samples, n = shape
+    k_kind, k_lv, k_sw, k_fr, k_ph, k_noise, k_y = keys
+    params = {
+        "kind": kinds[jax.random.randint(k_kind, (n_traj,), 0, kinds.shape[0])],
+        "levels": jax.random.uniform(k_lv, (n_traj, 2, m), minval=low, maxval=high),
+        "switch": jax.random.uniform(k_sw, (n_traj,), minval=0.1, maxval=0.9) * horizon,
+        "freq": jax.random.uniform(k_fr, (n_traj, m), minval=0.05, maxval=1.0),
+        "phase": jax.random.uniform(k_ph, (n_traj, m), maxval=2 * np.pi),
+        "noise": jax.random.normal(k_noise, (n_traj, per_traj, m)),
+    }
+    return params, jax.random.normal(k_y, (n_samples, n))
 
 
 @functools.lru_cache(maxsize=16)

@@ -173,3 +173,29 @@ def test_simulate_passes_the_models_arrays_as_arguments():
     plain.w = jnp.array([[0.5]])
     other = simulate(_integrator(plain), np.array([1.5]), t_final=0.5, dt=0.01)
     np.testing.assert_allclose(other.x, traj.x, rtol=1e-14)
+
+
+def test_in_threads_keeps_the_order_of_its_items_and_raises_their_errors():
+    import threading
+    import time
+
+    from safestab._batching import in_threads
+
+    names, counts = set(), []
+
+    def work(k):
+        names.add(threading.current_thread().name)
+        time.sleep(0.02 * (5 - k))  # the first items finish last
+        return k * k
+
+    assert in_threads(work, range(5), 2, counts.append) == [0, 1, 4, 9, 16]
+    assert counts == [1, 2, 3, 4, 5] and len(names) == 2  # two worker threads
+
+    def fail(k):
+        if k == 3:
+            raise ValueError("item 3")
+        return k
+
+    with pytest.raises(ValueError, match="item 3"):
+        in_threads(fail, range(5), 2, lambda count: None)
+    assert in_threads(work, [4], 2, counts.append) == [16]  # one item: no threads

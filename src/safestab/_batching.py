@@ -1,8 +1,9 @@
-"""Apply a per-point function over any number of leading batch axes."""
+"""Apply a per-point function over any number of leading batch axes; run items in threads."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any
 
 import jax
@@ -26,3 +27,26 @@ def over_batch(fn: Callable[[jax.Array], Any], x: jax.Array) -> Any:
 def as_float_array(x: Any) -> jax.Array:
     """Return ``x`` as a float64 JAX array."""
     return jnp.asarray(x, dtype=jnp.float64)
+
+
+def in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callable) -> list:
+    """``[fn(i) for i in items]``, ``workers`` at once in threads; ``done(count)`` as each ends.
+
+    JAX releases the GIL while it compiles and runs, so independent programs (Monte Carlo
+    chunks, a study's closed loops) share the cores. Results come back in the order of
+    ``items``; the first exception raised by ``fn`` is raised here.
+    """
+    items = list(items)
+    if workers == 1 or len(items) <= 1:
+        out = []
+        for k, item in enumerate(items):
+            out.append(fn(item))
+            done(k + 1)
+        return out
+    results: list[Any] = [None] * len(items)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
+        for count, fut in enumerate(as_completed(futures), 1):
+            results[futures[fut]] = fut.result()
+            done(count)
+    return results

@@ -14,11 +14,11 @@ import os
 import time
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any
 
 import numpy as np
 
+from .._batching import in_threads
 from ..errors import InducingPointsWarning, ParameterError
 from ..learning.batched import one_blas_thread
 from ..scenarios import MonteCarloSpec
@@ -243,31 +243,13 @@ def _local(study, seed, datasets, chunks, pad, report, report_sets, workers):
         first = fit_dataset(study, seed, 0)
         report_sets(1, datasets)
         hyper = first.hyper if study.spec.hyperparameters == "reuse" else None
-        models = [first, *_in_threads(
+        models = [first, *in_threads(
             lambda j: fit_dataset(study, seed, j, hyper), range(1, datasets), workers,
             lambda done: report_sets(done + 1, datasets),
         )]  # fmt: skip
     t_data = time.perf_counter() - t0
     results = _run_chunks(study, seed, chunks, models, pad, workers, report)
     return models, results, t_data
-
-
-def _in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callable) -> list:
-    """``[fn(i) for i in items]``, ``workers`` at once in threads; ``done(count)`` as each ends."""
-    items = list(items)
-    if workers == 1 or len(items) <= 1:
-        out = []
-        for k, item in enumerate(items):
-            out.append(fn(item))
-            done(k + 1)
-        return out
-    results: list[Any] = [None] * len(items)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
-        for count, fut in enumerate(as_completed(futures), 1):
-            results[futures[fut]] = fut.result()
-            done(count)
-    return results
 
 
 def _run_chunks(study, seed, chunks, models, pad, workers, report):
@@ -287,7 +269,7 @@ def _run_chunks(study, seed, chunks, models, pad, workers, report):
         j0, idx0 = chunks[0]
         compile_chunk(study, models[j0], seed, idx0, pad_to=pad)
     total = len(chunks)
-    return _in_threads(run, chunks, workers, lambda done: report(done, total))
+    return in_threads(run, chunks, workers, lambda done: report(done, total))
 
 
 def _chunk_group(study, seed, pad, workers, group, sets, *models):

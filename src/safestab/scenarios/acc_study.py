@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .._batching import in_threads
 from .._io import atomic_write_json, with_finite_status
 from ..controllers import UniversalController
 from ..formulas import Region
@@ -37,6 +38,10 @@ __all__ = [
 CONTROLLERS = ("true model", "mismatched model", "GP-corrected")
 
 Progress = Callable[[str, float], None]
+
+#: The closed loops and the conformal check run this many at once, in threads (wall times in
+#: ``timings`` then overlap). Results do not depend on it.
+STUDY_THREADS = 2
 
 #: Miss probability of the calibrated (split conformal, per-trajectory) beta.
 CONFORMAL_DELTA = 0.05
@@ -254,24 +259,33 @@ def run_study(
     # Lemma 2's band is about omega itself, which the simulator knows: check it there.
     calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
-    conformal = _conformal_check(scenario, gp, seed, test)
-    timings["conformal_beta"] = conformal.pop("seconds")
-
     controllers = study_controllers(scenario, gp)
-    trajectories: dict[str, Trajectory] = {}
-    for i, (name, ctrl) in enumerate(controllers.items()):
-        report(f"simulating: {name}", 0.4 + 0.2 * i)
+
+    def simulated(name: str) -> tuple[Trajectory, float]:
         t0 = time.perf_counter()
-        trajectories[name] = traj = simulate(
-            ctrl,
-            np.asarray(scenario.x0),
-            t_final=horizon,
-            dt=scenario.dt,
-            plant=true_sys,
-            exogenous=scenario.exogenous,
-        )
+        traj = simulate(
+            controllers[name], np.asarray(scenario.x0), t_final=horizon, dt=scenario.dt,
+            plant=true_sys, exogenous=scenario.exogenous,
+        )  # fmt: skip
         traj.h.block_until_ready()  # JAX dispatches asynchronously: time the finished run
-        timings[f"simulate {name}"] = time.perf_counter() - t0
+        return traj, time.perf_counter() - t0
+
+    # the GP-corrected loop (memory-bound, most of the run) on one core; the conformal check
+    # and the two model-based loops beside it on the other (JAX releases the GIL)
+    jobs = ["GP-corrected", "conformal", "true model", "mismatched model"]
+    report("simulating the controllers beside the conformal check, two at a time", 0.4)
+    done = in_threads(
+        lambda job: _conformal_check(scenario, gp, seed, test)
+        if job == "conformal" else simulated(job),
+        jobs, STUDY_THREADS,
+        lambda count: report(f"{count} of {len(jobs)} done", 0.4 + 0.6 * count / len(jobs)),
+    )  # fmt: skip
+    out = dict(zip(jobs, done, strict=True))
+    conformal = out.pop("conformal")
+    timings["conformal_beta"] = conformal.pop("seconds")
+    trajectories: dict[str, Trajectory] = {}
+    for name in controllers:  # the order of CONTROLLERS
+        trajectories[name], timings[f"simulate {name}"] = out[name]
     ref = trajectories["true model"]
     metrics = {
         name: trajectory_metrics(tr, scenario, None if name == "true model" else ref)

@@ -247,6 +247,11 @@ def closed_loop(
     return run
 
 
+def _records_rows(controller: Any) -> bool:
+    """Whether a trajectory of ``controller`` records a value per certificate (several rows)."""
+    return isinstance(controller.formula, MultiFormula)
+
+
 class TrajectoryRecorder:
     """The full history of :func:`simulate`: states, inputs, certificate values and flags.
 
@@ -258,7 +263,7 @@ class TrajectoryRecorder:
 
     def __init__(self, controller: Any, params_at: Callable[[Any, Any], Any]) -> None:
         self.controller, self.params_at = controller, params_at
-        self.multi = isinstance(controller.formula, MultiFormula)  # several rows
+        self.multi = _records_rows(controller)
 
     def init(self, x0: jax.Array, data: Any) -> None:
         """No running state: everything is per step."""
@@ -481,7 +486,7 @@ def simulate(
         compatible=comps,
         cbf_satisfied=sats,
         status=stats,
-        multi=isinstance(controller.formula, MultiFormula),
+        multi=_records_rows(controller),
     )
     if traced_results((xs, us, stats), strict, "simulate"):  # the statuses are the record
         return traj

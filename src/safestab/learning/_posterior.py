@@ -253,24 +253,29 @@ def exact_point(post, x, kind, n):
     """
     z = ((x - post["offset"]) / post["scale"])[None, :]
 
-    def per_comp(a, l_, al, chol, m):
+    def per_comp(a, l_, al, m, solve):
         kstar = kernel(kind, a, l_)(post["xs"], z)[:, 0]
-        if isinstance(chol, list):
-            v = solve_panels(chol, kstar)
-        else:
-            v = solve_triangular(chol, kstar, lower=True)
+        v = solve(kstar)  # L^-1 k*
         return kstar @ al + m, jnp.maximum(a**2 - v @ v, 0.0)
 
     if "panels" in post:  # per component, unrolled: each has its own panel arrays
         outs = [
-            per_comp(post["amp"][j], post["ls"][j], post["alpha"][j], pan, post["mu"][j])
+            per_comp(
+                post["amp"][j],
+                post["ls"][j],
+                post["alpha"][j],
+                post["mu"][j],
+                functools.partial(solve_panels, pan),
+            )
             for j, pan in enumerate(post["panels"])
         ]
         mean_c, var_c = jnp.stack([o[0] for o in outs]), jnp.stack([o[1] for o in outs])
     else:
-        mean_c, var_c = jax.vmap(per_comp)(
-            post["amp"], post["ls"], post["alpha"], post["chol"], post["mu"]
-        )
+        mean_c, var_c = jax.vmap(
+            lambda a, l_, al, m, chol: per_comp(
+                a, l_, al, m, lambda k: solve_triangular(chol, k, lower=True)
+            )
+        )(post["amp"], post["ls"], post["alpha"], post["mu"], post["chol"])
     mean = jnp.zeros(n, dtype=mean_c.dtype).at[post["comps"]].set(mean_c)
     var = jnp.zeros(n, dtype=var_c.dtype).at[post["comps"]].set(var_c)
     return mean, var

@@ -651,8 +651,7 @@ class GaussianProcessModel:
 def _model_arrays(model: GaussianProcessModel) -> dict[str, Any]:
     if not hasattr(model, "posterior_"):
         return {}
-    model._point_posterior()  # the panels, made once
-    return {"posterior_": model.posterior_, "_panels": model._panels}
+    return {"posterior_": model.posterior_, "_panels": model._point_posterior()["panels"]}
 
 
 register_model(

@@ -7,7 +7,8 @@ source "$(dirname "$0")/_venv.sh" test
 .venv/bin/safestab run --scenario paper --out results "$@"
 .venv/bin/safestab run --scenario stress --out results "$@"
 .venv/bin/safestab run --scenario obstacle --out results "$@"
-# the swarm learns nothing: it takes --seed and --t-final of the extra arguments, not the rest
+# the swarm learns nothing (no --n-samples) and its file has other keys (no --set): it takes
+# --seed and --t-final of the extra arguments
 swarm_args=()
 while [ $# -gt 0 ]; do
   case "$1" in

@@ -333,3 +333,10 @@ def test_real_scenario_objects_are_used(study, tmp_path):
     res = _invoke("--out", tmp_path)
     assert res.exit_code == 0, res.output
     assert study.calls == [load_scenario("stress")]
+
+
+def test_summary_table_prints_its_units_as_text(tmp_path, study):
+    """The headers' units are plain text, not rich markup ("[m]" is not a style tag)."""
+    res = _invoke("--out", tmp_path)
+    assert res.exit_code == 0, res.output
+    assert "min h [m]" in res.stdout and "ACC study 'stress' (Q = " in res.stdout

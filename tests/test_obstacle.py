@@ -353,7 +353,9 @@ def test_kind_dispatch_and_errors(tmp_path):
     assert scenario_kind("paper") == "acc"
     assert isinstance(load(_edited(tmp_path, "x1 = -3.0", "x1 = -3.5")), ObstacleScenario)
     path = _edited(tmp_path, 'kind = "obstacle"', 'kind = "boat"')
-    with pytest.raises(ScenarioError, match=r"kind must be one of 'acc', 'obstacle' .*got 'boat'"):
+    with pytest.raises(
+        ScenarioError, match=r"kind must be one of 'acc', 'obstacle', 'swarm' .*got 'boat'"
+    ):
         load(path)
     # without the kind key a file is an ACC file, and the ACC schema names the first problem
     path = _edited(tmp_path, 'kind = "obstacle"\n', "")

@@ -89,4 +89,10 @@ def test_command_writes_the_figure_and_metrics(tmp_path):
         app, ["run", "--scenario", "swarm", "--set", "a.b=1", "--out", str(tmp_path / "x")]
     )
     assert bad.exit_code == 2
-    assert "takes --seed and --t-final only" in bad.output
+    assert "unknown" in bad.output and "'a'" in bad.output, bad.output
+    bad = CliRunner().invoke(
+        app, ["run", "--scenario", "swarm", "--n-samples", "50", "--out", str(tmp_path / "x")]
+    )
+    assert bad.exit_code == 2
+    assert "a swarm scenario has no n_samples to override" in bad.output, bad.output
+    assert not (tmp_path / "x").exists()  # refused before any work

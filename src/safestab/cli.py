@@ -115,256 +115,42 @@ def _with_progress(console, work):
         return work(report)
 
 
-def _write_figures(figures: dict, documents: dict, record: Path, sc: Any) -> list[Path]:
-    """Write each figure as PNG and PDF and each JSON document, all or none; close figures.
+def _study_outputs(sc, out_dir: Path, debug: bool) -> None:
+    """Run a scenario's study through the pipeline, write its outputs, print its summary."""
+    from rich.table import Table
+    from rich.text import Text
 
-    ``record`` (``<out>/<prefix>_run.json``) is written with them: which run made these
-    files (command line, scenario name, seed, safestab version, UTC time, the files), so
-    that outputs of different runs in one folder can be told apart (:func:`_other_runs`).
-    """
-    import matplotlib.pyplot as plt
+    from .scenarios import pipeline
 
-    from ._io import figure_writer, json_writer, write_all
-
-    try:
-        outputs = {}
-        for stem, fig in figures.items():
-            for ext in ("png", "pdf"):
-                path = stem.with_name(f"{stem.name}.{ext}")
-                outputs[path] = figure_writer(fig, path, dpi=200)
-        for path, doc in documents.items():
-            outputs[path] = json_writer(doc)
-        outputs[record] = _record_writer(record, sc, list(outputs))
-        return write_all(outputs)
-    finally:
-        for fig in figures.values():
-            plt.close(fig)
-
-
-def _record_writer(record: Path, sc: Any, paths: list[Path]) -> Any:
-    """The writer of a run record: command line, scenario, seed, version, UTC time, files."""
-    import datetime
-    import shlex
-    import sys
-
-    from ._io import json_writer
-    from ._version import __version__
-
-    return json_writer(
-        {
-            "command": shlex.join(["safestab", *sys.argv[1:]]),
-            "scenario": sc.name,
-            "seed": getattr(sc, "seed", None),
-            "safestab": __version__,
-            "finished_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "files": sorted(p.name for p in [*paths, record]),
-        }
+    study = pipeline.study_of(sc)
+    console = _console(width=study.table_width)
+    done = _guard(
+        lambda: _with_progress(console, lambda r: pipeline.run(sc, out_dir, progress=r)),
+        debug=debug,
+        code=EXIT_RUN_FAILED,
     )
+    summary = done.summary()
+    # plain text, not markup: the units in the headers ("min h [m]") are not style tags
+    table = Table(title=Text(summary.title))
+    for i, col in enumerate(summary.columns):
+        # the last column (statuses, c*) may wrap in a narrow terminal
+        table.add_column(Text(col), justify="right", no_wrap=i < len(summary.columns) - 1)
+    for row in summary.rows:
+        table.add_row(*map(Text, row))
+    console.print(table)
+    for line in summary.lines:
+        console.print(line, markup=False, soft_wrap=True)
+    _print_written(console, done.written)
 
 
-def _note_other_runs(console: Any, written: list[Path]) -> None:
-    """Print :func:`_other_runs` for the record among ``written``, if any."""
-    record = next((p for p in written if p.name.endswith("_run.json")), None)
-    note = None if record is None else _other_runs(record.parent, record)
+def _print_written(console: Any, written: list[Path]) -> None:
+    """Name the files written (the run record last) and the folder's other runs, if any."""
+    from .scenarios import pipeline
+
+    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
+    note = pipeline.other_runs(written[-1].parent, written[-1])
     if note:
         console.print(f"note: {note}", markup=False, soft_wrap=True)
-
-
-def _other_runs(out_dir: Path, record: Path) -> str | None:
-    """A line naming the other runs' records and the unrecorded files in ``out_dir``."""
-    import json
-
-    ours = set(json.loads(record.read_text())["files"])
-    others, recorded = [], set(ours)
-    for path in sorted(out_dir.glob("*_run.json")):
-        if path == record:
-            continue
-        prefix = path.name[: -len("_run.json")]
-        try:
-            doc = json.loads(path.read_text())
-            recorded |= set(doc["files"])
-            others.append(f"{prefix} ({doc.get('finished_utc')})")
-        except (OSError, ValueError, KeyError, TypeError):
-            others.append(f"{prefix} (unreadable record)")
-    loose = [p.name for p in out_dir.glob("*_*.*") if p.is_file() and p.name not in recorded]
-    parts = []
-    if others:
-        parts.append(
-            f"{out_dir} also holds the outputs of {len(others)} other run(s): "
-            + ", ".join(others)
-            + " (their *_run.json name the command and the files)"
-        )
-    if loose:
-        parts.append(f"{len(loose)} file(s) there come from no recorded run (an older safestab)")
-    return " ".join(parts) or None
-
-
-def _acc_outputs(sc, out_dir: Path, debug: bool) -> None:
-    """Run the ACC study and write its outputs (the body of ``acc`` and ``run``)."""
-    from rich.table import Table
-
-    from .scenarios import acc_study
-
-    console = _console()
-    result = _guard(
-        lambda: _with_progress(console, lambda r: acc_study.run_study(sc, progress=r)),
-        debug=debug,
-        code=EXIT_RUN_FAILED,
-    )
-
-    def write():
-        from .plotting import plot_acc_study
-
-        stem = out_dir / f"acc_{sc.name}"
-        return _write_figures(
-            {stem: plot_acc_study(result)},
-            {out_dir / f"acc_{sc.name}_metrics.json": result.metrics_document()},
-            out_dir / f"acc_{sc.name}_run.json",
-            sc,
-        )
-
-    written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-
-    table = Table(title=f"ACC study '{sc.name}' (Q = {len(result.dataset)})")
-    columns = ("controller", "min h [m]", "h<0 [s]", "rms v_f-v_d", "max|h-h_true|", "incompat.")
-    for col in columns:
-        table.add_column(col, justify="right", no_wrap=True)
-    for name, m in result.metrics.items():
-        table.add_row(
-            name,
-            f"{m['min_h_m']:.3f}",
-            f"{m['time_h_negative_s']:.2f}",
-            f"{m['rms_speed_error_mps']:.3f}",
-            f"{m.get('max_abs_h_gap_to_true_m', 0.0):.4f}",
-            str(m["incompatible_steps"]),
-        )
-    console.print(table)
-    cal = result.calibration
-    console.print(
-        f"GP held-out coverage at beta = {sc.gp_beta}: per component "
-        f"{[round(float(c), 3) for c in cal.per_component]}, joint {cal.joint:.3f}; "
-        f"RMSE {[float(f'{r:.2e}') for r in cal.rmse]} m/s^2"
-    )
-    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
-    _note_other_runs(console, written)
-
-
-def _obstacle_outputs(sc, out_dir: Path, debug: bool) -> None:
-    """Run the obstacle study and write its figures, metrics and summary table."""
-    from rich.table import Table
-
-    from .scenarios import obstacle_study
-
-    console = _console(width=130)
-    result = _guard(
-        lambda: _with_progress(
-            console, lambda r: obstacle_study.run_obstacle_study(sc, progress=r)
-        ),
-        debug=debug,
-        code=EXIT_RUN_FAILED,
-    )
-
-    def write():
-        from .plotting import plot_compatibility_maps, plot_obstacle_plane
-
-        base = f"obstacle_{sc.name}"
-        return _write_figures(
-            {
-                out_dir / base: plot_obstacle_plane(result),
-                out_dir / f"{base}_maps": plot_compatibility_maps(result),
-            },
-            {out_dir / f"{base}_metrics.json": result.metrics_document()},
-            out_dir / f"{base}_run.json",
-            sc,
-        )
-
-    written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-
-    table = Table(title=f"Obstacle study '{sc.name}' ({len(sc.start_states())} starts)")
-    columns = ("controller", "limits", *obstacle_study.OUTCOMES, "min h [m^2]",
-               "stuck incompat.", "c* [m^2]")  # fmt: skip
-    for col in columns:
-        table.add_column(col, justify="right", no_wrap=True)
-    for (name, limits), run in result.runs.items():
-        stuck = run.outcome == "stuck"
-        table.add_row(
-            name,
-            limits,
-            *(str(int((run.outcome == o).sum())) for o in obstacle_study.OUTCOMES),
-            f"{float(run.h.min()):.3f}",
-            f"{int((~run.end_verdict[stuck]).sum())}/{int(stuck.sum())}",
-            f"{result.doa[name]:.3g}",
-        )
-    console.print(table)
-    cov = result.coverage
-    how = (
-        f"conformal beta = {cov['beta']:.3g} (chosen {cov['calibration']['chosen_beta']:g}), "
-        f"calibrated on {cov['calibration']['n_trajectories']} fresh trajectories; "
-        f"stated probability 1 - delta = {cov['stated_probability']:.4f}"
-        if cov["beta_method"] == "conformal"
-        else f"chosen beta = {cov['beta']:g}; "
-        f"stated probability (1 - delta)^2 = {cov['stated_probability']:.4f}"
-    )
-    console.print(
-        f"GP held-out coverage: per component "
-        f"{[round(float(c), 3) for c in cov['per_component']]}, joint {cov['joint']:.3f}; {how}"
-    )
-    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
-    _note_other_runs(console, written)
-
-
-def _swarm_outputs(sc, out_dir: Path, debug: bool) -> None:
-    """Run the swarm study and write its figure, metrics and summary table."""
-    from rich.table import Table
-
-    from .scenarios import swarm_study
-
-    console = _console()
-    result = _guard(
-        lambda: _with_progress(console, lambda r: swarm_study.run_swarm_study(sc, progress=r)),
-        debug=debug,
-        code=EXIT_RUN_FAILED,
-    )
-    doc = result.metrics_document()  # written and tabulated: computed once
-
-    def write():
-        from .plotting import plot_swarm
-
-        stem = out_dir / f"swarm_{sc.name}"
-        return _write_figures(
-            {stem: plot_swarm(result)},
-            {out_dir / f"swarm_{sc.name}_metrics.json": doc},
-            out_dir / f"swarm_{sc.name}_run.json",
-            sc,
-        )
-
-    written = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-    table = Table(title=f"swarm '{sc.name}' ({sc.n_robots} robots, {doc['pairs']} pair barriers)")
-    columns = ("filter", "min distance [m]", "steps < safety", "all arrived [s]",
-               "mean change [m/s]", "statuses")  # fmt: skip
-    for col in columns:
-        table.add_column(col, justify="right", no_wrap=False)
-    for mode, m in doc["runs"].items():
-        arrived = m["arrival_time_s"]
-        table.add_row(
-            mode,
-            f"{m['min_distance_m']:.4f}",
-            str(m["steps_below_safety_distance"]),
-            "never" if arrived is None else f"{arrived:.2f}",
-            f"{m['mean_input_change_mps']:.3f}",
-            ", ".join(f"{k} {v}" for k, v in m["solver_statuses"].items()),
-        )
-    console.print(table)
-    for solver, gap in doc["loose_solvers_on_centralized_states"].items():
-        if isinstance(gap, dict) and gap.get("states"):
-            console.print(
-                f"{solver} at default tolerances on {gap['states']} centralized states: input "
-                f"off by up to {gap['max_input_gap_mps']:.2e} m/s, a barrier violated in "
-                f"{100 * gap['share_of_states_violating']:.0f} % of them (by up to "
-                f"{gap['max_barrier_violation_m2ps']:.2e} m^2/s)"
-            )
-    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
-    _note_other_runs(console, written)
 
 
 def _overrides(seed, n_samples, t_final) -> dict:
@@ -400,7 +186,7 @@ def acc(
         return sc, ensure_writable_dir(out, name="--out")
 
     sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    _acc_outputs(sc, out_dir, debug)
+    _study_outputs(sc, out_dir, debug)
 
 
 @app.command()
@@ -421,7 +207,7 @@ def run(
     ),
     debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
 ) -> None:
-    """Run any scenario's study, dispatching on its kind (ACC, obstacle or swarm).
+    """Run any scenario's study through the study pipeline, by its kind (ACC, obstacle, swarm).
 
     ACC writes OUT/acc_<name>.png, .pdf, _metrics.json; obstacle writes
     OUT/obstacle_<name>.png, .pdf (trajectories), OUT/obstacle_<name>_maps.png, .pdf
@@ -432,29 +218,17 @@ def run(
 
     matplotlib.use("Agg")
     from ._io import ensure_writable_dir
-    from .errors import ScenarioError
-    from .scenarios import ACCScenario, load, parse_override, swarm
+    from .scenarios import load, parse_override, pipeline
 
     def check_inputs():
-        if scenario in swarm.PRESETS:
-            if set_ or n_samples is not None:
-                raise ScenarioError(
-                    "the swarm preset takes --seed and --t-final only (it has no data to "
-                    f"learn and no scenario file yet), got {'--set' if set_ else '--n-samples'}"
-                )
-            sc = swarm.SwarmScenario().replace(**_overrides(seed, None, t_final))
-            return sc, ensure_writable_dir(out, name="--out")
         overrides = dict(parse_override(text) for text in set_)
-        sc = load(scenario, overrides=overrides).replace(**_overrides(seed, n_samples, t_final))
+        sc = pipeline.with_overrides(
+            load(scenario, overrides=overrides), seed=seed, n_samples=n_samples, t_final=t_final
+        )
         return sc, ensure_writable_dir(out, name="--out")
 
     sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    if isinstance(sc, swarm.SwarmScenario):
-        _swarm_outputs(sc, out_dir, debug)
-    elif isinstance(sc, ACCScenario):
-        _acc_outputs(sc, out_dir, debug)
-    else:
-        _obstacle_outputs(sc, out_dir, debug)
+    _study_outputs(sc, out_dir, debug)
 
 
 @app.command("export")
@@ -596,7 +370,7 @@ def mc(
     from . import montecarlo
     from ._io import bytes_writer, ensure_writable_dir, figure_writer, json_writer, write_all
     from .errors import ParameterError
-    from .scenarios import check_controllers, load
+    from .scenarios import check_controllers, load, pipeline
 
     def check_inputs():
         sc = load(scenario)
@@ -655,7 +429,7 @@ def mc(
                     png: figure_writer(fig, png, dpi=150),
                     metrics: json_writer(doc),
                     npz: bytes_writer(montecarlo.trials_npz_bytes(result)),
-                    record: _record_writer(record, sc, [png, metrics, npz]),
+                    record: pipeline.record_writer(record, sc, [png, metrics, npz]),
                 }
             )
         finally:
@@ -664,8 +438,7 @@ def mc(
 
     written, doc = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
     Console().print(mc_table(sc.name, doc["summary"]))  # the terminal's own width
-    console.print(f"wrote {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
-    _note_other_runs(console, written)
+    _print_written(console, written)
 
 
 def mc_table(name: str, summary: dict):

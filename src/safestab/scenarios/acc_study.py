@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +20,13 @@ from ..learning import (
     conformal_beta,
 )
 from ..simulation import Trajectory, simulate
-from .acc import ACCScenario
+from .acc import PRESETS, ACCScenario, load_scenario
+from .pipeline import Progress, Study, Summary, collect_study_data, fit_study_gp
 
 __all__ = [
     "CONTROLLERS",
     "CONFORMAL_DELTA",
+    "STUDY",
     "StudyResult",
     "collect_study_data",
     "fit_study_gp",
@@ -36,8 +37,6 @@ __all__ = [
 
 #: The three controllers of the paper's Fig. 4.
 CONTROLLERS = ("true model", "mismatched model", "GP-corrected")
-
-Progress = Callable[[str, float], None]
 
 #: The closed loops and the conformal check run this many at once, in threads (wall times in
 #: ``timings`` then overlap). Results do not depend on it.
@@ -133,42 +132,6 @@ def trajectory_metrics(
             np.sqrt(np.mean((x[:, 0] - np.asarray(reference.x)[:, 0]) ** 2))
         )
     return out
-
-
-def collect_study_data(
-    scenario: ACCScenario, *, seed: int | None = None, n_samples: int | None = None
-) -> tuple[Dataset, Dataset]:
-    """Collect the study's data on the true system: ``Q`` training rows and held-out rows.
-
-    Parameters
-    ----------
-    scenario : ACCScenario
-    seed : int, optional
-        Overrides the scenario's seed.
-    n_samples : int, optional
-        Overrides ``Q``; ``max(50, Q // 4)`` further rows are held out.
-
-    Returns
-    -------
-    train, held_out : Dataset
-    """
-    seed = scenario.seed if seed is None else int(seed)
-    q = scenario.n_samples if n_samples is None else int(n_samples)
-    n_test = max(50, q // 4)
-    # the scenario's excitation, as its Monte Carlo data sets collect it
-    data = scenario.trial_study().collect(q + n_test, seed)
-    return data.take(np.arange(q)), data.take(np.arange(q, q + n_test))
-
-
-def fit_study_gp(
-    scenario: ACCScenario, train: Dataset, *, seed: int | None = None
-) -> GaussianProcessModel:
-    """Fit the study's GP (the scenario's kernel and hyperparameter subset) to ``train``."""
-    seed = scenario.seed if seed is None else int(seed)
-    model = GaussianProcessModel(kernel=scenario.kernel)  # type: ignore[arg-type]
-    return model.fit(
-        train.x, train.y, hyper_subset=min(scenario.hyper_subset, len(train)), seed=seed
-    )
 
 
 def study_controllers(
@@ -331,3 +294,56 @@ def _conformal_check(scenario, gp, seed, test) -> dict[str, Any]:
         ).per_component.tolist(),
         "seconds": time.perf_counter() - t0,
     }
+
+
+def summary(result: StudyResult, document: dict[str, Any]) -> Summary:
+    """The table and calibration line a person reads after an ACC run."""
+    sc = result.scenario
+    rows = [
+        (
+            name,
+            f"{m['min_h_m']:.3f}",
+            f"{m['time_h_negative_s']:.2f}",
+            f"{m['rms_speed_error_mps']:.3f}",
+            f"{m.get('max_abs_h_gap_to_true_m', 0.0):.4f}",
+            str(m["incompatible_steps"]),
+        )
+        for name, m in result.metrics.items()
+    ]
+    cal = result.calibration
+    line = (
+        f"GP held-out coverage at beta = {sc.gp_beta}: per component "
+        f"{[round(float(c), 3) for c in cal.per_component]}, joint {cal.joint:.3f}; "
+        f"RMSE {[float(f'{r:.2e}') for r in cal.rmse]} m/s^2"
+    )
+    return Summary(
+        title=f"ACC study '{sc.name}' (Q = {len(result.dataset)})",
+        columns=(
+            "controller",
+            "min h [m]",
+            "h<0 [s]",
+            "rms v_f-v_d",
+            "max|h-h_true|",
+            "incompat.",
+        ),  # fmt: skip
+        rows=rows,
+        lines=[line],
+    )
+
+
+def _figures(result: StudyResult) -> dict[str, Any]:
+    from ..plotting import plot_acc_study
+
+    return {"": plot_acc_study(result)}
+
+
+#: The ACC study's place in the pipeline (:mod:`safestab.scenarios.pipeline`).
+STUDY = Study(
+    kind="acc",
+    scenario_type=ACCScenario,
+    presets=PRESETS,
+    load=lambda name_or_path, overrides=None: load_scenario(name_or_path, overrides=overrides),
+    run=lambda scenario, progress: run_study(scenario, progress=progress),
+    figures=_figures,
+    summary=lambda result, document: summary(result, document),
+)

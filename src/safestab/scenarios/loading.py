@@ -1,4 +1,8 @@
-"""Load any scenario, ACC or obstacle, by preset name or file, dispatching on its ``kind``."""
+"""Load any scenario, ACC, obstacle or swarm, by preset name or file, dispatching on ``kind``.
+
+The kinds are the pipeline's (:mod:`safestab.scenarios.pipeline`): each study kind names its
+presets and its loader.
+"""
 
 from __future__ import annotations
 
@@ -6,14 +10,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..errors import ScenarioError
-from . import acc, obstacle
-from ._schema import parse_override, read_document
+from . import pipeline
+from ._schema import parse_override
 
 __all__ = ["KINDS", "load", "parse_override", "scenario_kind"]
 
 #: The scenario kinds: a file's optional top-level ``kind`` key (``"acc"`` when absent).
-KINDS = ("acc", "obstacle")
+KINDS = ("acc", "obstacle", "swarm")
 
 
 def scenario_kind(name_or_path: str | Path) -> str:
@@ -24,24 +27,13 @@ def scenario_kind(name_or_path: str | Path) -> str:
     ScenarioError
         If the file cannot be read or parsed, or ``kind`` is not one of :data:`KINDS`.
     """
-    if str(name_or_path) in acc.PRESETS:
-        return "acc"
-    if str(name_or_path) in obstacle.PRESETS:
-        return "obstacle"
-    doc, _, source = read_document(name_or_path, acc.PRESETS + obstacle.PRESETS, __package__)
-    kind = doc.get("kind", "acc")
-    if not isinstance(kind, str) or kind not in KINDS:
-        raise ScenarioError(
-            f"{source}: kind must be one of {', '.join(repr(k) for k in KINDS)} "
-            f"(or absent for 'acc'), got {kind!r}"
-        )
-    return kind
+    return pipeline.kind_of(name_or_path).kind
 
 
-def load(
-    name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
-) -> acc.ACCScenario | obstacle.ObstacleScenario:
-    """Load a scenario of any kind: presets ``paper``, ``stress`` (ACC), ``obstacle``, or a file.
+def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
+    """Load a scenario of any kind by preset name or file.
+
+    The presets are ``paper``, ``stress``, ``stress-ood`` (ACC), ``obstacle`` and ``swarm``.
 
     Parameters
     ----------
@@ -51,14 +43,13 @@ def load(
 
     Returns
     -------
-    ACCScenario or ObstacleScenario
+    ACCScenario, ObstacleScenario or SwarmScenario
 
     Raises
     ------
     ScenarioError
         As the kind's loader (:func:`~safestab.scenarios.load_scenario`,
-        :func:`~safestab.scenarios.load_obstacle_scenario`), or for an unknown ``kind``.
+        :func:`~safestab.scenarios.load_obstacle_scenario`,
+        :func:`~safestab.scenarios.swarm.load_swarm_scenario`), or for an unknown ``kind``.
     """
-    if scenario_kind(name_or_path) == "obstacle":
-        return obstacle.load_obstacle_scenario(name_or_path, overrides=overrides)
-    return acc.load_scenario(name_or_path, overrides=overrides)
+    return pipeline.load(name_or_path, overrides=overrides)

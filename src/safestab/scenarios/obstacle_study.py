@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +32,20 @@ from ..formulas import clf_cbf, compatibility
 from ..learning import FastGP, GaussianProcessModel, conformal_beta
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
-from .obstacle import ObstacleScenario
+from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
+from .pipeline import (
+    Progress,
+    Study,
+    Summary,
+    collect_study_data,
+    fit_study_gp,
+    held_out_rows,
+    silent,
+)
 
 __all__ = [
     "CONTROLLERS",
+    "STUDY",
     "fit_obstacle_gp",
     "obstacle_controller",
     "LIMIT_SETTINGS",
@@ -60,8 +69,6 @@ LIMIT_SETTINGS = ("no limits", "input limits")
 SIMULATION_THREADS = 2
 #: How a trajectory ends, in order of precedence.
 OUTCOMES = ("unsafe", "converged", "stuck", "moving")
-
-Progress = Callable[[str, float], None]
 
 
 def classify_outcomes(
@@ -521,38 +528,33 @@ def fit_obstacle_gp(
     timings: dict[str, float] | None = None,
     report: Progress | None = None,
 ) -> tuple[Any, GaussianProcessModel, Any]:
-    """Collect the scenario's data and fit its GP as the study does.
+    """Collect the scenario's data and fit its GP as the study does (the pipeline's steps).
 
     Returns
     -------
-    (data, gp, uncertainty)
-        The collected :class:`~safestab.learning.Dataset` (``Q`` training rows, then the
-        held-out rows), the fitted GP, and what the GP-robust controller uses: the GP's
+    (held_out, gp, uncertainty)
+        The held-out :class:`~safestab.learning.Dataset` (``max(50, Q // 4)`` rows), the
+        fitted GP, and what the GP-robust controller uses: the GP's
         :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP.
     """
     timings = {} if timings is None else timings
-    report = report or (lambda msg, frac: None)
+    report = report or silent
     t0 = time.perf_counter()
-    q = sc.n_samples
-    n_test = max(50, q // 4)
-    n_check = n_test if sc.n_inducing > 0 else 0
-    # the scenario's excitation, as its Monte Carlo data sets collect it
-    data = sc.trial_study().collect(q + n_test + n_check, sc.seed)
+    # as many rows again drawn after the held-out ones when there is a cache: the data stream
+    # of the published runs (the rows are not used)
+    n_extra = held_out_rows(sc.n_samples) if sc.n_inducing > 0 else 0
+    train, held_out = collect_study_data(sc, n_extra=n_extra)
     timings["collect_data"] = time.perf_counter() - t0
 
-    report(f"fitting the GP (Q = {q}, n = 2)", 0.1)
+    report(f"fitting the GP (Q = {sc.n_samples}, n = 2)", 0.1)
     t0 = time.perf_counter()
-    gp = GaussianProcessModel(
-        kernel=sc.kernel
-    ).fit(  # type: ignore[arg-type]
-        data.x[:q], data.y[:q], hyper_subset=min(sc.hyper_subset, q), seed=sc.seed
-    )
+    gp = fit_study_gp(sc, train)
     uncertainty: Any = gp
     if sc.n_inducing > 0:
         # the cache's band provably contains the exact band for beta >= min_beta (1.0)
         uncertainty = FastGP(gp, sc.n_inducing)
     timings["fit_gp"] = time.perf_counter() - t0
-    return data, gp, uncertainty
+    return held_out, gp, uncertainty
 
 
 def obstacle_controller(
@@ -622,16 +624,14 @@ def run_obstacle_study(
     ScenarioError
         If an override is invalid; raised before any work.
     """
-    report = progress or (lambda msg, frac: None)
+    report = progress or silent
     overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
     sc = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
     true_sys = sc.system("true")
     timings: dict[str, float] = {}
 
     report("collecting data", 0.0)
-    data, gp, uncertainty = fit_obstacle_gp(sc, timings=timings, report=report)
-    q = sc.n_samples
-    n_test = max(50, q // 4)
+    held_out, gp, uncertainty = fit_obstacle_gp(sc, timings=timings, report=report)
     calibrated = None
     if sc.beta_method == "conformal":
         report("calibrating beta on fresh trajectories", 0.15)
@@ -640,7 +640,7 @@ def run_obstacle_study(
         # every GP-robust use below (verdicts, maps, controllers, coverage) reads gp_beta
         sc = sc.replace(gp_beta=calibrated["beta"])
         timings["calibrate_beta"] = time.perf_counter() - t0
-    coverage = _coverage(sc, uncertainty, data.x[q : q + n_test], calibrated is not None)
+    coverage = _coverage(sc, uncertainty, held_out.x, calibrated is not None)
     if calibrated is not None:
         coverage["calibration"] = calibrated
     if isinstance(uncertainty, FastGP):
@@ -730,3 +730,68 @@ def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
         end_verdict=end_verdict,
         **fields,
     )
+
+
+def summary(result: ObstacleStudyResult, document: dict[str, Any]) -> Summary:
+    """The outcome table and coverage line a person reads after an obstacle run."""
+    sc = result.scenario
+    rows = []
+    for (name, limits), run in result.runs.items():
+        stuck = run.outcome == "stuck"
+        rows.append(
+            (
+                name,
+                limits,
+                *(str(int((run.outcome == o).sum())) for o in OUTCOMES),
+                f"{float(run.h.min()):.3f}",
+                f"{int((~run.end_verdict[stuck]).sum())}/{int(stuck.sum())}",
+                f"{result.doa[name]:.3g}",
+            )
+        )
+    cov = result.coverage
+    how = (
+        f"conformal beta = {cov['beta']:.3g} (chosen {cov['calibration']['chosen_beta']:g}), "
+        f"calibrated on {cov['calibration']['n_trajectories']} fresh trajectories; "
+        f"stated probability 1 - delta = {cov['stated_probability']:.4f}"
+        if cov["beta_method"] == "conformal"
+        else f"chosen beta = {cov['beta']:g}; "
+        f"stated probability (1 - delta)^2 = {cov['stated_probability']:.4f}"
+    )
+    line = (
+        f"GP held-out coverage: per component "
+        f"{[round(float(c), 3) for c in cov['per_component']]}, joint {cov['joint']:.3f}; {how}"
+    )
+    return Summary(
+        title=f"Obstacle study '{sc.name}' ({len(sc.start_states())} starts)",
+        columns=(
+            "controller",
+            "limits",
+            *OUTCOMES,
+            "min h [m^2]",
+            "stuck incompat.",
+            "c* [m^2]",
+        ),  # fmt: skip
+        rows=rows,
+        lines=[line],
+    )
+
+
+def _figures(result: ObstacleStudyResult) -> dict[str, Any]:
+    from ..plotting import plot_compatibility_maps, plot_obstacle_plane
+
+    return {"": plot_obstacle_plane(result), "_maps": plot_compatibility_maps(result)}
+
+
+#: The obstacle study's place in the pipeline (:mod:`safestab.scenarios.pipeline`).
+STUDY = Study(
+    kind="obstacle",
+    scenario_type=ObstacleScenario,
+    presets=PRESETS,
+    load=lambda name_or_path, overrides=None: load_obstacle_scenario(
+        name_or_path, overrides=overrides
+    ),
+    run=lambda scenario, progress: run_obstacle_study(scenario, progress=progress),
+    figures=_figures,
+    summary=lambda result, document: summary(result, document),
+    table_width=130,
+)

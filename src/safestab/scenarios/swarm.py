@@ -22,6 +22,8 @@ symmetry of the swap, in which a symmetric deadlock at the centre is an equilibr
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -31,8 +33,12 @@ import numpy as np
 from ..errors import ScenarioError
 from ..formulas.multi import multi_kernel
 from ..simulation import closed_loop
+from ._schema import LIMITS, Check, check_structure, choice, integer, load_flat, name_field, real
 
-__all__ = ["SwarmScenario", "SwarmRun", "PRESETS", "simulate_swarm", "pair_terms"]
+__all__ = [
+    "FIELDS", "SwarmScenario", "SwarmRun", "PRESETS", "load_swarm_scenario", "simulate_swarm",
+    "pair_terms",
+]  # fmt: skip
 
 PRESETS = ("swarm",)
 
@@ -97,6 +103,68 @@ class SwarmScenario:
         angles = angles + rng.uniform(-self.start_jitter, self.start_jitter, self.n_robots)
         start = self.arena_radius * np.stack([np.cos(angles), np.sin(angles)], -1)
         return start, -start
+
+
+_POS = real(LIMITS.min_positive)
+
+#: Every key of a swarm scenario file and its type check (the ranges that depend on other
+#: keys are :class:`SwarmScenario`'s). ``name`` and ``kind`` are optional.
+FIELDS: dict[str, Check] = {
+    "name": name_field,
+    "kind": choice(("swarm",)),
+    # every pair is a barrier row: the centralized filter has N (N - 1) / 2 rows over 2 N inputs
+    "swarm.n_robots": integer(2, 200),
+    **{
+        f"swarm.{key}": _POS
+        for key in (
+            "arena_radius",
+            "safety_distance",
+            "speed_limit",
+            "gain",
+            "beta",
+            "t_final",
+            "dt",
+            "goal_tolerance",
+        )
+    },  # fmt: skip
+    "swarm.start_jitter": real(0.0),
+    "swarm.seed": integer(0, LIMITS.max_seed),
+}
+
+
+def load_swarm_scenario(
+    name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
+) -> SwarmScenario:
+    """Load the preset ``"swarm"`` or a swarm scenario file (``kind = "swarm"``).
+
+    The file has one table, ``[swarm]``, whose keys are :class:`SwarmScenario`'s fields
+    (docs/swarm.md); every key is required and checked here, before any work.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+    overrides : mapping of str to value, optional
+        ``{"swarm.key": value}`` set before the document is checked (``--set``).
+
+    Raises
+    ------
+    ScenarioError
+        If the file cannot be read or parsed, a key or table is missing or unknown, or a
+        value is of the wrong type, not finite or out of range; the message names the key.
+    """
+    optional = {"name", "kind"}
+    flat, table, source = load_flat(
+        name_or_path, PRESETS, __package__,
+        lambda doc, src: check_structure(doc, FIELDS, optional, src), overrides,
+    )  # fmt: skip
+    if table is not None:
+        raise ScenarioError(f"{source}: a swarm scenario has no [montecarlo] table")
+    v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
+    fields = {path.split(".", 1)[1]: value for path, value in v.items() if "." in path}
+    try:
+        return SwarmScenario(name=v["name"], **fields)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{source}: {exc}") from None
 
 
 def pair_terms(pos: Any, beta: float, safety_distance: float) -> tuple[Any, Any, Any]:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +21,12 @@ import numpy as np
 
 from .._io import atomic_write_json, with_finite_status
 from ..formulas import MultiStatus
-from .swarm import SwarmRun, SwarmScenario, pair_terms, simulate_swarm
+from .pipeline import Progress, Study, Summary, silent
+from .swarm import PRESETS, SwarmRun, SwarmScenario, load_swarm_scenario, pair_terms, simulate_swarm
 
-__all__ = ["SwarmStudy", "run_swarm_study", "MODES"]
+__all__ = ["STUDY", "SwarmStudy", "run_swarm_study", "MODES"]
 
 MODES = ("centralized", "decentralized", "nominal")
-Progress = Callable[[str, float], None]
 
 
 def _summary(sc: SwarmScenario, run: SwarmRun) -> dict[str, Any]:
@@ -146,7 +145,7 @@ def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None
     -------
     SwarmStudy
     """
-    report = progress or (lambda msg, frac: None)
+    report = progress or silent
     runs, timings = {}, {}
     for i, mode in enumerate(MODES):
         report(f"closed loop: {mode}", i / (len(MODES) + 1))
@@ -159,3 +158,63 @@ def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None
     timings["loose_solvers"] = time.perf_counter() - t0
     report("done", 1.0)
     return SwarmStudy(scenario, runs, loose, timings)
+
+
+def summary(result: SwarmStudy, document: dict[str, Any]) -> Summary:
+    """The per-filter table and the loose solvers' lines a person reads after a swarm run."""
+    sc = result.scenario
+    rows = []
+    for mode, m in document["runs"].items():
+        arrived = m["arrival_time_s"]
+        rows.append(
+            (
+                mode,
+                f"{m['min_distance_m']:.4f}",
+                str(m["steps_below_safety_distance"]),
+                "never" if arrived is None else f"{arrived:.2f}",
+                f"{m['mean_input_change_mps']:.3f}",
+                ", ".join(f"{k} {v}" for k, v in m["solver_statuses"].items()),
+            )
+        )
+    lines = [
+        f"{solver} at default tolerances on {gap['states']} centralized states: input "
+        f"off by up to {gap['max_input_gap_mps']:.2e} m/s, a barrier violated in "
+        f"{100 * gap['share_of_states_violating']:.0f} % of them (by up to "
+        f"{gap['max_barrier_violation_m2ps']:.2e} m^2/s)"
+        for solver, gap in document["loose_solvers_on_centralized_states"].items()
+        if isinstance(gap, dict) and gap.get("states")
+    ]
+    return Summary(
+        title=f"swarm '{sc.name}' ({sc.n_robots} robots, {document['pairs']} pair barriers)",
+        columns=(
+            "filter",
+            "min distance [m]",
+            "steps < safety",
+            "all arrived [s]",
+            "mean change [m/s]",
+            "statuses",
+        ),  # fmt: skip
+        rows=rows,
+        lines=lines,
+    )
+
+
+def _figures(result: SwarmStudy) -> dict[str, Any]:
+    from ..plotting import plot_swarm
+
+    return {"": plot_swarm(result)}
+
+
+#: The swarm study's place in the pipeline (:mod:`safestab.scenarios.pipeline`).
+STUDY = Study(
+    kind="swarm",
+    scenario_type=SwarmScenario,
+    presets=PRESETS,
+    load=lambda name_or_path, overrides=None: load_swarm_scenario(
+        name_or_path, overrides=overrides
+    ),
+    run=lambda scenario, progress: run_swarm_study(scenario, progress=progress),
+    figures=_figures,
+    summary=lambda result, document: summary(result, document),
+    table_width=115,
+)

@@ -250,27 +250,28 @@ def probabilistic_compatibility(
     why ``updated`` is the verdict to use. The margins ``zeta``, ``Gamma`` use the robust
     ``a~``, ``c~`` (as Theorem 2 replaces ``a``, ``c`` everywhere).
     """
-    a, b, c, d = terms
-    dV, dh = margins
-    bb = jnp.sum(b * b, -1)
-    dd = jnp.sum(d * d, -1)
-    bd = jnp.sum(b * d, -1)
-    nominal = compatibility_case(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol) > 0
-    robust = compatibility_case(a + dV, b, c + dh, d, kappa, rho, phi, varphi, parallel_rtol) > 0
-    is_parallel = parallel(b, d, parallel_rtol)
-    clf_cond = dV * bd - dh * bb >= 0
-    cbf_cond = dV * dd - dh * bd >= 0
     prob = float("nan")
     if delta is not None:
         if n_components is None:
             raise ParameterError("n_components is required with delta")
         prob = joint_probability(delta, n_components)
-    return ProbabilisticCompatibility(
-        nominal_compatible=nominal,
-        parallel=is_parallel,
-        clf_condition=clf_cond,
-        cbf_condition=cbf_cond,
-        lemma4=nominal & clf_cond & cbf_cond,
-        updated=robust,
-        probability=prob,
-    )
+    # one compiled program per shape (called eagerly, its operations one by one compiled
+    # about 70 small programs on a first call: seconds on a grid of states)
+    verdicts = _probabilistic_jit(*terms, *margins, kappa, rho, phi, varphi, parallel_rtol)
+    return ProbabilisticCompatibility(*verdicts, probability=prob)
+
+
+@jax.jit
+def _probabilistic_jit(a, b, c, d, dV, dh, kappa, rho, phi, varphi, parallel_rtol):
+    """The verdicts of :func:`probabilistic_compatibility`, in its field order."""
+    bb = jnp.sum(b * b, -1)
+    dd = jnp.sum(d * d, -1)
+    bd = jnp.sum(b * d, -1)
+    nominal = compatibility_case(a, b, c, d, kappa, rho, phi, varphi, parallel_rtol) > 0
+    robust = compatibility_case(a + dV, b, c + dh, d, kappa, rho, phi, varphi, parallel_rtol) > 0
+    clf_cond = dV * bd - dh * bb >= 0
+    cbf_cond = dV * dd - dh * bd >= 0
+    return (
+        nominal, parallel(b, d, parallel_rtol), clf_cond, cbf_cond,
+        nominal & clf_cond & cbf_cond, robust,
+    )  # fmt: skip

@@ -185,3 +185,26 @@ def test_float_widened_gp_band_contains_the_exact_band_in_float32_arithmetic():
     # and the widening is what float needs, not a blanket: within 3x of the float64 cache
     _, std64 = FastGP(gp, 32).predict(x.astype(np.float64))
     assert np.median(std32 / std64) < 3.0
+
+
+@pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
+def test_exported_gp_controller_runs_with_the_studys_beta_method():
+    """learning.beta_method = "conformal": the exported GP controller's beta is the split
+    conformal one of the exported cache (as the study calibrates its own), named in the
+    header's description; with "chosen", the file's gp_beta."""
+    from safestab.scenarios import load
+    from safestab.scenarios.export_study import scenario_controller
+    from safestab.scenarios.obstacle_study import calibrate_beta, fit_obstacle_gp
+
+    sc = load("obstacle").replace(n_samples=60, hyper_subset=60)
+    assert sc.beta_method == "conformal"
+    ctrl, description, _ = scenario_controller(sc, "gp", n_inducing=8)
+    _, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
+    expected = calibrate_beta(sc, FastGP(gp, n_inducing=8))["beta"]
+    assert expected != sc.gp_beta
+    np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), expected)
+    assert f"GP beta = {expected:.6g}, split conformal on 100 fresh trajectories" in description
+    chosen = sc.replace(beta_method="chosen")
+    ctrl, description, _ = scenario_controller(chosen, "gp", n_inducing=8)
+    np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), sc.gp_beta)
+    assert "GP beta = 2 (learning.gp_beta)" in description

@@ -26,7 +26,7 @@ from .acc import ACCScenario
 from .acc_study import collect_study_data, fit_study_gp, study_controllers
 from .loading import load as load_any_scenario
 from .obstacle import ObstacleScenario
-from .obstacle_study import fit_obstacle_gp, obstacle_controller
+from .obstacle_study import calibrate_beta, fit_obstacle_gp, obstacle_controller
 
 __all__ = [
     "ExportReport",
@@ -280,16 +280,28 @@ _OBSTACLE_NAMES = {"gp": "GP-robust", "nominal": "mismatched model", "true": "tr
 def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
     sc = sc.replace(seed=seed, **({} if n_samples is None else {"n_samples": n_samples}))
     uncertainty = None
+    beta_note = ""
     if controller == "gp":
         say(f"collecting data and fitting the GP (Q = {sc.n_samples})")
         _, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
         uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
+        beta_note = f" GP beta = {sc.gp_beta:g} (learning.gp_beta)."
+        if sc.beta_method == "conformal":
+            # the beta the study runs with, calibrated for the exported cache itself
+            say("calibrating beta on fresh trajectories (learning.beta_method = 'conformal')")
+            cal = calibrate_beta(sc, uncertainty)
+            sc = sc.replace(gp_beta=cal["beta"])
+            beta_note = (
+                f" GP beta = {cal['beta']:.6g}, split conformal on {cal['n_trajectories']} fresh "
+                f"trajectories for this cache (learning.beta_method = 'conformal'; the file's "
+                f"gp_beta is {cal['chosen_beta']:g}): {cal['statement']}"
+            )
     ctrl = obstacle_controller(sc, _OBSTACLE_NAMES[controller], uncertainty)
     description = (
         f"Scenario '{sc.name}' (a point robot passing a disc obstacle, docs/obstacle.md), "
         f"controller '{_OBSTACLE_NAMES[controller]}', relaxed formula, no input limits. State "
         "x = (x1, x2) position, m. Input u: velocity, m/s. CLF V = x^T P x with P = "
         f"diag{tuple(sc.P)} (goal at the origin); CBF h = |x - x_o|^2 - r^2 with x_o = "
-        f"({sc.obstacle_x1}, 0) m, r = {sc.radius} m; V and h in m^2."
+        f"({sc.obstacle_x1}, 0) m, r = {sc.radius} m; V and h in m^2.{beta_note}"
     )
     return ctrl, description, "obstacle"

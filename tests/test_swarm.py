@@ -63,8 +63,12 @@ def test_centralized_inputs_match_quadprog_along_the_run():
 
 
 def test_bad_parameters_are_named():
-    with pytest.raises(ScenarioError, match="swarm.n_robots must be an integer >= 2, got 1"):
+    with pytest.raises(ScenarioError, match=r"swarm.n_robots must be an integer in \[2, 200\]"):
         SwarmScenario(n_robots=1)
+    with pytest.raises(ScenarioError, match=r"swarm.seed must be an integer in \[0, "):
+        SMALL.replace(seed=-1)  # replace() checks like the file
+    with pytest.raises(ScenarioError, match="swarm.t_final / swarm.dt must give between 1 and"):
+        SMALL.replace(t_final=0.001)
     with pytest.raises(ScenarioError, match="not more than the safety distance"):
         SwarmScenario(n_robots=40, arena_radius=1.0)
     with pytest.raises(ScenarioError, match="unknown parameter"):
@@ -95,4 +99,12 @@ def test_command_writes_the_figure_and_metrics(tmp_path):
     )
     assert bad.exit_code == 2
     assert "a swarm scenario has no n_samples to override" in bad.output, bad.output
+    for args in (["--seed", "-1"], ["--set", "swarm.t_final=0.001"]):
+        bad = CliRunner().invoke(
+            app, ["run", "--scenario", "swarm", *args, "--out", str(tmp_path / "x")]
+        )
+        assert bad.exit_code == 2, bad.output
+        assert "swarm.seed must be" in bad.output or "swarm.t_final / swarm.dt" in bad.output
     assert not (tmp_path / "x").exists()  # refused before any work
+    bad = CliRunner().invoke(app, ["mc", "--scenario", "swarm", "--out", str(tmp_path / "x")])
+    assert bad.exit_code == 2 and "safestab mc runs the scenarios that learn" in bad.output

@@ -120,16 +120,16 @@ def _study_outputs(sc, out_dir: Path, debug: bool) -> None:
     from rich.table import Table
     from rich.text import Text
 
-    from .scenarios import pipeline
+    from .scenarios import kinds
 
-    study = pipeline.study_of(sc)
+    study = kinds.study_of(sc)
     console = _console(width=study.table_width)
     done = _guard(
-        lambda: _with_progress(console, lambda r: pipeline.run(sc, out_dir, progress=r)),
+        lambda: _with_progress(console, lambda r: kinds.run(sc, out_dir, progress=r)),
         debug=debug,
         code=EXIT_RUN_FAILED,
     )
-    summary = done.summary()
+    summary = _guard(done.summary, debug=debug, code=EXIT_RUN_FAILED)
     # plain text, not markup: the units in the headers ("min h [m]") are not style tags
     table = Table(title=Text(summary.title))
     for i, col in enumerate(summary.columns):
@@ -193,10 +193,13 @@ def acc(
 def run(
     scenario: str = typer.Option(
         ...,
-        help="A preset ('paper', 'stress', 'obstacle', 'swarm') or a TOML file (its kind key).",
+        help="A preset ('paper', 'stress', 'stress-ood', 'obstacle', 'swarm') or a TOML file "
+        "(its kind key).",
     ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
-    seed: int | None = typer.Option(None, help="Seed for data collection and GP fitting."),
+    seed: int | None = typer.Option(
+        None, help="Seed for data collection and GP fitting (the swarm: its start jitter)."
+    ),
     n_samples: int | None = typer.Option(None, help="Override the number of GP samples Q."),
     t_final: float | None = typer.Option(None, help="Override the simulated horizon, s."),
     set_: list[str] = typer.Option(
@@ -209,20 +212,19 @@ def run(
 ) -> None:
     """Run any scenario's study through the study pipeline, by its kind (ACC, obstacle, swarm).
 
-    ACC writes OUT/acc_<name>.png, .pdf, _metrics.json; obstacle writes
-    OUT/obstacle_<name>.png, .pdf (trajectories), OUT/obstacle_<name>_maps.png, .pdf
-    (compatibility maps) and OUT/obstacle_<name>_metrics.json; swarm writes
-    OUT/swarm_swarm.png, .pdf and OUT/swarm_swarm_metrics.json; all or none.
+    Writes OUT/<kind>_<name>.png, .pdf (the obstacle also _maps.png, .pdf), _metrics.json and
+    _run.json (the record of the run), all or none. The swarm learns nothing: --n-samples
+    is refused for it, and --seed seeds its start jitter.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     from ._io import ensure_writable_dir
-    from .scenarios import load, parse_override, pipeline
+    from .scenarios import kinds, load, parse_override
 
     def check_inputs():
         overrides = dict(parse_override(text) for text in set_)
-        sc = pipeline.with_overrides(
+        sc = kinds.with_overrides(
             load(scenario, overrides=overrides), seed=seed, n_samples=n_samples, t_final=t_final
         )
         return sc, ensure_writable_dir(out, name="--out")
@@ -369,11 +371,17 @@ def mc(
 
     from . import montecarlo
     from ._io import bytes_writer, ensure_writable_dir, figure_writer, json_writer, write_all
-    from .errors import ParameterError
-    from .scenarios import check_controllers, load, pipeline
+    from .errors import ParameterError, ScenarioError
+    from .scenarios import check_controllers, kinds, load, pipeline
 
     def check_inputs():
         sc = load(scenario)
+        if not hasattr(sc, "trial_study"):  # a kind that learns nothing (the swarm)
+            kind = kinds.study_of(sc).kind
+            raise ScenarioError(
+                f"--scenario: safestab mc runs the scenarios that learn omega (kind 'acc' or "
+                f"'obstacle'), got {scenario!r} of kind {kind!r}; run it with safestab run"
+            )
         spec = sc.montecarlo or montecarlo.MonteCarloSpec()
         if chunk_size is not None:
             spec = spec.replace(chunk_size=chunk_size)  # checked like the file

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .._batching import in_threads
-from .._io import atomic_write_json, with_finite_status
+from .._io import with_finite_status
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import (
@@ -21,7 +20,14 @@ from ..learning import (
 )
 from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
-from .pipeline import Progress, Study, Summary, collect_study_data, fit_study_gp
+from .pipeline import (
+    MetricsWriter,
+    Progress,
+    Study,
+    Summary,
+    collect_study_data,
+    fit_study_gp,
+)
 
 __all__ = [
     "CONTROLLERS",
@@ -50,7 +56,7 @@ _CONFORMAL_STRIDE_S = 1.0
 
 
 @dataclasses.dataclass
-class StudyResult:
+class StudyResult(MetricsWriter):
     """Everything the study produced."""
 
     scenario: ACCScenario
@@ -90,10 +96,6 @@ class StudyResult:
             "timings_s": self.timings,
         }
         return with_finite_status(doc)
-
-    def write_metrics(self, path: str | Path) -> None:
-        """Write :meth:`metrics_document` as JSON, atomically (no NaN or Infinity tokens)."""
-        atomic_write_json(path, self.metrics_document())
 
 
 def trajectory_metrics(
@@ -297,7 +299,18 @@ def _conformal_check(scenario, gp, seed, test) -> dict[str, Any]:
 
 
 def summary(result: StudyResult, document: dict[str, Any]) -> Summary:
-    """The table and calibration line a person reads after an ACC run."""
+    """The table and calibration line a person reads after an ACC run.
+
+    Parameters
+    ----------
+    result : StudyResult
+    document : dict
+        Its metrics document.
+
+    Returns
+    -------
+    Summary
+    """
     sc = result.scenario
     rows = [
         (

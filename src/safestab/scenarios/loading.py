@@ -1,7 +1,7 @@
 """Load any scenario, ACC, obstacle or swarm, by preset name or file, dispatching on ``kind``.
 
-The kinds are the pipeline's (:mod:`safestab.scenarios.pipeline`): each study kind names its
-presets and its loader.
+The kinds are :mod:`safestab.scenarios.kinds`'s: each study kind names its presets and its
+loader.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from . import pipeline
+from . import kinds
 from ._schema import parse_override
 
 __all__ = ["KINDS", "load", "parse_override", "scenario_kind"]
@@ -27,7 +27,7 @@ def scenario_kind(name_or_path: str | Path) -> str:
     ScenarioError
         If the file cannot be read or parsed, or ``kind`` is not one of :data:`KINDS`.
     """
-    return pipeline.kind_of(name_or_path).kind
+    return kinds.kind_of(name_or_path).kind
 
 
 def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
@@ -52,4 +52,4 @@ def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
         :func:`~safestab.scenarios.load_obstacle_scenario`,
         :func:`~safestab.scenarios.swarm.load_swarm_scenario`), or for an unknown ``kind``.
     """
-    return pipeline.load(name_or_path, overrides=overrides)
+    return kinds.load(name_or_path, overrides=overrides)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -24,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._batching import in_threads
-from .._io import atomic_write_json, with_finite_status
+from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
@@ -34,12 +33,12 @@ from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
 from .pipeline import (
+    MetricsWriter,
     Progress,
     Study,
     Summary,
     collect_study_data,
     fit_study_gp,
-    held_out_rows,
     silent,
 )
 
@@ -391,7 +390,7 @@ def compatibility_maps(
 
 
 @dataclasses.dataclass
-class ObstacleStudyResult:
+class ObstacleStudyResult(MetricsWriter):
     """Everything the obstacle study produced."""
 
     scenario: ObstacleScenario
@@ -441,10 +440,6 @@ class ObstacleStudyResult:
             "timings_s": self.timings,
         }
         return with_finite_status(doc)
-
-    def write_metrics(self, path: str | Path) -> None:
-        """Write :meth:`metrics_document` as strict JSON, atomically."""
-        atomic_write_json(path, self.metrics_document())
 
 
 def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray, calibrated: bool) -> dict[str, Any]:
@@ -535,15 +530,14 @@ def fit_obstacle_gp(
     (held_out, gp, uncertainty)
         The held-out :class:`~safestab.learning.Dataset` (``max(50, Q // 4)`` rows), the
         fitted GP, and what the GP-robust controller uses: the GP's
-        :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP.
+        :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP. (Before
+        the study pipeline, the first element was the whole collected data set; its training
+        rows are ``gp.x_train_``.)
     """
     timings = {} if timings is None else timings
     report = report or silent
     t0 = time.perf_counter()
-    # as many rows again drawn after the held-out ones when there is a cache: the data stream
-    # of the published runs (the rows are not used)
-    n_extra = held_out_rows(sc.n_samples) if sc.n_inducing > 0 else 0
-    train, held_out = collect_study_data(sc, n_extra=n_extra)
+    train, held_out = collect_study_data(sc)
     timings["collect_data"] = time.perf_counter() - t0
 
     report(f"fitting the GP (Q = {sc.n_samples}, n = 2)", 0.1)
@@ -733,7 +727,18 @@ def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
 
 
 def summary(result: ObstacleStudyResult, document: dict[str, Any]) -> Summary:
-    """The outcome table and coverage line a person reads after an obstacle run."""
+    """The outcome table and coverage line a person reads after an obstacle run.
+
+    Parameters
+    ----------
+    result : ObstacleStudyResult
+    document : dict
+        Its metrics document.
+
+    Returns
+    -------
+    Summary
+    """
     sc = result.scenario
     rows = []
     for (name, limits), run in result.runs.items():

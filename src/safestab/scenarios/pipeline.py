@@ -1,70 +1,85 @@
-"""The study pipeline, written once: a scenario kind plugs in its model, study, metrics and figure.
+"""The study pipeline, written once: what a scenario kind plugs in and the steps it shares.
 
 A study kind is a :class:`Study`: the ``kind`` key of its scenario files, its presets and
-loader, the function that runs it, its figures and the summary a person reads. Every kind
-goes through the same steps here:
+loader, the function that runs it, its figures and the summary a person reads. Each study
+module (``acc_study``, ``obstacle_study``, ``swarm_study``) defines one as ``STUDY``, and
+:mod:`safestab.scenarios.kinds` lists them, loads a scenario by its kind and runs it. The
+steps every kind shares live here:
 
-* **load** (:func:`kind_of`, :func:`load`): a preset by name or a TOML file by its ``kind``
-  key, checked before any work (the shared schema machinery is
-  :mod:`safestab.scenarios._schema`);
 * **learn**, for the kinds that learn ``omega`` (:func:`collect_study_data`,
   :func:`fit_study_gp`): the scenario's excitation on the true system, ``Q`` training rows
   and ``max(50, Q // 4)`` held-out rows, and the GP with the scenario's kernel;
-* **run** (:func:`run`): the kind's own closed loops and metrics;
 * **outputs** (:func:`write_outputs`): ``<out>/<kind>_<name>`` figures as PNG and PDF, the
-  metrics as strict JSON and a run record, all or none, each atomically.
+  metrics as strict JSON (:class:`MetricsWriter`) and a run record, all or none, each
+  atomically; :func:`other_runs` names the other runs' files in the folder.
 
-The kinds are :data:`STUDY_MODULES`, each a module of this package with a ``STUDY``
-attribute: a new scenario is its model module, a study module and a line here.
+The shared schema machinery (reading, checks, overrides) is :mod:`safestab.scenarios._schema`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import datetime
-import importlib
 import json
 import shlex
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import ScenarioError
-
 __all__ = [
-    "STUDY_MODULES",
+    "MetricsWriter",
     "Progress",
     "Study",
-    "StudyOutputs",
     "Summary",
     "collect_study_data",
     "fit_study_gp",
     "held_out_rows",
-    "kind_of",
-    "load",
     "other_runs",
     "record_writer",
-    "run",
     "silent",
-    "studies",
-    "study_of",
-    "with_overrides",
     "write_outputs",
 ]
 
 #: ``progress(message, fraction_done)``, fraction in [0, 1].
 Progress = Callable[[str, float], None]
 
-#: The modules (of this package) that define a study kind as their ``STUDY``, in the order
-#: the kinds are listed; the first is the kind of a scenario file without a ``kind`` key.
-STUDY_MODULES = ("acc_study", "obstacle_study", "swarm_study")
-
 
 def silent(message: str, fraction: float) -> None:
-    """A :data:`Progress` that reports nothing."""
+    """A :data:`Progress` that reports nothing.
+
+    Parameters
+    ----------
+    message : str
+    fraction : float
+    """
+
+
+class MetricsWriter:
+    """What every study result shares: writing its ``metrics_document()``.
+
+    A subclass defines ``metrics_document() -> dict`` (strict JSON data: non-finite numbers
+    already replaced and named, :func:`~safestab._io.with_finite_status`).
+    """
+
+    def write_metrics(self, path: str | Path) -> None:
+        """Write :meth:`metrics_document` as strict JSON (no NaN or Infinity tokens), atomically.
+
+        Parameters
+        ----------
+        path : str or Path
+            The file; its folder must exist.
+
+        Raises
+        ------
+        OutputError
+            If the file cannot be written (an older file there is left as it was).
+        """
+        from .._io import atomic_write_json
+
+        atomic_write_json(path, self.metrics_document())  # type: ignore[attr-defined]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,109 +142,33 @@ class Study:
         return f"{self.kind}_{scenario.name}"
 
 
-def studies() -> dict[str, Study]:
-    """Every study kind, ``{kind: Study}``, in the order of :data:`STUDY_MODULES`."""
-    found = (importlib.import_module(f"{__package__}.{m}").STUDY for m in STUDY_MODULES)
-    return {s.kind: s for s in found}
-
-
-def study_of(scenario: Any) -> Study:
-    """The study kind of a scenario object.
-
-    Raises
-    ------
-    ScenarioError
-        If ``scenario`` is not a scenario of any kind.
-    """
-    for study in studies().values():
-        if isinstance(scenario, study.scenario_type):
-            return study
-    names = ", ".join(s.scenario_type.__name__ for s in studies().values())
-    raise ScenarioError(f"scenario must be one of {names}, got {type(scenario).__name__}")
-
-
-def kind_of(name_or_path: str | Path) -> Study:
-    """The study kind of a preset (by name) or a scenario file (its ``kind`` key).
-
-    A file without a ``kind`` key is of the first kind, ``"acc"``.
-
-    Raises
-    ------
-    ScenarioError
-        If the file cannot be read or parsed, or its ``kind`` is not a known kind.
-    """
-    from ._schema import read_document
-
-    kinds = studies()
-    for study in kinds.values():
-        if str(name_or_path) in study.presets:
-            return study
-    every = tuple(p for s in kinds.values() for p in s.presets)
-    doc, _, source = read_document(name_or_path, every, __package__)
-    first = next(iter(kinds))
-    kind = doc.get("kind", first)
-    if not isinstance(kind, str) or kind not in kinds:
-        raise ScenarioError(
-            f"{source}: kind must be one of {', '.join(repr(k) for k in kinds)} "
-            f"(or absent for {first!r}), got {kind!r}"
-        )
-    return kinds[kind]
-
-
-def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
-    """Load a scenario of any kind, by preset name or file (its ``kind`` key).
-
-    Parameters
-    ----------
-    name_or_path : str or Path
-    overrides : mapping of str to value, optional
-        ``{"table.key": value}`` set before the document is checked (``--set``).
-
-    Raises
-    ------
-    ScenarioError
-        As the kind's loader, or for an unknown ``kind``.
-    """
-    return kind_of(name_or_path).load(name_or_path, overrides=overrides)
-
-
-def with_overrides(scenario: Any, **changes: Any) -> Any:
-    """``scenario.replace(**changes)`` for the changes that are not ``None``, checked.
-
-    Raises
-    ------
-    ScenarioError
-        If the scenario's kind has no such field (``n_samples`` of a kind that learns
-        nothing), naming the field and the kind, or a new value is invalid.
-    """
-    changes = {k: v for k, v in changes.items() if v is not None}
-    fields = {f.name for f in dataclasses.fields(scenario)}
-    unknown = sorted(set(changes) - fields)
-    if unknown:
-        kind = study_of(scenario).kind
-        raise ScenarioError(
-            f"a {kind} scenario has no {', '.join(unknown)} to override (its fields: "
-            f"{', '.join(sorted(fields - {'name'}))})"
-        )
-    return scenario.replace(**changes) if changes else scenario
-
-
 # -- learning: the steps of every scenario that learns omega ------------------------------
 
 
 def held_out_rows(n_samples: int) -> int:
-    """Rows held out from the fit to check the GP: ``max(50, Q // 4)``."""
+    """Rows held out from the fit to check the GP.
+
+    Parameters
+    ----------
+    n_samples : int
+        ``Q``, the training rows.
+
+    Returns
+    -------
+    int
+        ``max(50, Q // 4)``.
+    """
     return max(50, n_samples // 4)
 
 
 def collect_study_data(
-    scenario: Any, *, seed: int | None = None, n_samples: int | None = None, n_extra: int = 0
+    scenario: Any, *, seed: int | None = None, n_samples: int | None = None
 ) -> tuple[Any, Any]:
     """Collect the study's data on the true system: ``Q`` training rows and held-out rows.
 
     The rows come from the scenario's excitation as its Monte Carlo data sets collect them
-    (``scenario.trial_study().collect``): one stream of ``Q + held_out_rows(Q) + n_extra``
-    rows from ``seed``, split in that order.
+    (``scenario.trial_study().collect``): one stream of ``Q + held_out_rows(Q)`` rows from
+    ``seed``, split in that order (the first rows of a stream do not depend on its length).
 
     Parameters
     ----------
@@ -238,18 +177,16 @@ def collect_study_data(
         Overrides the scenario's seed.
     n_samples : int, optional
         Overrides ``Q``.
-    n_extra : int
-        Further rows drawn after the held-out ones and not returned (the obstacle study
-        draws them so that its data stream stays that of its published runs).
 
     Returns
     -------
     train, held_out : Dataset
+        ``Q`` and ``held_out_rows(Q)`` rows.
     """
     seed = scenario.seed if seed is None else int(seed)
     q = scenario.n_samples if n_samples is None else int(n_samples)
     n_test = held_out_rows(q)
-    data = scenario.trial_study().collect(q + n_test + n_extra, seed)
+    data = scenario.trial_study().collect(q + n_test, seed)
     return data.take(np.arange(q)), data.take(np.arange(q, q + n_test))
 
 
@@ -258,6 +195,14 @@ def fit_study_gp(scenario: Any, train: Any, *, seed: int | None = None) -> Any:
 
     The hyperparameters come from ``min(hyper_subset, len(train))`` rows drawn with ``seed``
     (default the scenario's); the GP is then conditioned on all rows.
+
+    Parameters
+    ----------
+    scenario : ACCScenario or ObstacleScenario
+    train : Dataset
+        The training rows (:func:`collect_study_data`).
+    seed : int, optional
+        Overrides the scenario's seed.
 
     Returns
     -------
@@ -273,63 +218,6 @@ def fit_study_gp(scenario: Any, train: Any, *, seed: int | None = None) -> Any:
 
 
 # -- run and outputs --------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class StudyOutputs:
-    """One run of the pipeline: the study kind, its result, metrics document and files."""
-
-    study: Study
-    result: Any
-    document: dict[str, Any]
-    written: list[Path]
-
-    def summary(self) -> Summary:
-        """The kind's summary of this run."""
-        return self.study.summary(self.result, self.document)
-
-
-def run(
-    scenario: Any,
-    out_dir: str | Path,
-    *,
-    progress: Progress | None = None,
-    command: str | None = None,
-) -> StudyOutputs:
-    """Run a scenario's study and write its outputs.
-
-    The output folder is checked writable before any work; the files are written all or
-    none (:func:`write_outputs`).
-
-    Parameters
-    ----------
-    scenario : ACCScenario, ObstacleScenario or SwarmScenario
-    out_dir : str or Path
-        The output folder (created if needed).
-    progress : callable, optional
-        ``progress(message, fraction_done)``.
-    command : str, optional
-        The command line recorded in the run record (default: this process's arguments).
-
-    Returns
-    -------
-    StudyOutputs
-
-    Raises
-    ------
-    ScenarioError
-        If ``scenario`` is not a scenario.
-    OutputError
-        If ``out_dir`` is not a writable folder (before any work) or a file cannot be written.
-    """
-    from .._io import ensure_writable_dir
-
-    study = study_of(scenario)
-    folder = ensure_writable_dir(out_dir, name="out_dir")
-    result = study.run(scenario, progress or silent)
-    document = result.metrics_document()
-    written = write_outputs(study, result, document, folder, command=command)
-    return StudyOutputs(study, result, document, written)
 
 
 def write_outputs(
@@ -348,10 +236,28 @@ def write_outputs(
     files), so that outputs of different runs in one folder can be told apart
     (:func:`other_runs`). The figures are closed afterwards.
 
+    Parameters
+    ----------
+    study : Study
+    result : study result
+        What ``study.run`` returned.
+    document : dict
+        Its metrics document.
+    out_dir : Path
+        An existing, writable folder.
+    command : str, optional
+        The command line for the record (default: this process's arguments).
+
     Returns
     -------
     list of Path
         The files written, the record last.
+
+    Raises
+    ------
+    OutputError
+        If a file cannot be written; none of the set is then left behind, and older files of
+        the same names are as they were.
     """
     import matplotlib.pyplot as plt
 
@@ -359,8 +265,9 @@ def write_outputs(
 
     scenario = result.scenario
     stem = study.stem(scenario)
-    figures = study.figures(result)
+    figures: dict[str, Any] = {}
     try:
+        figures = study.figures(result)
         outputs = {}
         for suffix, fig in figures.items():
             for ext in ("png", "pdf"):
@@ -383,6 +290,21 @@ def record_writer(
     The record names the command line (``command``, default this process's arguments), the
     scenario's name and seed, the safestab version, the UTC time and the files: ``paths``
     and the record itself.
+
+    Parameters
+    ----------
+    record : Path
+        The record's own path.
+    scenario : scenario
+        Its ``name`` and ``seed`` are recorded.
+    paths : list of Path
+        The run's other files.
+    command : str, optional
+
+    Returns
+    -------
+    callable
+        A writer for :func:`~safestab._io.write_all`.
     """
     from .._io import json_writer
     from .._version import __version__
@@ -402,7 +324,17 @@ def record_writer(
 def other_runs(out_dir: Path, record: Path) -> str | None:
     """A line naming the other runs' records and the unrecorded files in ``out_dir``.
 
-    ``record`` is this run's ``*_run.json``; ``None`` when the folder holds nothing else.
+    Parameters
+    ----------
+    out_dir : Path
+        The output folder.
+    record : Path
+        This run's ``*_run.json``.
+
+    Returns
+    -------
+    str or None
+        The line; ``None`` when the folder holds nothing else.
     """
     ours = set(json.loads(record.read_text())["files"])
     others, recorded = [], set(ours)

@@ -33,11 +33,21 @@ import numpy as np
 from ..errors import ScenarioError
 from ..formulas.multi import multi_kernel
 from ..simulation import closed_loop
-from ._schema import LIMITS, Check, check_structure, choice, integer, load_flat, name_field, real
+from ._schema import (
+    LIMITS,
+    Check,
+    check_count,
+    check_structure,
+    choice,
+    integer,
+    load_flat,
+    name_field,
+    real,
+)
 
 __all__ = [
-    "FIELDS", "SwarmScenario", "SwarmRun", "PRESETS", "load_swarm_scenario", "simulate_swarm",
-    "pair_terms",
+    "FIELDS", "SwarmScenario", "SwarmRun", "PRESETS", "check_values", "load_swarm_scenario",
+    "simulate_swarm", "pair_terms",
 ]  # fmt: skip
 
 PRESETS = ("swarm",)
@@ -61,32 +71,11 @@ class SwarmScenario:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        positive = {
-            "n_robots": self.n_robots - 1,  # at least 2
-            "arena_radius": self.arena_radius,
-            "safety_distance": self.safety_distance,
-            "speed_limit": self.speed_limit,
-            "gain": self.gain,
-            "beta": self.beta,
-            "t_final": self.t_final,
-            "dt": self.dt,
-            "goal_tolerance": self.goal_tolerance,
-        }
-        for key, value in positive.items():
-            if not np.isfinite(value) or value <= 0:
-                expected = "an integer >= 2" if key == "n_robots" else "a finite number > 0"
-                raise ScenarioError(f"swarm.{key} must be {expected}, got {getattr(self, key)!r}")
-        if not isinstance(self.n_robots, int) or isinstance(self.n_robots, bool):
-            raise ScenarioError(f"swarm.n_robots must be an integer >= 2, got {self.n_robots!r}")
-        if not (np.isfinite(self.start_jitter) and self.start_jitter >= 0):
-            raise ScenarioError(f"swarm.start_jitter must be >= 0, got {self.start_jitter!r}")
-        spacing = 2 * self.arena_radius * np.sin(np.pi / self.n_robots)
-        if spacing <= self.safety_distance * 1.05:
-            raise ScenarioError(
-                f"swarm: {self.n_robots} robots on a circle of radius {self.arena_radius} m are "
-                f"{spacing:.3f} m apart, not more than the safety distance "
-                f"{self.safety_distance} m: enlarge arena_radius or reduce n_robots"
-            )
+        check_values(
+            {"name": self.name, **{f"swarm.{f.name}": getattr(self, f.name) for f in
+                                   dataclasses.fields(self) if f.name != "name"}},
+            f"scenario {self.name!r}",
+        )  # fmt: skip
 
     def replace(self, **changes: Any) -> SwarmScenario:
         """A copy with some fields changed (checked again); unknown names are an error."""
@@ -132,6 +121,43 @@ FIELDS: dict[str, Check] = {
 }
 
 
+def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """Check every key of :data:`FIELDS` present in ``flat`` and the cross-field conditions.
+
+    Parameters
+    ----------
+    flat : mapping
+        ``{"swarm.key": value}`` (and optionally ``name``, ``kind``).
+    source : str
+        Where the values came from (a file, a scenario), for the messages.
+
+    Returns
+    -------
+    dict
+        The values normalised (floats as float).
+
+    Raises
+    ------
+    ScenarioError
+        Naming the key, what was received and what was expected: a value of the wrong type,
+        not finite or out of range, a step count ``round(t_final / dt)`` outside
+        ``[1, LIMITS.max_steps]``, or robots on the start circle no farther apart than the
+        safety distance.
+    """
+    v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
+    check_count(source, "swarm.t_final / swarm.dt", "simulation steps",
+                v["swarm.t_final"] / v["swarm.dt"])  # fmt: skip
+    n, radius, distance = v["swarm.n_robots"], v["swarm.arena_radius"], v["swarm.safety_distance"]
+    spacing = 2 * radius * np.sin(np.pi / n)
+    if spacing <= distance * 1.05:
+        raise ScenarioError(
+            f"{source}: {n} robots on a circle of radius {radius} m are {spacing:.3f} m apart, "
+            f"not more than the safety distance {distance} m (5 % margin): enlarge "
+            "swarm.arena_radius or reduce swarm.n_robots"
+        )
+    return v
+
+
 def load_swarm_scenario(
     name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
 ) -> SwarmScenario:
@@ -146,6 +172,10 @@ def load_swarm_scenario(
     overrides : mapping of str to value, optional
         ``{"swarm.key": value}`` set before the document is checked (``--set``).
 
+    Returns
+    -------
+    SwarmScenario
+
     Raises
     ------
     ScenarioError
@@ -159,12 +189,9 @@ def load_swarm_scenario(
     )  # fmt: skip
     if table is not None:
         raise ScenarioError(f"{source}: a swarm scenario has no [montecarlo] table")
-    v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
+    v = check_values(flat, source)  # with the file's name in the messages
     fields = {path.split(".", 1)[1]: value for path, value in v.items() if "." in path}
-    try:
-        return SwarmScenario(name=v["name"], **fields)
-    except ScenarioError as exc:
-        raise ScenarioError(f"{source}: {exc}") from None
+    return SwarmScenario(name=v["name"], **fields)
 
 
 def pair_terms(pos: Any, beta: float, safety_distance: float) -> tuple[Any, Any, Any]:

@@ -14,14 +14,13 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .._io import atomic_write_json, with_finite_status
+from .._io import with_finite_status
 from ..formulas import MultiStatus
-from .pipeline import Progress, Study, Summary, silent
+from .pipeline import MetricsWriter, Progress, Study, Summary, silent
 from .swarm import PRESETS, SwarmRun, SwarmScenario, load_swarm_scenario, pair_terms, simulate_swarm
 
 __all__ = ["STUDY", "SwarmStudy", "run_swarm_study", "MODES"]
@@ -101,7 +100,7 @@ def loose_solver_gap(sc: SwarmScenario, run: SwarmRun, every: int = 25) -> dict[
 
 
 @dataclasses.dataclass(frozen=True)
-class SwarmStudy:
+class SwarmStudy(MetricsWriter):
     """The three runs, their summaries, the loose-solver gap and the wall times."""
 
     scenario: SwarmScenario
@@ -126,10 +125,6 @@ class SwarmStudy:
             "timings_s": self.timings,
         }
         return with_finite_status(doc)
-
-    def write_metrics(self, path: str | Path) -> None:
-        """Write :meth:`metrics_document` as strict JSON, atomically."""
-        atomic_write_json(path, self.metrics_document())
 
 
 def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None) -> SwarmStudy:
@@ -161,7 +156,18 @@ def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None
 
 
 def summary(result: SwarmStudy, document: dict[str, Any]) -> Summary:
-    """The per-filter table and the loose solvers' lines a person reads after a swarm run."""
+    """The per-filter table and the loose solvers' lines a person reads after a swarm run.
+
+    Parameters
+    ----------
+    result : SwarmStudy
+    document : dict
+        Its metrics document.
+
+    Returns
+    -------
+    Summary
+    """
     sc = result.scenario
     rows = []
     for mode, m in document["runs"].items():

@@ -1,0 +1,214 @@
+"""The scenario kinds: load a scenario by its kind and run its study through the pipeline.
+
+Each kind is a study module of this package with a ``STUDY`` attribute
+(:class:`~safestab.scenarios.pipeline.Study`), listed in :func:`studies`. A preset is
+found by name among the kinds' presets, a file by its top-level ``kind`` key (none: the first
+kind, ``"acc"``). :func:`run` runs any scenario's study and writes its outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from ..errors import ScenarioError
+from .pipeline import Progress, Study, Summary, silent, write_outputs
+
+__all__ = [
+    "StudyOutputs",
+    "kind_of",
+    "load",
+    "run",
+    "studies",
+    "study_of",
+    "with_overrides",
+]
+
+
+def studies() -> dict[str, Study]:
+    """Every study kind, in order.
+
+    Returns
+    -------
+    dict of str to Study
+        ``{kind: Study}``; importing the study modules on the first call.
+    """
+    # the kinds, in order (the first is a file's without a kind key); imported when first
+    # asked for, so that loading a scenario does not import every study
+    from . import acc_study, obstacle_study, swarm_study
+
+    return {m.STUDY.kind: m.STUDY for m in (acc_study, obstacle_study, swarm_study)}
+
+
+def study_of(scenario: Any) -> Study:
+    """The study kind of a scenario object.
+
+    Parameters
+    ----------
+    scenario : ACCScenario, ObstacleScenario or SwarmScenario
+
+    Returns
+    -------
+    Study
+
+    Raises
+    ------
+    ScenarioError
+        If ``scenario`` is not a scenario of any kind.
+    """
+    for study in studies().values():
+        if isinstance(scenario, study.scenario_type):
+            return study
+    names = ", ".join(s.scenario_type.__name__ for s in studies().values())
+    raise ScenarioError(f"scenario must be one of {names}, got {type(scenario).__name__}")
+
+
+def kind_of(name_or_path: str | Path) -> Study:
+    """The study kind of a preset (by name) or a scenario file (its ``kind`` key).
+
+    A file without a ``kind`` key is of the first kind, ``"acc"``.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A preset name (of any kind) or a TOML file.
+
+    Returns
+    -------
+    Study
+
+    Raises
+    ------
+    ScenarioError
+        If the file cannot be read or parsed, or its ``kind`` is not a known kind.
+    """
+    from ._schema import read_document
+
+    kinds = studies()
+    for study in kinds.values():
+        if str(name_or_path) in study.presets:
+            return study
+    every = tuple(p for s in kinds.values() for p in s.presets)
+    doc, _, source = read_document(name_or_path, every, __package__)
+    first = next(iter(kinds))
+    kind = doc.get("kind", first)
+    if not isinstance(kind, str) or kind not in kinds:
+        raise ScenarioError(
+            f"{source}: kind must be one of {', '.join(repr(k) for k in kinds)} "
+            f"(or absent for {first!r}), got {kind!r}"
+        )
+    return kinds[kind]
+
+
+def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
+    """Load a scenario of any kind, by preset name or file (its ``kind`` key).
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+    overrides : mapping of str to value, optional
+        ``{"table.key": value}`` set before the document is checked (``--set``).
+
+    Returns
+    -------
+    ACCScenario, ObstacleScenario or SwarmScenario
+
+    Raises
+    ------
+    ScenarioError
+        As the kind's loader, or for an unknown ``kind``.
+    """
+    return kind_of(name_or_path).load(name_or_path, overrides=overrides)
+
+
+def with_overrides(scenario: Any, **changes: Any) -> Any:
+    """``scenario.replace(**changes)`` for the changes that are not ``None``, checked.
+
+    Parameters
+    ----------
+    scenario : ACCScenario, ObstacleScenario or SwarmScenario
+    **changes
+        Field names and new values (``seed``, ``n_samples``, ``t_final`` from the command
+        line); ``None`` means unchanged.
+
+    Returns
+    -------
+    scenario
+        A new scenario of the same kind, or ``scenario`` itself when nothing changes.
+
+    Raises
+    ------
+    ScenarioError
+        If the scenario's kind has no such field (``n_samples`` of a kind that learns
+        nothing), naming the field and the kind, or a new value is invalid.
+    """
+    changes = {k: v for k, v in changes.items() if v is not None}
+    fields = {f.name for f in dataclasses.fields(scenario)}
+    unknown = sorted(set(changes) - fields)
+    if unknown:
+        kind = study_of(scenario).kind
+        got = ", ".join(f"{k} = {changes[k]!r} (--{k.replace('_', '-')})" for k in unknown)
+        raise ScenarioError(
+            f"a {kind} scenario has no {', '.join(unknown)} to override, got {got}; a {kind} "
+            f"scenario's fields are {', '.join(sorted(fields - {'name'}))}"
+        )
+    return scenario.replace(**changes) if changes else scenario
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyOutputs:
+    """One run of the pipeline: the study kind, its result, metrics document and files."""
+
+    study: Study
+    result: Any
+    document: dict[str, Any]
+    written: list[Path]
+
+    def summary(self) -> Summary:
+        """The kind's summary of this run."""
+        return self.study.summary(self.result, self.document)
+
+
+def run(
+    scenario: Any,
+    out_dir: str | Path,
+    *,
+    progress: Progress | None = None,
+    command: str | None = None,
+) -> StudyOutputs:
+    """Run a scenario's study and write its outputs.
+
+    The output folder is checked writable before any work; the files are written all or
+    none (:func:`write_outputs`).
+
+    Parameters
+    ----------
+    scenario : ACCScenario, ObstacleScenario or SwarmScenario
+    out_dir : str or Path
+        The output folder (created if needed).
+    progress : callable, optional
+        ``progress(message, fraction_done)``.
+    command : str, optional
+        The command line recorded in the run record (default: this process's arguments).
+
+    Returns
+    -------
+    StudyOutputs
+
+    Raises
+    ------
+    ScenarioError
+        If ``scenario`` is not a scenario.
+    OutputError
+        If ``out_dir`` is not a writable folder (before any work) or a file cannot be written.
+    """
+    from .._io import ensure_writable_dir
+
+    study = study_of(scenario)
+    folder = ensure_writable_dir(out_dir, name="out_dir")
+    result = study.run(scenario, progress or silent)
+    document = result.metrics_document()
+    written = write_outputs(study, result, document, folder, command=command)
+    return StudyOutputs(study, result, document, written)

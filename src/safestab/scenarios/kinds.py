@@ -105,6 +105,8 @@ def kind_of(name_or_path: str | Path) -> Study:
 def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
     """Load a scenario of any kind, by preset name or file (its ``kind`` key).
 
+    The presets are ``paper``, ``stress``, ``stress-ood`` (ACC), ``obstacle`` and ``swarm``.
+
     Parameters
     ----------
     name_or_path : str or Path
@@ -118,7 +120,9 @@ def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
     Raises
     ------
     ScenarioError
-        As the kind's loader, or for an unknown ``kind``.
+        As the kind's loader (:func:`~safestab.scenarios.load_scenario`,
+        :func:`~safestab.scenarios.load_obstacle_scenario`,
+        :func:`~safestab.scenarios.swarm.load_swarm_scenario`), or for an unknown ``kind``.
     """
     return kind_of(name_or_path).load(name_or_path, overrides=overrides)
 

@@ -6,12 +6,11 @@ loader.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from . import kinds
 from ._schema import parse_override
+from .kinds import load
 
 __all__ = ["KINDS", "load", "parse_override", "scenario_kind"]
 
@@ -28,28 +27,3 @@ def scenario_kind(name_or_path: str | Path) -> str:
         If the file cannot be read or parsed, or ``kind`` is not one of :data:`KINDS`.
     """
     return kinds.kind_of(name_or_path).kind
-
-
-def load(name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Any:
-    """Load a scenario of any kind by preset name or file.
-
-    The presets are ``paper``, ``stress``, ``stress-ood`` (ACC), ``obstacle`` and ``swarm``.
-
-    Parameters
-    ----------
-    name_or_path : str or Path
-    overrides : mapping of str to value, optional
-        ``{"table.key": value}`` set before the document is checked.
-
-    Returns
-    -------
-    ACCScenario, ObstacleScenario or SwarmScenario
-
-    Raises
-    ------
-    ScenarioError
-        As the kind's loader (:func:`~safestab.scenarios.load_scenario`,
-        :func:`~safestab.scenarios.load_obstacle_scenario`,
-        :func:`~safestab.scenarios.swarm.load_swarm_scenario`), or for an unknown ``kind``.
-    """
-    return kinds.load(name_or_path, overrides=overrides)

@@ -16,7 +16,6 @@ from ..learning import (
     Dataset,
     GaussianProcessModel,
     calibration,
-    conformal_beta,
 )
 from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
@@ -26,6 +25,7 @@ from .pipeline import (
     Study,
     Summary,
     collect_study_data,
+    conformal_calibration,
     fit_study_gp,
 )
 
@@ -50,9 +50,9 @@ STUDY_THREADS = 2
 
 #: Miss probability of the calibrated (split conformal, per-trajectory) beta.
 CONFORMAL_DELTA = 0.05
-#: Calibration trajectories (>= 1/delta - 1 = 19 needed), states every 1 s along each.
+#: Calibration trajectories (>= 1/delta - 1 = 19 needed), one state per second along each
+#: (:func:`~safestab.scenarios.pipeline.conformal_calibration`).
 _CONFORMAL_TRAJECTORIES = 40
-_CONFORMAL_STRIDE_S = 1.0
 
 
 @dataclasses.dataclass
@@ -271,23 +271,15 @@ def _conformal_check(scenario, gp, seed, test) -> dict[str, Any]:
     import time
 
     t0 = time.perf_counter()
-    per_traj = int(round(scenario.sample_horizon * scenario.sample_rate))
     # an independent stream: trajectories not used to fit
-    cal = scenario.trial_study().collect(_CONFORMAL_TRAJECTORIES * per_traj, (seed + 2**31) % 2**32)
-    stride = max(1, int(round(_CONFORMAL_STRIDE_S * scenario.sample_rate)))
-    cal = cal.take(np.arange(0, len(cal), stride))
-    omega_cal = np.asarray(scenario.omega(cal.x))
-    rep = conformal_beta(gp, cal.x, omega_cal, CONFORMAL_DELTA, groups=cal.trajectory)
-    beta_c = float(rep.beta[list(gp.components_)][0])
+    out = conformal_calibration(
+        scenario, gp, n_trajectories=_CONFORMAL_TRAJECTORIES,
+        seed=(seed + 2**31) % 2**32, delta=CONFORMAL_DELTA,
+    )  # fmt: skip
+    beta_c = out["beta"]
     omega_test = np.asarray(scenario.omega(test.x))
     return {
-        "beta": beta_c,
-        "chosen_beta": scenario.gp_beta,
-        "delta": CONFORMAL_DELTA,
-        "probability": rep.probability,
-        "n_trajectories": rep.n_calibration,
-        "states_per_trajectory": per_traj // stride,
-        "statement": rep.statement,
+        **out,
         "held_out_coverage_chosen_beta": calibration(
             gp, test.x, omega_test, scenario.gp_beta
         ).per_component.tolist(),

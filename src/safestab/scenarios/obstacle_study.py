@@ -28,7 +28,7 @@ from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
-from ..learning import FastGP, GaussianProcessModel, conformal_beta
+from ..learning import FastGP, GaussianProcessModel
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
@@ -38,6 +38,7 @@ from .pipeline import (
     Study,
     Summary,
     collect_study_data,
+    conformal_calibration,
     fit_study_gp,
     silent,
 )
@@ -481,18 +482,20 @@ CONFORMAL_MIN_TRAJECTORIES = 100
 def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
     """Split conformal ``beta`` of ``model`` on fresh trajectories, per trajectory.
 
+    :func:`~safestab.scenarios.pipeline.conformal_calibration` with
     ``max(CONFORMAL_MIN_TRAJECTORIES, ceil(1 / delta))`` excitation trajectories of the
-    scenario's horizon are collected with the seed ``SeedSequence([seed, 1])``, a stream
-    independent of the fitting and held-out rows (``seed``), and thinned to one state per
-    second (the same times in every trajectory: 0 and 1 s of the preset's 2 s runs); each
-    trajectory is one calibration unit (``groups``). The score of a unit is the
-    largest ``|omega_i - m_i| / sigma_i`` over its states and both components, against the
-    true ``omega``; ``beta`` is the ``ceil((N + 1)(1 - delta))``-th smallest score
-    (:func:`~safestab.learning.conformal_beta`). The guarantee: a new trajectory of the same
-    excitation lies inside ``m +- beta sigma`` (both components) at its kept states (the
-    thinned times) with probability at least ``1 - delta``. States of the
-    plane off those trajectories, and closed-loop states, are other distributions, which the
-    guarantee does not cover.
+    scenario's horizon, collected with the seed ``SeedSequence([seed, 1])`` (a stream
+    independent of the fitting and held-out rows) and thinned to one state per second (0 and
+    1 s of the preset's 2 s runs). The guarantee: a new trajectory of the same excitation lies
+    inside ``m +- beta sigma`` (both components) at its kept states with probability at least
+    ``1 - delta``. States of the plane off those trajectories, and closed-loop states, are
+    other distributions, which the guarantee does not cover.
+
+    Parameters
+    ----------
+    sc : ObstacleScenario
+    model : uncertainty model
+        The GP or the cache the GP-robust controller uses.
 
     Returns
     -------
@@ -500,21 +503,9 @@ def calibrate_beta(sc: ObstacleScenario, model: Any) -> dict[str, Any]:
         ``beta``, ``chosen_beta`` (``gp_beta``), ``delta``, ``probability``,
         ``n_trajectories``, ``states_per_trajectory``, ``statement``: strict JSON data.
     """
-    study = sc.trial_study()
-    per_traj, stride = study.calibration_shape()
     n_traj = max(CONFORMAL_MIN_TRAJECTORIES, int(np.ceil(1.0 / sc.delta)))
     cal_seed = int(np.random.SeedSequence([sc.seed, 1]).generate_state(1)[0])
-    cal = study.collect(n_traj * per_traj, cal_seed).thin(stride)
-    rep = conformal_beta(model, cal.x, np.asarray(sc.omega(cal.x)), sc.delta, groups=cal.trajectory)
-    return {
-        "beta": float(np.max(rep.beta)),
-        "chosen_beta": sc.gp_beta,
-        "delta": sc.delta,
-        "probability": float(rep.probability),
-        "n_trajectories": int(rep.n_calibration),
-        "states_per_trajectory": int(len(np.arange(0, per_traj, stride))),
-        "statement": rep.statement,
-    }
+    return conformal_calibration(sc, model, n_trajectories=n_traj, seed=cal_seed, delta=sc.delta)
 
 
 def fit_obstacle_gp(

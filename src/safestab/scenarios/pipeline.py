@@ -9,6 +9,8 @@ steps every kind shares live here:
 * **learn**, for the kinds that learn ``omega`` (:func:`collect_study_data`,
   :func:`fit_study_gp`): the scenario's excitation on the true system, ``Q`` training rows
   and ``max(50, Q // 4)`` held-out rows, and the GP with the scenario's kernel;
+* **calibrate** (:func:`conformal_calibration`): a split conformal ``beta`` on fresh
+  excitation trajectories, one calibration unit per trajectory;
 * **outputs** (:func:`write_outputs`): ``<out>/<kind>_<name>`` figures as PNG and PDF, the
   metrics as strict JSON (:class:`MetricsWriter`) and a run record, all or none, each
   atomically; :func:`other_runs` names the other runs' files in the folder.
@@ -35,6 +37,7 @@ __all__ = [
     "Study",
     "Summary",
     "collect_study_data",
+    "conformal_calibration",
     "fit_study_gp",
     "held_out_rows",
     "other_runs",
@@ -215,6 +218,57 @@ def fit_study_gp(scenario: Any, train: Any, *, seed: int | None = None) -> Any:
     return model.fit(
         train.x, train.y, hyper_subset=min(scenario.hyper_subset, len(train)), seed=seed
     )
+
+
+def conformal_calibration(
+    scenario: Any, model: Any, *, n_trajectories: int, seed: int, delta: float
+) -> dict[str, Any]:
+    """Split conformal ``beta`` of ``model`` on fresh excitation trajectories, per trajectory.
+
+    ``n_trajectories`` excitation trajectories of the scenario's horizon are collected with
+    ``seed`` (a stream independent of the fitting rows) and thinned to one state per second,
+    the same times in every trajectory (``Dataset.thin``); each trajectory is one
+    calibration unit. The score of a unit is its largest ``|omega_i - m_i| / sigma_i`` over
+    its states and the learned components, against the true ``omega``; ``beta`` is the
+    ``ceil((N + 1)(1 - delta))``-th smallest score
+    (:func:`~safestab.learning.conformal_beta`). The guarantee: a new trajectory of the same
+    excitation lies inside ``m +- beta sigma`` at its kept states with probability at least
+    ``1 - delta``; closed-loop states are another distribution, which it does not cover.
+
+    Parameters
+    ----------
+    scenario : ACCScenario or ObstacleScenario
+    model : uncertainty model
+        The fitted GP or the cache the controller uses (the guarantee is about it).
+    n_trajectories : int
+        Calibration units (at least ``1 / delta - 1`` for a finite beta).
+    seed : int
+        Seed of the calibration trajectories.
+    delta : float
+        The allowed miss probability, in (0, 1).
+
+    Returns
+    -------
+    dict
+        ``beta``, ``chosen_beta`` (the scenario's ``gp_beta``), ``delta``, ``probability``,
+        ``n_trajectories``, ``states_per_trajectory``, ``statement``: strict JSON data.
+    """
+    from ..learning import conformal_beta
+
+    study = scenario.trial_study()
+    per_traj, stride = study.calibration_shape()
+    cal = study.collect(n_trajectories * per_traj, seed).thin(stride)
+    omega = np.asarray(scenario.omega(cal.x))
+    rep = conformal_beta(model, cal.x, omega, delta, groups=cal.trajectory)
+    return {
+        "beta": float(np.max(rep.beta)),  # applied to every learned component
+        "chosen_beta": scenario.gp_beta,
+        "delta": delta,
+        "probability": float(rep.probability),
+        "n_trajectories": int(rep.n_calibration),
+        "states_per_trajectory": len(range(0, per_traj, stride)),
+        "statement": rep.statement,
+    }
 
 
 # -- run and outputs --------------------------------------------------------------------

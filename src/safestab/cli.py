@@ -153,14 +153,6 @@ def _print_written(console: Any, written: list[Path]) -> None:
         console.print(f"note: {note}", markup=False, soft_wrap=True)
 
 
-def _overrides(seed, n_samples, t_final) -> dict:
-    return {
-        k: v
-        for k, v in {"seed": seed, "n_samples": n_samples, "t_final": t_final}.items()
-        if v is not None
-    }
-
-
 @app.command()
 def acc(
     scenario: str = typer.Option("paper", help="A preset ('paper', 'stress') or a TOML file."),
@@ -178,11 +170,13 @@ def acc(
 
     matplotlib.use("Agg")
     from ._io import ensure_writable_dir
-    from .scenarios import load_scenario
+    from .scenarios import kinds, load_scenario
 
     # -- checks, before any work ----------------------------------------------------------
     def check_inputs():
-        sc = load_scenario(scenario).replace(**_overrides(seed, n_samples, t_final))
+        sc = kinds.with_overrides(
+            load_scenario(scenario), seed=seed, n_samples=n_samples, t_final=t_final
+        )
         return sc, ensure_writable_dir(out, name="--out")
 
     sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)

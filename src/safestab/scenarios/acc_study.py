@@ -347,8 +347,8 @@ STUDY = Study(
     kind="acc",
     scenario_type=ACCScenario,
     presets=PRESETS,
-    load=lambda name_or_path, overrides=None: load_scenario(name_or_path, overrides=overrides),
+    load=load_scenario,
     run=lambda scenario, progress: run_study(scenario, progress=progress),
     figures=_figures,
-    summary=lambda result, document: summary(result, document),
+    summary=summary,
 )

@@ -783,11 +783,9 @@ STUDY = Study(
     kind="obstacle",
     scenario_type=ObstacleScenario,
     presets=PRESETS,
-    load=lambda name_or_path, overrides=None: load_obstacle_scenario(
-        name_or_path, overrides=overrides
-    ),
+    load=load_obstacle_scenario,
     run=lambda scenario, progress: run_obstacle_study(scenario, progress=progress),
     figures=_figures,
-    summary=lambda result, document: summary(result, document),
+    summary=summary,
     table_width=130,
 )

@@ -96,8 +96,8 @@ class SwarmScenario:
 
 _POS = real(LIMITS.min_positive)
 
-#: Every key of a swarm scenario file and its type check (the ranges that depend on other
-#: keys are :class:`SwarmScenario`'s). ``name`` and ``kind`` are optional.
+#: Every key of a swarm scenario file and its type check (the conditions that involve
+#: several keys are :func:`check_values`'). ``name`` and ``kind`` are optional.
 FIELDS: dict[str, Check] = {
     "name": name_field,
     "kind": choice(("swarm",)),

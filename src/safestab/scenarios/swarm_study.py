@@ -216,11 +216,9 @@ STUDY = Study(
     kind="swarm",
     scenario_type=SwarmScenario,
     presets=PRESETS,
-    load=lambda name_or_path, overrides=None: load_swarm_scenario(
-        name_or_path, overrides=overrides
-    ),
+    load=load_swarm_scenario,
     run=lambda scenario, progress: run_swarm_study(scenario, progress=progress),
     figures=_figures,
-    summary=lambda result, document: summary(result, document),
+    summary=summary,
     table_width=115,
 )

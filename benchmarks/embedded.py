@@ -133,19 +133,45 @@ def cache_accuracy(n: int = 48) -> dict:
     mp.mp.dps = 60
     j, m = 0, int(fast.n_inducing_[0])
 
-    def exact(xs):
+    def exact(xs):  # learning._posterior.band_component's proven std, in 60 digits
+        f = lambda key, *i: mp.mpf(float(p[key][(j, *i)]))  # noqa: E731
         z0 = [(mp.mpf(xs[i]) - mp.mpf(p["offset"][i])) / mp.mpf(p["scale"][i]) for i in range(3)]
-        a = mp.mpf(p["amp"][j])
-        k = [a * a * mp.exp(-sum(((z0[i] - mp.mpf(p["z"][j, c, i])) / mp.mpf(p["ls"][j, i])) ** 2
-                                 for i in range(3)) / 2) for c in range(m)]  # fmt: skip
-        mm = p["z"].shape[1]
-        rows = [mp.fsum(mp.mpf(p["maps"][j, r, c]) * k[c] for c in range(m)) for r in range(3 * mm)]
-        v, gv, cv = rows[:mm], rows[mm : 2 * mm], rows[2 * mm :]
-        r2 = max(a * a - mp.fsum(t * t for t in v), 0) + mp.mpf(p["round"][j])
-        r = mp.sqrt(r2)
-        var = r2 + mp.fsum(t * t for t in gv)
-        var += 2 * mp.sqrt(mp.fsum(t * t for t in cv)) * mp.mpf(p["rho"][j]) * r
-        return float(mp.sqrt(var) + mp.mpf(p["err"][j]) * r / fast.min_beta)
+        a, mm, u = f("amp"), p["z"].shape[1], mp.mpf(2) ** -53
+        amp2, ek = a * a, f("ek")
+        k = [amp2 * mp.exp(-sum(((z0[i] - f("z", c, i)) / f("ls", i)) ** 2
+                                for i in range(3)) / 2) for c in range(m)]  # fmt: skip
+
+        def mat(key, v):
+            return [mp.fsum(f(key, r, c) * v[c] for c in range(m)) for r in range(m)]
+
+        def dot(v, w):
+            return mp.fsum(x_ * y_ for x_, y_ in zip(v, w, strict=True))
+
+        lt = [[f("li", c, r) for c in range(m)] for r in range(m)]  # Lj^-T, row by row
+        c = [mp.fsum(lt[r][i] * t for i, t in enumerate(mat("li", k))) for r in range(m)]
+        kc = mat("kzz", c)
+        c1, c2 = mp.fsum(abs(t) for t in c), mp.sqrt(dot(c, c))
+        dot_u = (mm + 3) * u
+        q = amp2 - 2 * dot(c, k) + dot(c, kc)
+        r = mp.sqrt(max(q, 0) + amp2 * (1 + c1) ** 2 * (2 * dot_u + 2 * ek * u + 3 * u))
+        gc = mat("g", c)
+        pp = mp.sqrt(dot(gc, gc)) + (dot_u + u) * f("gnorm") * c2
+        res = [k[i] - kc[i] for i in range(m)]
+        res_n = mp.sqrt(dot(res, res)) + mp.sqrt(mm) * amp2 * (1 + c1) * (dot_u + (ek + 1) * u)
+        cmc = mat("cm", c)
+        gam = mp.sqrt(dot(cmc, cmc)) + (dot_u + u) * f("cnorm") * c2
+        cross = 2 * (c2 * res_n + gam * (f("rho") * r + f("wnorm") * res_n))
+        sd = mp.sqrt(pp * pp + r * r + min(2 * pp * r, cross)) * (1 + 4 * u)
+        abs_b_k = mp.fsum(abs(f("b", i)) * k[i] for i in range(m))
+        abs_c_rho = mp.fsum(abs(c[i]) * abs(f("rho_b", i)) for i in range(m))
+        bn = f("bnorm")
+        mround = (
+            dot_u * (abs(f("mu")) + abs_b_k + abs_c_rho)
+            + u * (ek * amp2 * bn + abs_c_rho + amp2 * c1 * bn)
+            + c1 * f("rho_err")
+        )
+        e_w = f("err") + u * a * bn
+        return float(sd + (e_w * r + mround) / fast.min_beta)
 
     ref = np.array([exact(s) for s in x])
     _, batched = fast.predict(x)

@@ -159,6 +159,21 @@ def gp_coverage_table(rows: list[dict]) -> str:
     return _table(header, ["---:"] * 7, body)
 
 
+def fast_band_table(rows: list[dict]) -> str:
+    """docs/learning.md's cache-width table from benchmarks/fast_band.py's rows."""
+    body = [[r["preset"], str(r["component"]), f"{r['n_inducing']} of {r['n_inducing_cap']}",
+             f"{r['ratio_training_median']:.3f} / {r['ratio_training_max']:.3f}",
+             f"{r['ratio_held_out_median']:.3f}", f"{r['mean_error_norm']:.2g}",
+             f"{r['coverage_training']:.3f} / {r['coverage_held_out']:.3f}",
+             str(r["warnings"])] for r in rows]  # fmt: skip
+    header = ["preset", "component", "inducing inputs (of the cap)",
+              "cache std / exact std, training inputs (median / max)",
+              "the same, held-out states (median)", "E",
+              "band contains the exact band, beta = 1 (training / held-out)",
+              "InducingPointsWarning"]  # fmt: skip
+    return _table(header, ["---", "---:", "---:", "---:", "---:", "---:", "---:", "---:"], body)
+
+
 def _num(x: float | None) -> str:
     """A measured value as the tables print it.
 
@@ -445,6 +460,14 @@ def step_gp_coverage(out: Path) -> dict[str, tuple[str, str]]:
     return {"gp-coverage": ("docs/learning.md", gp_coverage_table(_load(rows)))}
 
 
+def step_fast_band(out: Path) -> dict[str, tuple[str, str]]:
+    """benchmarks/fast_band.py over the four presets: docs/learning.md's cache-width table."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = out / "fast_band.json"
+    _run([sys.executable, "benchmarks/fast_band.py", "--json", str(rows)])
+    return {"fastgp-width": ("docs/learning.md", fast_band_table(_load(rows)))}
+
+
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "acc": step_acc,
     "swarm": step_swarm,
@@ -452,6 +475,7 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "obstacle-seeds": step_obstacle_seeds,
     "mc-presets": step_mc_presets,
     "gp-coverage": step_gp_coverage,
+    "fast-band": step_fast_band,
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
     "price": step_price,
@@ -466,6 +490,7 @@ PRODUCES = {
     "obstacle-seeds": ["obstacle-seeds"],
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],
+    "fast-band": ["fastgp-width"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "price": ["price-stress", "price-obstacle"],

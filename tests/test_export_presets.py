@@ -165,7 +165,7 @@ def test_float_widened_gp_band_contains_the_exact_band_in_float32_arithmetic():
     """FastGP.for_precision("float") evaluated in float (its exported C, float variant)
     still contains the exact GP's band, in and far from the data."""
     sc, gp, rng = small_stress_gp()
-    fast = FastGP(gp, 32).for_precision("float")
+    fast = FastGP(gp, 48).for_precision("float")  # 32 caps the drag (a warning)
     x = np.concatenate(
         [
             rng.uniform(sc.x0_low, sc.x0_high, (500, 3)),
@@ -183,7 +183,7 @@ def test_float_widened_gp_band_contains_the_exact_band_in_float32_arithmetic():
         assert np.all(mean32 - beta * std32 <= mean_ex - beta * std_ex)
         assert np.all(mean32 + beta * std32 >= mean_ex + beta * std_ex)
     # and the widening is what float needs, not a blanket: within 3x of the float64 cache
-    _, std64 = FastGP(gp, 32).predict(x.astype(np.float64))
+    _, std64 = FastGP(gp, 48).predict(x.astype(np.float64))
     assert np.median(std32 / std64) < 3.0
 
 

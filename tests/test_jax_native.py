@@ -630,7 +630,10 @@ def test_gp_robust_controllers_differentiate_without_nan():
         fwd = np.asarray(jax.jacfwd(ctrl.input_fn)(x))
         rev = np.asarray(jax.jacrev(ctrl.input_fn)(x))
         assert np.all(np.isfinite(fwd))
-        np.testing.assert_allclose(fwd, rev, rtol=1e-12, atol=1e-14)
+        # the cache's weights c = Lj^-T Lj^-1 k carry cond(K_ZZ) u, which the two modes
+        # accumulate in different orders
+        rtol = 1e-12 if unc is gp else 1e-9
+        np.testing.assert_allclose(fwd, rev, rtol=rtol, atol=1e-14)
         h = 1e-4
         fd = np.stack(
             [

@@ -175,8 +175,8 @@ class InducingCache:
     Each component keeps its own number of inducing inputs ``M_c`` (the number FastGP chose,
     rounded up to 1, 2, 4 or a multiple of 4 so that data sets share compiled shapes; padded
     rows are masked out), instead of FastGP's padding of every component to the largest: the
-    stress preset's GP needs one inducing input for each kinematic component and eight for its
-    drag, and the padding to eight made two thirds of the kernel values and products zeros
+    stress preset's GP needs a few inducing inputs for each kinematic component and a dozen
+    for its drag, and the padding to the largest made most kernel values and products zeros
     (measured: the GP was three quarters of that preset's closed-loop time). The rows dropped
     are padding (zero kernel values, zero weights, zero maps), so the band is FastGP's.
 
@@ -188,13 +188,14 @@ class InducingCache:
         Standardised inducing inputs times ``inv_ls`` (padded rows masked out).
     inv_ls : array of shape (C, n)
         Inverse lengthscales of the standardised inputs.
-    maps_t : tuple of C arrays of shape (M_c, 3 M_c)
-        ``[Lj^-1; G Lj^-1; C Lj^-1]^T``: a kernel row times it gives ``[a, G a, C a]``.
-    weights : tuple of C arrays of shape (M_c,)
-        The mean is ``k . weights + mean``.
     mask : tuple of C arrays of shape (M_c,)
-    amplitude, mean, err, rho, rnd : arrays of shape (C,)
-        FastGP's ``amp``, prior mean, ``E``, ``rho`` and rounding allowance of ``r^2``.
+    li, kzz, g, cm : tuples of C arrays of shape (M_c, M_c)
+        ``Lj^-1``, ``K_ZZ``, ``G`` and ``C`` (:meth:`FastGP.arrays`).
+    b, rho_b : tuples of C arrays of shape (M_c,)
+        The mean's weights and residual.
+    scal : tuple of C arrays of shape (11,)
+        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and ``M_c``
+        (``band_products``).
     min_beta : array of shape ()
         The band contains the exact band for every ``beta >= min_beta``.
     """
@@ -203,40 +204,46 @@ class InducingCache:
     scale: Any
     zl: Any
     inv_ls: Any
-    maps_t: Any
-    weights: Any
     mask: Any
-    amplitude: Any
-    mean: Any
-    err: Any
-    rho: Any
-    rnd: Any
+    li: Any
+    kzz: Any
+    g: Any
+    cm: Any
+    b: Any
+    rho_b: Any
+    scal: Any
     min_beta: Any
     kernel: str
     components: tuple[int, ...]
     n_states: int
+    proven: bool = True
 
     @classmethod
     def from_fastgp(cls, fast: FastGP) -> InducingCache:
         """The arrays of a :class:`~safestab.learning.FastGP` (its proven band), batched."""
         a = fast.arrays()
         inv_ls = 1.0 / a["ls"]
-        m_all = a["mask"].shape[1]
-        zl, maps_t, weights, mask = [], [], [], []
+        out: dict[str, list] = {
+            key: [] for key in ("zl", "mask", "li", "kzz", "g", "cm", "b", "rho_b")
+        }
+        scal = []
         for c in range(a["mask"].shape[0]):
             used = int(a["mask"][c].sum())  # FastGP pads at the end
             m = bucket(used)
-            blocks = [a["maps"][c][g * m_all : g * m_all + used, :used] for g in range(3)]
-            zl.append(_padded(a["z"][c, :used] * inv_ls[c], (m, a["z"].shape[2])))
-            maps_t.append(np.concatenate([_padded(b, (m, m)) for b in blocks], 0).T)
-            weights.append(_padded(a["wk"][c, :used], (m,)))
-            mask.append(_padded(a["mask"][c, :used].astype(float), (m,)))
+            out["zl"].append(_padded(a["z"][c, :used] * inv_ls[c], (m, a["z"].shape[2])))
+            out["mask"].append(_padded(a["mask"][c, :used].astype(float), (m,)))
+            for key in ("li", "kzz", "g", "cm"):
+                out[key].append(_padded(a[key][c, :used, :used], (m, m)))
+            for key in ("b", "rho_b"):
+                out[key].append(_padded(a[key][c, :used], (m,)))
+            keys = ("amp", "mu", "err", "ek", "gnorm", "bnorm", "rho_err", "rho", "wnorm", "cnorm")
+            scal.append(np.array([float(a[key][c]) for key in keys] + [float(m)]))
         return cls(
-            offset=a["offset"], scale=a["scale"], zl=tuple(zl), inv_ls=inv_ls,
-            maps_t=tuple(maps_t), weights=tuple(weights), mask=tuple(mask), amplitude=a["amp"],
-            mean=np.asarray(fast.model.mean_, float), err=a["err"], rho=a["rho"],
-            rnd=a["round"], min_beta=np.asarray(fast.min_beta, float), kernel=fast.model.kernel,
+            offset=a["offset"], scale=a["scale"], inv_ls=inv_ls, scal=tuple(scal),
+            **{key: tuple(v) for key, v in out.items()},
+            min_beta=np.asarray(fast.min_beta, float), kernel=fast.model.kernel,
             components=tuple(int(c) for c in fast.components_), n_states=int(fast.n_states),
+            proven=bool(fast.proven),
         )  # fmt: skip
 
     def mean_std_batch(self, x: Any) -> tuple[Any, Any]:
@@ -249,9 +256,9 @@ class InducingCache:
         means, stds = [], []
         for c in range(len(self.zl)):
             mean, std = band_products(
-                xs_t, self.inv_ls[c], self.zl[c], self.maps_t[c], self.weights[c], self.mask[c],
-                self.amplitude[c], self.mean[c], self.err[c], self.rho[c], self.rnd[c],
-                self.min_beta, kind=self.kernel,
+                xs_t, self.inv_ls[c], self.zl[c], self.mask[c], self.li[c], self.kzz[c],
+                self.g[c], self.cm[c], self.b[c], self.rho_b[c], self.scal[c], self.min_beta,
+                kind=self.kernel, proven=self.proven,
             )  # fmt: skip
             stds.append(std)
             means.append(mean)
@@ -261,7 +268,7 @@ class InducingCache:
 
 for _cls in (ExactPosterior, InducingCache):
     _names = [f.name for f in dataclasses.fields(_cls)]
-    _meta = ["kernel", "components", "n_states"]
+    _meta = [m for m in ("kernel", "components", "n_states", "proven") if m in _names]
     jax.tree_util.register_dataclass(
         _cls, data_fields=[f for f in _names if f not in _meta], meta_fields=_meta
     )

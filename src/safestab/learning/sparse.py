@@ -36,6 +36,7 @@ import scipy.linalg
 from .._validation import check_finite, check_real, check_scalar_range
 from ..errors import DimensionError, ParameterError
 from ._checks import check_count, check_seed
+from ._posterior import kernel_error_coefficient
 from .fast import InducingBand, inducing_inputs
 from .gp import GaussianProcessModel
 
@@ -49,8 +50,8 @@ class SparseGP(InducingBand):
     ----------
     n_inducing : int
         ``M``, most inducing inputs per component (default 256). The pivoted Cholesky stops
-        earlier once the prior is resolved at the data (``pivot_tol``, ``noise_tol`` as in
-        :class:`~safestab.learning.FastGP`).
+        earlier once the prior is resolved at the data (``pivot_tol``; ``noise_tol``: once the
+        largest residual prior std at the training inputs is below ``noise_tol`` noise stds).
     kernel : {"se", "matern52"}
     hyper_subset : int
         Rows (drawn at random) on which the hyperparameters are fitted (default 500, as the
@@ -80,6 +81,8 @@ class SparseGP(InducingBand):
     controllers use it as any uncertainty model. Its std is not a proven bound on the
     exact posterior std: calibrate ``beta`` (module docstring).
     """
+
+    proven = False  # the DTC band: no proof that it contains the exact band
 
     def __init__(
         self,
@@ -140,11 +143,11 @@ class SparseGP(InducingBand):
         self.components_ = model.components_
         self.n_samples_ = q
         xs = (x - model.x_offset_) / model.x_scale_
-        zs, maps_, ws = [], [], []
+        zs, packed = [], []
         for j, comp in enumerate(model.components_):
             noise = float(model.noise_[j])
-            kfn, z, _, lj, _ = inducing_inputs(
-                model, j, xs, self.n_inducing, self.pivot_tol, self.noise_tol
+            kfn, z, kzz, lj, _, _ = inducing_inputs(
+                model, j, xs, self.n_inducing, self.pivot_tol, self.noise_tol * noise
             )
             m = len(z)
             target = y[:, comp] - float(model.mean_[j])
@@ -158,13 +161,20 @@ class SparseGP(InducingBand):
             lb = np.linalg.cholesky(np.eye(m) + vvt / noise**2)
             li = scipy.linalg.solve_triangular(lj, np.eye(m), lower=True)  # Lj^-1
             w = scipy.linalg.cho_solve((lb, True), vy) / noise**2  # B^-1 V (y - mu) / s^2
-            g = scipy.linalg.solve_triangular(lb, li, lower=True)  # LB^-1 Lj^-1
-            maps_.append((li, g, np.zeros((m, m))))
-            ws.append(li.T @ w)
+            # the DTC variance's second term |LB^-1 a|^2 with a = Lj^-1 k = Lj^T c
+            g = scipy.linalg.solve_triangular(lb, lj.T, lower=True)
+            b = li.T @ w
+            ls = np.asarray(model.lengthscale_std_[j])
+            packed.append({
+                "li": li, "kzz": kzz, "g": g, "cm": np.zeros((m, m)), "b": b,
+                "rho_b": np.zeros(m), "err": 0.0,
+                "ek": kernel_error_coefficient(model.kernel, np.max(np.abs(z), 0) / ls),
+                "gnorm": np.linalg.norm(g), "bnorm": np.sum(np.abs(b)), "rho_err": 0.0,
+                "rho": 0.0, "wnorm": 0.0, "cnorm": 0.0,
+            })  # fmt: skip
             zs.append(z)
-        k = len(zs)
-        # no cross term, no mean-error term, no rounding allowance: the DTC band itself
-        self._pack(model, zs, maps_, ws, [0.0] * k, [0.0] * k, [0.0] * k)
+        # no mean-error term: the DTC band itself (proven = False), with its rounding
+        self._pack(model, zs, packed)
         return self
 
     def mean_std(self, x: Any) -> tuple[Any, Any]:
@@ -174,8 +184,7 @@ class SparseGP(InducingBand):
     def arrays(self) -> dict[str, np.ndarray]:
         """Copies of the arrays, keys as :meth:`FastGP.arrays`.
 
-        ``err``, ``rho``, ``round`` and the third block of ``maps`` are zero: the DTC band,
-        not a proven one.
+        ``err``, ``rho_b`` and ``rho_err`` are zero: the DTC band, not a proven one.
         """
         return super().arrays()
 

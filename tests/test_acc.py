@@ -73,6 +73,31 @@ def test_user_toml_runs(tmp_path):
     assert sc.name == "mine" and sc.v_d == 20.0
 
 
+def test_n_inducing_picks_the_exact_gp_or_its_cache(tmp_path):
+    """learning.n_inducing: 0 (a file without the key) puts the exact GP in the GP-corrected
+    controller; M > 0 its FastGP cache, whose band contains the exact band at beta >= 1 and
+    gp_beta; a bad value is refused by name."""
+    from safestab.learning import FastGP
+    from safestab.scenarios.acc_study import study_uncertainty
+    from safestab.scenarios.pipeline import collect_study_data, fit_study_gp
+
+    text = _paper_text()
+    without = _write(tmp_path, text.replace("n_inducing = 32", "").replace('"paper"', '"own"'))
+    assert load_scenario(without).n_inducing == 0
+    sc = load_scenario("paper")
+    assert sc.n_inducing == 32
+    small = sc.replace(n_samples=150, hyper_subset=150)
+    gp = fit_study_gp(small, collect_study_data(small, seed=0, n_samples=150)[0])
+    rng = np.random.default_rng(0)
+    assert study_uncertainty(sc.replace(n_inducing=0), gp) is gp
+    fast = study_uncertainty(sc, gp)
+    assert isinstance(fast, FastGP) and fast.min_beta == sc.gp_beta
+    xq = rng.uniform(sc.x0_low, sc.x0_high, (200, 3))
+    assert np.all(fast.coverage_of_exact_band(xq, sc.gp_beta) == 1.0)
+    with pytest.raises(ss.ScenarioError, match=r"learning\.n_inducing must be"):
+        load_scenario(_write(tmp_path, text.replace("n_inducing = 32", "n_inducing = -1")))
+
+
 @pytest.mark.slow  # half a minute: the whole study at reduced size, like the main job
 def test_cli_smoke(tmp_path):
     from typer.testing import CliRunner
@@ -135,6 +160,9 @@ def test_cli_smoke(tmp_path):
     conf = doc["gp"]["conformal"]
     assert conf["beta"] > 0 and conf["probability"] == 0.95 and conf["n_trajectories"] == 40
     assert conf["chosen_beta"] == doc["gp"]["beta"] and "conformal" in conf["statement"]
+    # the preset's GP-corrected controller uses the FastGP cache (learning.n_inducing = 32)
+    cache = doc["gp"]["cache"]
+    assert max(cache["n_inducing"]) <= 32 and cache["min_beta"] == doc["gp"]["beta"]
 
 
 @pytest.mark.slow

@@ -96,6 +96,10 @@ class ACCScenario:
     excitation_limit: float  # fraction of M g spanned by the excitation
     hyper_subset: int  # rows used to fit GP hyperparameters (then conditioned on all)
     seed: int
+    #: ``learning.n_inducing`` (optional): 0 (the default) puts the exact GP in the
+    #: GP-corrected controller; ``M > 0`` its FastGP cache of at most ``M`` inducing inputs
+    #: per component, whose band contains the exact band (docs/learning.md).
+    n_inducing: int = 0
     #: The optional ``[montecarlo]`` table (trial distributions); ``None`` when absent.
     montecarlo: MonteCarloSpec | None = None
 
@@ -231,7 +235,7 @@ _KEYS = {
         for k in ("kappa", "rho", "phi", "varphi", "slack_weight", "input_units", "input_limit")
     },
     **{k: f"simulation.{k}" for k in ("t_final", "dt")},
-    **{k: f"learning.{k}" for k in LEARNING_KEYS},
+    **{k: f"learning.{k}" for k in (*LEARNING_KEYS, "n_inducing")},
 }
 
 
@@ -286,7 +290,10 @@ def load_scenario(
         out of range. The message names the file and the key with its table path, what was
         received and what was expected.
     """
-    flat, table, source = load_flat(name_or_path, PRESETS, __package__, check_structure, overrides)
+    flat, table, source = load_flat(
+        name_or_path, PRESETS, __package__, check_structure, overrides,
+        defaults={"learning.n_inducing": 0},
+    )  # fmt: skip
     values = check_values(flat, source)
     spec = None if table is None else check_montecarlo(table, source)
     return _build(values, spec)

@@ -38,6 +38,7 @@ __all__ = [
     "fit_study_gp",
     "run_study",
     "study_controllers",
+    "study_uncertainty",
     "trajectory_metrics",
 ]
 
@@ -67,6 +68,9 @@ class StudyResult(MetricsWriter):
     metrics: dict[str, dict[str, Any]]
     timings: dict[str, float]
     conformal: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: The GP-corrected controller's uncertainty model: ``gp`` itself, or its FastGP cache
+    #: (``learning.n_inducing > 0``), whose band the coverage and conformal figures are about.
+    uncertainty: Any = None
 
     def metrics_document(self) -> dict[str, Any]:
         """The metrics of every controller, the GP calibration and timings, as strict JSON data.
@@ -91,11 +95,25 @@ class StudyResult(MetricsWriter):
                 "held_out_joint_coverage": self.calibration.joint,
                 "held_out_rmse": self.calibration.rmse,
                 "beta": self.scenario.gp_beta,
+                "cache": self._cache_document(),
                 "conformal": self.conformal,
             },
             "timings_s": self.timings,
         }
         return with_finite_status(doc)
+
+    def _cache_document(self) -> dict[str, Any] | None:
+        """The FastGP cache's size and width against the exact GP, or None for the exact GP."""
+        unc = self.uncertainty
+        if unc is None or unc is self.gp:
+            return None
+        return {
+            "n_inducing": unc.n_inducing_.tolist(),
+            "min_beta": unc.min_beta,
+            "std_over_exact_at_training_median": unc.std_over_exact_.tolist(),
+            "mean_error_norm": unc.mean_error_norm_.tolist(),
+            "warnings": list(unc.width_warnings_),
+        }
 
 
 def trajectory_metrics(
@@ -221,10 +239,17 @@ def run_study(
     t0 = time.perf_counter()
     gp = fit_study_gp(scenario, train, seed=seed)
     timings["fit_gp"] = time.perf_counter() - t0
-    # Lemma 2's band is about omega itself, which the simulator knows: check it there.
-    calib = calibration(gp, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
+    if scenario.n_inducing:
+        report(f"building the FastGP cache (at most {scenario.n_inducing} inducing inputs)", 0.35)
+    t0 = time.perf_counter()
+    unc = study_uncertainty(scenario, gp)
+    if unc is not gp:
+        timings["fast_cache"] = time.perf_counter() - t0
+    # Lemma 2's band is about omega itself, which the simulator knows: check it there, for
+    # the band the controller uses.
+    calib = calibration(unc, test.x, np.asarray(scenario.omega(test.x)), scenario.gp_beta)
 
-    controllers = study_controllers(scenario, gp)
+    controllers = study_controllers(scenario, unc)
 
     def simulated(name: str) -> tuple[Trajectory, float]:
         t0 = time.perf_counter()
@@ -240,7 +265,7 @@ def run_study(
     jobs = ["GP-corrected", "conformal", "true model", "mismatched model"]
     report("simulating the controllers beside the conformal check, two at a time", 0.4)
     done = in_threads(
-        lambda job: _conformal_check(scenario, gp, seed, test)
+        lambda job: _conformal_check(scenario, unc, seed, test)
         if job == "conformal" else simulated(job),
         jobs, STUDY_THREADS,
         lambda count: report(f"{count} of {len(jobs)} done", 0.4 + 0.6 * count / len(jobs)),
@@ -260,10 +285,27 @@ def run_study(
     closed = np.asarray(trajectories["GP-corrected"].x)[:: max(1, int(round(1.0 / scenario.dt)))]
     omega_cl = np.asarray(scenario.omega(closed))
     for key, beta in (("chosen", scenario.gp_beta), ("conformal", conformal["beta"])):
-        cov = calibration(gp, closed, omega_cl, beta).per_component
+        cov = calibration(unc, closed, omega_cl, beta).per_component
         conformal[f"closed_loop_coverage_{key}_beta"] = cov.tolist()
     report("done", 1.0)
-    return StudyResult(scenario, train, gp, calib, trajectories, metrics, timings, conformal)
+    return StudyResult(scenario, train, gp, calib, trajectories, metrics, timings, conformal, unc)
+
+
+def study_uncertainty(scenario: ACCScenario, gp: GaussianProcessModel) -> Any:
+    """The GP-corrected controller's uncertainty model: ``gp`` or its FastGP cache.
+
+    ``learning.n_inducing = 0``: the exact GP, ``O(Q^2)`` per step. ``M > 0``: FastGP with at
+    most ``M`` inducing inputs per component, ``O(M^2)`` per step, whose band contains the
+    exact band for every ``beta >= min_beta = max(1, gp_beta)`` (docs/learning.md): the
+    controller is then at least as cautious as the exact GP's, and within the cache's width of
+    it (``gp.cache`` in the metrics). Its warnings are recorded, not raised (the study's loops
+    run in threads).
+    """
+    if scenario.n_inducing == 0:
+        return gp
+    from ..learning import FastGP
+
+    return FastGP(gp, scenario.n_inducing, min_beta=max(1.0, scenario.gp_beta), warn=False)
 
 
 def _conformal_check(scenario, gp, seed, test) -> dict[str, Any]:
@@ -316,8 +358,14 @@ def summary(result: StudyResult, document: dict[str, Any]) -> Summary:
         for name, m in result.metrics.items()
     ]
     cal = result.calibration
+    unc = result.uncertainty
+    band = (
+        ""
+        if unc is None or unc is result.gp
+        else (f" (FastGP band, inducing inputs {unc.n_inducing_.tolist()})")
+    )
     line = (
-        f"GP held-out coverage at beta = {sc.gp_beta}: per component "
+        f"GP held-out coverage{band} at beta = {sc.gp_beta}: per component "
         f"{[round(float(c), 3) for c in cal.per_component]}, joint {cal.joint:.3f}; "
         f"RMSE {[float(f'{r:.2e}') for r in cal.rmse]} m/s^2"
     )

@@ -52,15 +52,18 @@ from ._posterior import (
 )
 from .gp import GaussianProcessModel
 
-__all__ = ["FastGP", "INFLATION_WARN", "STD_RATIO_WARN"]
+__all__ = ["EXCESS_WARN", "FastGP", "INFLATION_WARN", "STD_RATIO_WARN"]
 
 #: A fast cache's std at more than 1 % of the training inputs above this many noise stds is
 #: recorded in ``inflation_at_training_`` (the exact posterior std there is at most the noise
 #: std).
 INFLATION_WARN = 3.0
 #: :class:`InducingPointsWarning` when the cache's std at the training inputs is more than this
-#: many times the exact std (median over a sample of them).
+#: many times the exact std (median over a sample of them) and exceeds it by more than
+#: ``EXCESS_WARN`` noise stds: an excess far below the measurement noise (a component whose
+#: amplitude is below the noise, the GP having learned next to nothing) changes no decision.
 STD_RATIO_WARN = 1.5
+EXCESS_WARN = 0.1
 _U = np.finfo(float).eps / 2  # unit roundoff of float64
 _U_FLOAT = float(np.finfo(np.float32).eps / 2)
 _LD = np.longdouble
@@ -520,7 +523,8 @@ class FastGP(InducingBand):
     Warns
     -----
     InducingPointsWarning
-        When ``std_over_exact_`` exceeds ``STD_RATIO_WARN`` (1.5) for some component.
+        When ``std_over_exact_`` exceeds ``STD_RATIO_WARN`` (1.5) for some component and the
+        excess (median) is more than ``EXCESS_WARN`` (0.1) noise stds.
 
     Notes
     -----
@@ -592,9 +596,10 @@ class FastGP(InducingBand):
         sd = sd_c + merr / self.min_beta
         self.inflation_at_training_ = np.mean(sd / model.noise_ > INFLATION_WARN, axis=0)
         self.std_over_exact_ = np.median(sd[sample] / exact_sd, axis=0)
+        excess = np.median(sd[sample] - exact_sd, axis=0) / model.noise_
         notes = []
         for j, (comp, ratio) in enumerate(zip(comps, self.std_over_exact_, strict=True)):
-            if ratio > STD_RATIO_WARN:
+            if ratio > STD_RATIO_WARN and excess[j] > EXCESS_WARN:
                 notes.append(
                     f"FastGP with n_inducing={n_inducing}: for component {comp}, the cache's std "
                     f"at the training inputs is {ratio:.3g} times the exact std (median over "

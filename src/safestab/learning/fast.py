@@ -192,6 +192,25 @@ def _cross_terms(model, j, xs, z, idx, li, kzz, v, ek):
     return cm, rho, wnorm
 
 
+def _exact_sd_at_training(model, rows: np.ndarray) -> np.ndarray:
+    """The exact posterior std at training inputs ``rows``, per learned component, ``(R, k)``.
+
+    ``sigma^2(x_i) = s^2 (1 - s^2 [(K + s^2 I)^-1]_ii)`` from the model's factor, by one
+    triangular solve in SciPy: the exact model's batched ``predict`` (a compiled, vmapped
+    triangular solve), called from two Monte Carlo threads at once under a one-thread BLAS
+    limit, never returned (both threads waited for it, 2026-11-27).
+    """
+    q = model.x_train_.shape[0]
+    e = np.zeros((q, len(rows)))
+    e[rows, np.arange(len(rows))] = 1.0
+    out = []
+    for j in range(len(model.components_)):
+        s2 = float(model.noise_[j]) ** 2
+        v = scipy.linalg.solve_triangular(np.asarray(model.chol_[j]), e, lower=True)
+        out.append(np.sqrt(np.maximum(s2 * (1.0 - s2 * np.sum(v * v, 0)), 0.0)))
+    return np.stack(out, 1)
+
+
 def inducing_inputs(model, j, xs, n_inducing, pivot_tol, floor_std):
     """Component ``j``'s kernel, its inducing inputs and the Cholesky factor of ``K_ZZ``.
 
@@ -560,7 +579,7 @@ class FastGP(InducingBand):
         xs = (model.x_train_ - model.x_offset_) / model.x_scale_
         q = xs.shape[0]
         sample = np.random.default_rng(0).choice(q, min(q, _STD_SAMPLE), replace=False)
-        exact_sd = np.sqrt(np.asarray(model.predict(model.x_train_[sample])[1]))[:, comps]
+        exact_sd = _exact_sd_at_training(model, sample)
         zs, packed = [], []
         for j in range(len(comps)):
             amp, s2 = float(model.amplitude_[j]), float(model.noise_[j]) ** 2

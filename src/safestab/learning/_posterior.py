@@ -63,6 +63,7 @@ __all__ = [
     "PANEL_ROWS",
     "panels",
     "predict_batch",
+    "residual_allowance",
     "solve_panels",
     "sq_dist",
     "sq_dist_exact",
@@ -359,6 +360,18 @@ def kernel_error_coefficient(kind: str, z_scaled_max: np.ndarray) -> float:
     return 1.1 * e
 
 
+def residual_allowance(amp2, c1, mm, ek, unit):
+    """Bound on the rounding of ``q = amp^2 - 2 c.k + c.(K_ZZ c)`` evaluated in unit ``unit``.
+
+    Every term is at most ``amp^2 (1 + |c|_1)^2`` in size: the sums' ``(M + 3) unit`` twice,
+    the kernel values' ``ek unit`` twice, and the stored ``K_ZZ`` and the two subtractions.
+    One expression for the cache's query (:func:`band_component`, :func:`band_products`) and
+    its build (``rho``); works on floats and arrays alike.
+    """
+    dot_unit = (mm + 3) * unit
+    return amp2 * (1.0 + c1) ** 2 * (2.0 * dot_unit + 2.0 * ek * unit + 3.0 * unit)
+
+
 def _proven_sd(p, r, c, c1, c2, k, kzz, cm, rho, wnorm, cnorm, ek, amp2, mm, unit):
     """FastGP's std ``sqrt(p^2 + r^2 + min(2 p r, cross))`` (docs/learning.md).
 
@@ -447,9 +460,7 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
         c1 = jnp.sum(jnp.abs(c))
         c2 = safe_sqrt(c @ c)
         q = amp2 - 2.0 * (c @ k) + c @ (kzz @ c)
-        # q's rounding (kernel values, sums, the stored K_ZZ and the two subtractions):
-        # every term is at most amp^2 (1 + |c|_1)^2 in magnitude
-        allow = amp2 * jnp.square(1.0 + c1) * (2.0 * dot_unit + 2.0 * ek * unit + 3.0 * unit)
+        allow = residual_allowance(amp2, c1, mm, ek, unit)
         r2 = jnp.maximum(q, 0.0) + allow
         r = safe_sqrt(r2)  # > 0 wherever amp > 0
         gc = g @ c
@@ -620,7 +631,7 @@ def band_products(
     c1 = jnp.sum(jnp.abs(c), 0)
     c2 = jnp.sqrt(jnp.sum(c * c, 0))
     q = amp2 - 2.0 * jnp.sum(c * k, 0) + jnp.sum(c * (kzz @ c), 0)
-    allow = amp2 * jnp.square(1.0 + c1) * (2.0 * dot_unit + 2.0 * ek * unit + 3.0 * unit)
+    allow = residual_allowance(amp2, c1, mm, ek, unit)
     r = jnp.sqrt(jnp.maximum(q, 0.0) + allow)
     gc = g @ c
     p = jnp.sqrt(jnp.sum(gc * gc, 0)) + (dot_unit + unit) * gnorm * c2

@@ -49,6 +49,7 @@ from ._posterior import (
     band_point_unpadded,
     kernel_error_coefficient,
     kernel_matrix,
+    residual_allowance,
 )
 from .gp import GaussianProcessModel
 
@@ -186,7 +187,7 @@ def _cross_terms(model, j, xs, z, idx, li, kzz, v, ek):
     wx = li.T @ (li @ kzx)
     qx = amp * amp - 2.0 * np.sum(wx * kzx, 0) + np.sum(wx * (kzz @ wx), 0)
     c1 = np.sum(np.abs(wx), 0)
-    allow = amp * amp * (1.0 + c1) ** 2 * (2.0 * (m + 3) + 2.0 * ek + 3.0) * _U
+    allow = residual_allowance(amp * amp, c1, m, ek, _U)
     rho = float(np.sqrt(np.sum(np.maximum(qx, 0.0) + allow))) * (1.0 + 4 * q * _U)
     wnorm = 1.01 * float(np.linalg.norm(wx, 2))
     return cm, rho, wnorm

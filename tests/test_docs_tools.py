@@ -191,6 +191,7 @@ def test_obstacle_table_from_a_metrics_document():
                                    "min_h_m2": 0.0199937, "max_abs_u_mps": 2.02635,
                                    "median_input_variation_mps2": 0.05216,
                                    "input_variation_in_ball_share": 0.0615,
+                                   "max_input_variation_in_ball_mps2": 0.0712,
                                    "median_converge_time_s": 13.42},
         "mismatched model / input limits": {"outcomes": {"converged": 66, "stuck": 0,
                                                          "unsafe": 6, "moving": 0},
@@ -198,15 +199,17 @@ def test_obstacle_table_from_a_metrics_document():
                                             "max_abs_u_mps": 1.5,
                                             "median_input_variation_mps2": 0.04912,
                                             "input_variation_in_ball_share": 0.0,
+                                            "max_input_variation_in_ball_mps2": 0.0,
                                             "median_converge_time_s": None},
     }}  # fmt: skip
     lines = reproduce_docs.obstacle_table(doc).splitlines()
     assert len(lines[0].split("|")) == len(lines[1].split("|")) == len(lines[2].split("|"))
     assert lines[2] == (
-        "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 2.03 | 0.052 | 0.06 | 13.4 | 1 / 2 |"
+        "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 2.03 | 0.052 | 0.06 | 0.07 | 13.4 | 1 / 2 |"
     )
     assert lines[3] == (
-        "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | 1.50 | 0.049 | 0.00 | - | - |"
+        "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | 1.50 | 0.049 | 0.00 | 0.00 | - "
+        "| - |"
     )
 
 

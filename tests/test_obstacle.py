@@ -167,6 +167,9 @@ def test_input_variation_and_converge_time_by_hand():
     doc = run.summary(0.05)
     assert doc["median_input_variation_mps2"] == 0.25 and doc["median_converge_time_s"] == 1.0
     assert doc["input_variation_in_ball_share"] == pytest.approx(0.4 / 8.9)
+    # per run, per second of the 2 s horizon: run 0 none, run 1 none, run 2 0.4 m/s
+    np.testing.assert_allclose(run.variation_in_ball(0.05), [0.0, 0.0, 0.2])
+    assert doc["max_input_variation_in_ball_mps2"] == pytest.approx(0.2)
     assert "median_converge_time_s" not in run.summary()
 
 
@@ -237,7 +240,10 @@ def test_maps_agree_pointwise_with_the_public_verdicts(sc):
     gV = 2 * grid * np.asarray(small.P)
     gh = 2 * (grid - small.obstacle_center)
     beta = small.gp_beta
-    dV = np.sum(gV * mean, 1) + np.sum(np.abs(gV) * beta * std, 1)
+    # the preset's boundary layer on the CLF term: times |gV| / sqrt(|gV|^2 + eps^2)
+    norm = np.linalg.norm(gV, axis=1)
+    shrink = norm / np.hypot(norm, small.robust_clf_layer)
+    dV = np.sum(gV * mean, 1) + shrink * np.sum(np.abs(gV) * beta * std, 1)
     dh = np.sum(gh * mean, 1) - np.sum(np.abs(gh) * beta * std, 1)
     pc = ss.probabilistic_compatibility(
         ss.LieTerms(a, b, c, d), ss.RobustMargins(dV, dh), **_params(small)
@@ -298,6 +304,11 @@ BAD = [
     ("seed = 0", "seed = -1", r"learning\.seed must be an integer in \[0, 4294967295\]"),
     ("n_inducing = 256", "n_inducing = -1", r"learning\.n_inducing must be an integer"),
     (
+        "robust_clf_layer = 0.2",
+        "robust_clf_layer = -0.1",
+        r"controller\.robust_clf_layer must be .*, got -0\.1",
+    ),
+    (
         'beta_method = "conformal"',
         'beta_method = "lemma2"',
         r"learning\.beta_method must be one of 'chosen', 'conformal', got 'lemma2'",
@@ -324,6 +335,25 @@ def test_beta_method_is_optional_and_defaults_to_chosen(tmp_path, sc):
     assert load_obstacle_scenario(old).beta_method == "chosen"
     with pytest.raises(ScenarioError, match=r"learning\.beta_method must be one of"):
         sc.replace(beta_method="Conformal")
+
+
+def test_robust_clf_layer_is_optional_and_reaches_the_gp_robust_controller(tmp_path, sc):
+    from safestab.scenarios.obstacle_study import obstacle_controller
+
+    assert sc.robust_clf_layer == 0.2  # the preset
+    old = _edited(tmp_path, "robust_clf_layer = 0.2 #", "#")  # a file from before the key
+    assert load_obstacle_scenario(old).robust_clf_layer == 0.0
+
+    class Band:
+        n_states = 2
+
+        def mean_std(self, x):
+            return jnp.zeros(2), jnp.full(2, 0.1)
+
+    layered = obstacle_controller(sc, "GP-robust", Band())
+    plain = obstacle_controller(sc.replace(robust_clf_layer=0.0), "GP-robust", Band())
+    assert float(layered.robust_clf_layer) == 0.2 and plain.robust_clf_layer is None
+    assert obstacle_controller(sc, "true model").uncertainty is None  # no layer without a band
 
 
 def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
@@ -408,6 +438,12 @@ def test_study_mismatched_leaves_the_safe_set_and_gp_robust_does_not(study):
         assert np.all(robust.h >= 0), limits
         assert np.all(true.h >= 0), limits
     assert study.coverage["joint"] >= 0.95  # the GP band covers the true current held out
+    # the model at the goal, as recorded: the controller's own mean_std and the true current
+    goal = study.coverage["at_goal"]
+    mean, std = study.uncertainty.mean_std(jnp.zeros(2))
+    np.testing.assert_array_equal(goal["mean_mps"], np.asarray(mean))
+    np.testing.assert_array_equal(goal["std_mps"], np.asarray(std))
+    np.testing.assert_allclose(goal["omega_mps"], [0.7 * np.exp(-(4.5**2) / (2 * 1.5**2)), 0])
 
 
 @pytest.mark.slow

@@ -281,6 +281,14 @@ class UniversalController(Controller):
         the condition (a lower precision, a model error), a step whose flag says satisfied
         keeps the exact condition: :func:`~safestab.export.export_scenario` uses it for the
         float export (docs/export.md, "Float that stays safe"). Default: none (0).
+    robust_clf_layer : float, optional
+        With an uncertainty model only: a boundary layer ``eps >= 0`` (in the units of
+        ``dV/dx``) on the CLF's robust term, which Lemma 3 makes proportional to ``|dV/dx|``
+        and which therefore asks for an input that does not vanish at the goal (a sampled
+        loop chatters there). The term is multiplied by ``|dV/dx| / sqrt(|dV/dx|^2 + eps^2)``;
+        safety (the CBF's term) is unchanged, and the CLF guarantee becomes practical: ``V``
+        decreases outside ``V <= eps max |beta sigma| / (2 lambda)``
+        (:func:`~safestab.robust.robust_margins`, docs/theory.md). Default: none (Lemma 3).
 
     Attributes
     ----------
@@ -328,6 +336,7 @@ class UniversalController(Controller):
         formula: Literal["combined", "sontag", "cbf"] = "combined",
         params: Any = None,
         cbf_margin: float | None = None,
+        robust_clf_layer: float | None = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         formula_obj = self._formula_object(formula, slack_weight, parallel_rtol)
@@ -366,6 +375,24 @@ class UniversalController(Controller):
             ):
                 raise ParameterError(
                     f"cbf_margin must be a finite number >= 0, got {float(cbf_margin)!r}"
+                )
+        if robust_clf_layer is not None:
+            check_real("robust_clf_layer", robust_clf_layer)
+            if np.ndim(robust_clf_layer) != 0:
+                raise DimensionError(
+                    f"robust_clf_layer must be a scalar, got shape {np.shape(robust_clf_layer)}"
+                )
+            if is_concrete(robust_clf_layer) and not (
+                np.isfinite(float(robust_clf_layer)) and float(robust_clf_layer) >= 0
+            ):
+                raise ParameterError(
+                    "robust_clf_layer must be a finite number >= 0, got "
+                    f"{float(robust_clf_layer)!r}"
+                )
+            if uncertainty is None:
+                raise ParameterError(
+                    "robust_clf_layer smooths the GP-robust CLF term: it needs uncertainty= "
+                    "(a model of omega), got none"
                 )
         clf.check(system.n_states)
         cbf.check(system.n_states)
@@ -414,6 +441,7 @@ class UniversalController(Controller):
             else CombinedFormula(self.parallel_rtol)
         )
         self.cbf_margin = None if cbf_margin is None else as_scalar(cbf_margin)
+        self.robust_clf_layer = None if robust_clf_layer is None else as_scalar(robust_clf_layer)
         self._remember(UniversalController, init_args)
         self._rebuild()
 
@@ -444,6 +472,7 @@ class UniversalController(Controller):
         names += ["u_min", "u_max"] if self.u_min is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
         names += ["cbf_margin"] if self.cbf_margin is not None else []
+        names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
         return tuple(names)
 
     @staticmethod
@@ -529,7 +558,8 @@ class UniversalController(Controller):
             mean, std = self.uncertainty.mean_std(x) if given is None else given
             beta = jnp.asarray(self.gp_beta)
             grads = self.clf.grad_of(x, p), self.cbf.grad_of(x, p)
-            terms = robust_lie_terms(terms, *grads, mean, std, beta)
+            layer = 0.0 if self.robust_clf_layer is None else self.robust_clf_layer
+            terms = robust_lie_terms(terms, *grads, mean, std, beta, layer)
             status = jnp.where(
                 status != S.OK,
                 status,

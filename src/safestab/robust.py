@@ -103,17 +103,29 @@ def check_beta(beta: Any, n_states: int) -> jax.Array:
 
 
 def robust_margins(
-    grad_V: jax.Array, grad_h: jax.Array, mean: jax.Array, std: jax.Array, beta: jax.Array
+    grad_V: jax.Array,
+    grad_h: jax.Array,
+    mean: jax.Array,
+    std: jax.Array,
+    beta: jax.Array,
+    clf_layer: Any = 0.0,
 ) -> RobustMargins:
     """``Delta_V`` and ``Delta_h`` of Lemma 3 with the per-component bound.
 
     ``Delta_V = dV/dx . m(x) + sum_i |dV/dx_i| beta_i sigma_i(x)`` and
     ``Delta_h = dh/dx . m(x) - sum_i |dh/dx_i| beta_i sigma_i(x)``.
 
+    With ``clf_layer = eps > 0`` the CLF's robust term is smoothed at the goal (a boundary
+    layer): ``sum_i |dV/dx_i| beta_i sigma_i`` is multiplied by
+    ``s(|dV/dx|) = |dV/dx| / sqrt(|dV/dx|^2 + eps^2)`` (see Notes). ``Delta_h``, the safety
+    margin, is never changed.
+
     Parameters
     ----------
     grad_V, grad_h, mean, std : arrays of shape (..., n)
     beta : array broadcastable to (..., n)
+    clf_layer : float, optional
+        ``eps >= 0`` in the units of ``dV/dx`` (default 0: Lemma 3's term, unchanged).
 
     Returns
     -------
@@ -126,9 +138,34 @@ def robust_margins(
     ``|dV/dx . (omega - m)| <= sum_i |dV/dx_i| beta_i sigma_i``, which is what is used here; it
     is the tightest bound that follows from the per-component intervals (it is attained at a
     corner of the box).
+
+    **The boundary layer (not in the paper).** Lemma 3's CLF term grows like ``|dV/dx|``, i.e.
+    like ``|x|`` at a quadratic CLF's minimum, while the required decrease ``lambda V`` grows
+    like ``|x|^2``: wherever ``sigma(0) > 0`` the robust CLF condition asks for an input of
+    size about ``beta sigma(0)`` (twice that from the Sontag-type formula) that does not vanish
+    at the goal and points along ``-dV/dx``, a direction that flips as the state crosses the
+    goal. A sampled loop then chatters around the goal (docs/obstacle.md measures it). With
+    ``eps > 0`` the term becomes quadratic in ``|dV/dx|`` below ``eps`` and the input goes to
+    zero continuously. What is given up is exact: since
+    ``|g| (1 - s(|g|)) <= eps / 2`` for every ``g``, the smoothed term is below Lemma 3's by at
+    most ``(eps / 2) |beta sigma(x)|`` (Euclidean norm, by Cauchy-Schwarz), so where the
+    smoothed CLF condition holds the true ``dV/dt <= -lambda V + (eps / 2) |beta sigma(x)|``
+    with Lemma 2's probability: ``V`` decreases exponentially outside the sublevel set
+    ``V <= eps max |beta sigma| / (2 lambda)`` (the max over that set), which it enters and
+    keeps (practical instead of asymptotic stability; exact in the paper's continuous time,
+    which the sampled loop does not deliver anyway when it chatters). ``eps = 0`` gives
+    Lemma 3's term bit for bit.
     """
     spread = beta * std
-    delta_V = jnp.sum(grad_V * mean, -1) + jnp.sum(jnp.abs(grad_V) * spread, -1)
+    weight = jnp.abs(grad_V)
+    eps = jnp.asarray(clf_layer, dtype=float)
+    if not (is_concrete(clf_layer) and float(np.asarray(clf_layer)) == 0.0):
+        square = jnp.sum(grad_V * grad_V, -1, keepdims=True)
+        safe = jnp.where(square > 0, square, 1.0)  # no 0/0, in values or in gradients
+        # |g| / sqrt(|g|^2 + eps^2), written so that neither a huge nor a tiny |g| overflows
+        shrink = jnp.where(square > 0, 1.0 / jnp.sqrt(1.0 + eps * eps / safe), 0.0)
+        weight = jnp.where(eps > 0, weight * shrink, weight)
+    delta_V = jnp.sum(grad_V * mean, -1) + jnp.sum(weight * spread, -1)
     delta_h = jnp.sum(grad_h * mean, -1) - jnp.sum(jnp.abs(grad_h) * spread, -1)
     return RobustMargins(delta_V, delta_h)
 
@@ -140,6 +177,7 @@ def robust_lie_terms(
     mean: jax.Array,
     std: jax.Array,
     beta: jax.Array,
+    clf_layer: Any = 0.0,
 ) -> LieTerms:
     """Return ``(a~, b, c~, d)`` with ``a~ = a + Delta_V`` and ``c~ = c + Delta_h``, eq. (17).
 
@@ -149,6 +187,8 @@ def robust_lie_terms(
         Nominal terms.
     grad_V, grad_h, mean, std : arrays of shape (..., n)
     beta : array broadcastable to (..., n)
+    clf_layer : float, optional
+        The CLF term's boundary layer ``eps`` (:func:`robust_margins`); default 0.
 
     Returns
     -------
@@ -156,7 +196,7 @@ def robust_lie_terms(
         With ``sigma = 0`` these are the mean-corrected terms; ``b`` and ``d`` are unchanged
         because ``omega`` does not depend on ``u``.
     """
-    m = robust_margins(grad_V, grad_h, mean, std, beta)
+    m = robust_margins(grad_V, grad_h, mean, std, beta, clf_layer)
     return LieTerms(terms.a + m.delta_V, terms.b, terms.c + m.delta_h, terms.d)
 
 

@@ -214,6 +214,8 @@ def _compiled_chunk(study: TrialStudy) -> Any:
     true_sys, nominal = study.systems()
     clf, cbf = study.certificates()
     common = study.controller_options()
+    # optional member: extra arguments of the GP-robust controllers only (docs/montecarlo.md)
+    robust = study.robust_options() if hasattr(study, "robust_options") else {}
 
     def omega(x, params):
         return study.omega(x)
@@ -232,7 +234,7 @@ def _compiled_chunk(study: TrialStudy) -> Any:
                 beta = betas[name]
                 ctrls.append(
                     UniversalController(
-                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common
+                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust
                     )
                 )
                 checks.append((model, beta))

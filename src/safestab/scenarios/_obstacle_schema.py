@@ -72,6 +72,7 @@ FIELDS: dict[str, Check] = {
     "controller.phi": _NONNEG,  # 1/s^2
     "controller.varphi": _NONNEG,  # 1/s^2
     "controller.slack_weight": _POS,  # 1/m^2
+    "controller.robust_clf_layer": _NONNEG,  # m, optional (default 0: Lemma 3's term)
     "controller.input_limit": _POS,  # m/s per component, for the runs with limits
     "controller.doa_fraction": _open_unit,
     "starts.x1": _RANGE,
@@ -91,7 +92,7 @@ FIELDS: dict[str, Check] = {
     "learning.delta": _open_unit,
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),  # 0: the exact GP
 }
-_OPTIONAL = {"name", "learning.beta_method"}
+_OPTIONAL = {"name", "learning.beta_method", "controller.robust_clf_layer"}
 
 
 def check_structure(doc: Mapping[str, Any], source: str) -> dict[str, Any]:

@@ -55,7 +55,16 @@ _KEYS = {
     "beta": "certificates.beta",
     **{
         k: f"controller.{k}"
-        for k in ("kappa", "rho", "phi", "varphi", "slack_weight", "input_limit", "doa_fraction")
+        for k in (
+            "kappa",
+            "rho",
+            "phi",
+            "varphi",
+            "slack_weight",
+            "input_limit",
+            "doa_fraction",
+            "robust_clf_layer",
+        )  # fmt: skip
     },
     "starts_x1": "starts.x1",
     "starts_n_x1": "starts.n_x1",
@@ -144,6 +153,9 @@ class ObstacleScenario:
     #: beta by split conformal prediction on fresh trajectories and uses it instead
     #: (:func:`~safestab.scenarios.obstacle_study.calibrate_beta`, docs/obstacle.md).
     beta_method: str = "chosen"
+    #: ``controller.robust_clf_layer`` (optional, m): the GP-robust controller's boundary layer
+    #: on the CLF's robust term (:class:`~safestab.UniversalController`); 0: Lemma 3's term.
+    robust_clf_layer: float = 0.0
 
     def __post_init__(self) -> None:
         flat = {key: getattr(self, attr) for attr, key in _KEYS.items()}
@@ -314,7 +326,7 @@ def load_obstacle_scenario(
     """
     flat, table, source = load_flat(
         name_or_path, PRESETS, __package__, check_structure, overrides,
-        defaults={"learning.beta_method": "chosen"},
+        defaults={"learning.beta_method": "chosen", "controller.robust_clf_layer": 0.0},
     )  # fmt: skip
     v = check_values(flat, source)
     spec = (

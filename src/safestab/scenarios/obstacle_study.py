@@ -180,7 +180,11 @@ def _robust(
     @jax.jit
     def margins(x):
         mean, std = jax.vmap(uncertainty.mean_std)(x)
-        return robust_margins(clf.gradient(x), cbf.gradient(x), mean, std, jnp.full(2, sc.gp_beta))
+        beta = jnp.full(2, sc.gp_beta)
+        # the controller's own CLF term: with its boundary layer, if any
+        return robust_margins(
+            clf.gradient(x), cbf.gradient(x), mean, std, beta, sc.robust_clf_layer
+        )
 
     n_bounds = 1 if calibrated else 2
     return probabilistic_compatibility(
@@ -268,6 +272,16 @@ class ObstacleRun:
         total = float(jumps.sum())
         return float(jumps[near].sum()) / total if total > 0 else 0.0
 
+    def variation_in_ball(self, ball_radius: float) -> np.ndarray:
+        """Each run's input variation made within ``ball_radius`` of the goal, m/s^2.
+
+        Per second of the horizon; the jump ``|u_k+1 - u_k|`` counts where ``x_k`` is; shape
+        (N,). Chattering at the goal scores high here; a transient far from it does not.
+        """
+        jumps = np.linalg.norm(np.diff(self.u, axis=1), axis=-1)
+        near = np.linalg.norm(self.x[:, :-1], axis=-1) <= ball_radius
+        return np.where(near, jumps, 0.0).sum(axis=1) / (self.t[-1] - self.t[0])
+
     def converge_time(self, ball_radius: float) -> np.ndarray:
         """Time after which each run stays within ``ball_radius`` of the goal, s.
 
@@ -282,8 +296,9 @@ class ObstacleRun:
         """Counts per outcome, min h, stuck end points with their verdicts, largest |u|.
 
         With ``ball_radius``, also the median input variation (:meth:`input_variation`)
-        over all starts and the median time to converge (:meth:`converge_time`) over the
-        converged starts (``None`` when none converged).
+        over all starts, the share of it made within the ball, the largest variation within
+        the ball of any start (:meth:`variation_in_ball`) and the median time to converge
+        (:meth:`converge_time`) over the converged starts (``None`` when none converged).
         """
         stuck = np.flatnonzero(self.outcome == "stuck")
         unsafe = np.flatnonzero(self.outcome == "unsafe")
@@ -300,6 +315,9 @@ class ObstacleRun:
                 else {
                     "median_input_variation_mps2": float(np.median(self.input_variation())),
                     "input_variation_in_ball_share": self.variation_in_ball_share(ball_radius),
+                    "max_input_variation_in_ball_mps2": float(
+                        np.max(self.variation_in_ball(ball_radius))
+                    ),
                     "median_converge_time_s": (
                         float(np.median(self.converge_time(ball_radius)[converged]))
                         if np.any(converged)
@@ -565,6 +583,8 @@ def obstacle_controller(
         if uncertainty is None:
             raise ParameterError("the GP-robust controller needs an uncertainty model")
         extra = {"uncertainty": uncertainty, "gp_beta": sc.gp_beta}
+        if sc.robust_clf_layer > 0:
+            extra["robust_clf_layer"] = sc.robust_clf_layer
     box: dict[str, Any] = {}
     if limits:
         u_min, u_max = sc.input_limits()
@@ -630,6 +650,12 @@ def run_obstacle_study(
         coverage["calibration"] = calibrated
     if isinstance(uncertainty, FastGP):
         coverage["cache"] = _cache_width(gp, uncertainty)
+    goal_mean, goal_std = uncertainty.mean_std(jnp.zeros(2))
+    coverage["at_goal"] = {  # the model the controller uses, at the goal x = 0
+        "mean_mps": np.asarray(goal_mean).tolist(),
+        "std_mps": np.asarray(goal_std).tolist(),
+        "omega_mps": np.asarray(sc.omega(jnp.zeros(2))).tolist(),
+    }
 
     report("domains of attraction and maps", 0.2)
     t0 = time.perf_counter()

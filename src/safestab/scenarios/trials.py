@@ -119,6 +119,15 @@ class ScenarioTrials:
             slack_weight=sc.slack_weight, u_min=u_min, u_max=u_max,
         )  # fmt: skip
 
+    def robust_options(self) -> dict[str, Any]:
+        """Extra keyword arguments of the GP-robust controllers.
+
+        The scenario's boundary layer on the CLF's robust term
+        (``controller.robust_clf_layer``), where it has one > 0.
+        """
+        layer = float(getattr(self.scenario, "robust_clf_layer", 0.0))  # ACC: none
+        return {"robust_clf_layer": layer} if layer > 0 else {}
+
     def omega(self, x: Any) -> Any:
         """The true model error the GP learns, shape (..., n)."""
         return self.scenario.omega(x)

@@ -14,6 +14,7 @@ Three ways to choose ``beta``, with what each probability means:
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from typing import Any
 
 import jax
@@ -34,6 +35,7 @@ __all__ = [
     "ConfidenceReport",
     "confidence",
     "conformal_beta",
+    "mean_std_batch",
 ]
 
 
@@ -195,11 +197,13 @@ def confidence(
     )
 
 
-def _mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and std at states (N, n), each (N, n).
 
     The model's compiled ``predict`` or ``mean_std_batch`` where it has one (a fitted GP, a
-    ``BatchedUncertainty``), else its ``mean_std`` mapped with ``jax.vmap``.
+    ``BatchedUncertainty``), else its ``mean_std`` mapped with ``jax.vmap`` and compiled
+    (once per model and shape: run op by op, the first call of each shape compiled every
+    operation on its own, 2.3 s for the paper preset's cache against 0.3 s).
     """
     if isinstance(model, GaussianProcessModel):
         mean, var = model.predict(x)
@@ -207,13 +211,30 @@ def _mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(model, BatchedUncertainty):
         mean, std = model.mean_std_batch(x)
         return np.asarray(mean), np.asarray(std)
-    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
+    mean, std = _batched(model)(jnp.asarray(x))
     return np.asarray(mean), np.asarray(std)
+
+
+#: ``jax.jit(jax.vmap(model.mean_std))`` per model, kept while the model lives.
+_BATCHED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _batched(model: Any) -> Any:
+    """The compiled, batched ``mean_std`` of ``model`` (made once per model)."""
+    try:
+        return _BATCHED[model]
+    except (KeyError, TypeError):  # TypeError: not weakly referable or not hashable
+        fn = jax.jit(jax.vmap(model.mean_std))
+        try:
+            _BATCHED[model] = fn
+        except TypeError:
+            pass
+        return fn
 
 
 def _scores(model: Any, x: np.ndarray, y: np.ndarray, observation_noise: bool) -> np.ndarray:
     """``max_i |y_i - m_i| / s_i`` over learned components, per row; shape (N,)."""
-    mean, std = _mean_std_batch(model, x)
+    mean, std = mean_std_batch(model, x)
     comps = list(getattr(model, "components_", range(x.shape[1])))
     if observation_noise:
         noise = np.zeros(x.shape[1])
@@ -389,7 +410,7 @@ def calibration(
         raise DimensionError(f"x and y must both have shape (Q, n), got {x.shape} and {y.shape}")
     check_finite("x", x)
     check_finite("y", y)
-    mean, std = _mean_std_batch(model, x)
+    mean, std = mean_std_batch(model, x)
     if observation_noise:
         noise = np.zeros(x.shape[1])
         noise[list(model.components_)] = model.noise_

@@ -29,6 +29,7 @@ from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
 from ..learning import FastGP, GaussianProcessModel
+from ..learning.bounds import mean_std_batch
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
@@ -463,8 +464,8 @@ class ObstacleStudyResult(MetricsWriter):
 
 def _coverage(sc: ObstacleScenario, model: Any, x: np.ndarray, calibrated: bool) -> dict[str, Any]:
     """Held-out coverage of ``|omega_i - m_i| <= beta sigma_i`` against the true current."""
-    mean, std = jax.vmap(model.mean_std)(jnp.asarray(x))
-    err = np.abs(np.asarray(sc.omega(x)) - np.asarray(mean))
+    mean, std = mean_std_batch(model, x)
+    err = np.abs(np.asarray(sc.omega(x)) - mean)
     inside = err <= sc.gp_beta * np.asarray(std)
     return {
         "n_held_out": int(len(x)),

@@ -104,6 +104,31 @@ def obstacle_table(doc: dict) -> str:
     return _table(header, ["---"] * 2 + ["---:"] * 11, rows)
 
 
+def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
+    """The GP-robust rows with the preset's boundary layer and without it (layer 0)."""
+    rows = []
+    layer = doc["settings"]["robust_clf_layer_m"]
+    for eps, d in ((f"{layer:g} m (preset)", doc), ("0 (Lemma 3)", doc_plain)):
+        for limits in ("no limits", "input limits"):
+            run = d["runs"][f"GP-robust / {limits}"]
+            o, settle = run["outcomes"], run["median_converge_time_s"]
+            rows.append([
+                eps, "none" if limits == "no limits" else "+-1.5 m/s",
+                " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+                f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
+                f"{run['median_input_variation_mps2']:.3f}",
+                f"{run['input_variation_in_ball_share']:.2f}",
+                f"{run['max_input_variation_in_ball_mps2']:.2f}",
+                "-" if settle is None else f"{settle:.1f}",
+            ])  # fmt: skip
+    header = ["boundary layer eps", "limits", "converged / stuck / moving / unsafe",
+              "min h (m^2)", "max abs u (m/s)", "input variation (m/s^2, median)",
+              "share of the variation within the goal ball",
+              "largest variation within the goal ball (m/s^2, one start)",
+              "time to converge (s, median)"]  # fmt: skip
+    return _table(header, ["---"] * 3 + ["---:"] * 6, rows)
+
+
 def obstacle_gp_table(doc: dict) -> str:
     """The obstacle GP per component: the cache's width, beta and held-out coverage."""
     gp = doc["gp"]
@@ -378,9 +403,15 @@ def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
                      ("obstacle_obstacle_maps.png", "obstacle_maps.png")):  # fmt: skip
         _copy(folder / src, f"figures/{dst}")
     doc = _load(folder / "obstacle_obstacle_metrics.json")
+    # the same run without the boundary layer on the robust CLF term (the chattering it ends)
+    plain = out / "obstacle-no-layer"
+    _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "controller.robust_clf_layer=0",
+          "--out", str(plain)])  # fmt: skip
+    doc_plain = _load(plain / "obstacle_obstacle_metrics.json")
     return {
         "obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc)),
         "obstacle-gp": ("docs/obstacle.md", obstacle_gp_table(doc)),
+        "obstacle-layer": ("docs/obstacle.md", obstacle_layer_table(doc, doc_plain)),
     }
 
 
@@ -488,7 +519,7 @@ LONG = {"mc-datasets", "price"}
 PRODUCES = {
     "acc": ["acc-paper", "acc-stress"],
     "swarm": ["swarm-results", "swarm-loose-solvers"],
-    "obstacle": ["obstacle-outcomes", "obstacle-gp"],
+    "obstacle": ["obstacle-outcomes", "obstacle-gp", "obstacle-layer"],
     "obstacle-seeds": ["obstacle-seeds"],
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],

@@ -213,6 +213,33 @@ def test_obstacle_table_from_a_metrics_document():
     )
 
 
+def test_obstacle_layer_table_from_two_metrics_documents():
+    def run(variation, ball_max, settle):
+        return {
+            "outcomes": {"converged": 68, "stuck": 4, "unsafe": 0, "moving": 0},
+            "min_h_m2": 0.18914,
+            "max_abs_u_mps": 4.8294,
+            "median_input_variation_mps2": variation,
+            "input_variation_in_ball_share": 0.6118,
+            "max_input_variation_in_ball_mps2": ball_max,
+            "median_converge_time_s": settle,
+        }
+
+    def doc(layer, ball_max):
+        return {"settings": {"robust_clf_layer_m": layer},
+                "runs": {"GP-robust / no limits": run(0.38259, ball_max, 5.29),
+                         "GP-robust / input limits": run(0.1043, 0.026, None)}}  # fmt: skip
+
+    lines = reproduce_docs.obstacle_layer_table(doc(0.2, 1.2273), doc(0.0, 90.47)).splitlines()
+    assert len(lines) == 6 and all(len(ln.split("|")) == 11 for ln in lines)
+    assert lines[2] == (
+        "| 0.2 m (preset) | none | 68 / 4 / 0 / 0 | 0.189 | 4.83 | 0.383 | 0.61 | 1.23 | 5.3 |"
+    )
+    assert lines[5] == (
+        "| 0 (Lemma 3) | +-1.5 m/s | 68 / 4 / 0 / 0 | 0.189 | 4.83 | 0.104 | 0.61 | 0.03 | - |"
+    )
+
+
 def test_obstacle_gp_table_from_a_metrics_document():
     gp = {"beta": 5.8356, "per_component": [1.0, 0.99], "rmse_mps": [0.13729, 0.04021],
           "cache": {"n_inducing": [101, 190], "std_over_exact_at_training_median": [1.0653, 1.0247],

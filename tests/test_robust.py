@@ -103,6 +103,11 @@ def test_clf_layer_zero_is_lemma_3_bit_for_bit_and_leaves_the_cbf_margin_alone()
     # a traced zero takes the other branch of the code: Lemma 3's term up to the rounding of
     # a differently compiled sum (a few units in the last place of its terms' magnitude)
     traced = jax.jit(lambda e: robust_margins(gV, gh, mean, std, 2.0, e).delta_V)(0.0)
+    for bad, error in ((-0.1, ss.ParameterError), (np.nan, ss.NonFiniteError)):
+        with pytest.raises(error, match="clf_layer"):
+            robust_margins(gV, gh, mean, std, 2.0, bad)
+    with pytest.raises(ss.DimensionError, match=r"clf_layer must be a scalar, got shape \(2,\)"):
+        robust_margins(gV, gh, mean, std, 2.0, [0.1, 0.2])
     size = np.sum(np.abs(gV * mean) + np.abs(gV) * 2.0 * std, 1)
     assert np.all(np.abs(np.asarray(traced) - np.asarray(plain.delta_V)) <= 8e-16 * size)
 
@@ -127,6 +132,24 @@ def test_clf_layer_gives_up_at_most_half_eps_times_the_band_norm():
     near = scale[:, 0] < 1e-3 * eps
     quadratic = scale[near, 0] / eps * full[near]
     np.testing.assert_allclose(smooth[near], quadratic, rtol=1e-2)
+    # derivatives finite from 1e-300 to 1e300 (tiny and huge gradients, tiny and huge eps)
+    # and equal to central differences at ordinary magnitudes
+    for e in (1e-300, 0.2, 1e300):
+        for size in (1e-300, 1e-160, 1e-3, 1.0, 1e300):
+            x = size * jnp.array([1.0, 0.5, -1.0])
+            d = jax.grad(
+                lambda x, e: robust_margins(x, x, jnp.zeros(3), jnp.ones(3), beta, e).delta_V,
+                argnums=(0, 1),
+            )(x, e)
+            assert np.all(np.isfinite(np.asarray(d[0]))) and np.isfinite(float(d[1]))
+
+    def smooth_term(x, e):
+        return float(robust_margins(x, x, jnp.zeros(3), jnp.ones(3), beta, e).delta_V)
+
+    x0, h = jnp.array([0.1, 0.05, -0.1]), 1e-7
+    grad_x = jax.grad(lambda x: robust_margins(x, x, 0 * x, 0 * x + 1, beta, eps).delta_V)(x0)
+    fd = (smooth_term(x0.at[0].add(h), eps) - smooth_term(x0.at[0].add(-h), eps)) / (2 * h)
+    assert float(grad_x[0]) == pytest.approx(fd, rel=1e-6)
     # at the goal itself: finite, no robust term, and a finite derivative
     at_goal = robust_margins(jnp.zeros(3), jnp.zeros(3), jnp.zeros(3), jnp.ones(3), beta, eps)
     assert float(at_goal.delta_V) == 0.0
@@ -204,6 +227,12 @@ def test_robust_clf_layer_is_checked_and_tunable():
     x = jnp.array([0.3, -0.2, 0.1])
     zero = layered.replace(robust_clf_layer=0.0)
     np.testing.assert_array_equal(np.asarray(zero.step(x).u), np.asarray(ctrl.step(x).u))
-    # the layer lowers a~ by the documented amount, leaves c~ alone
+    # the layer lowers a~ by at most the documented amount, computed here by hand from the
+    # CLF's gradient, and leaves c~ alone
     t0, t1 = ctrl.terms_point(x), layered.terms_point(x)
-    assert float(t1.a) < float(t0.a) and float(t1.c) == float(t0.c)
+    g = np.asarray(clf.gradient(x))
+    n = np.linalg.norm(g)
+    by_hand = (1 - n / np.sqrt(n * n + 0.25)) * np.sum(np.abs(g) * 2.0 * 0.1)
+    assert float(t0.a) - float(t1.a) == pytest.approx(by_hand, rel=1e-12)
+    assert by_hand <= 0.5 / 2 * np.linalg.norm(np.full(3, 2.0 * 0.1))
+    assert float(t1.c) == float(t0.c)

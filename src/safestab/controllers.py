@@ -286,9 +286,10 @@ class UniversalController(Controller):
         ``dV/dx``) on the CLF's robust term, which Lemma 3 makes proportional to ``|dV/dx|``
         and which therefore asks for an input that does not vanish at the goal (a sampled
         loop chatters there). The term is multiplied by ``|dV/dx| / sqrt(|dV/dx|^2 + eps^2)``;
-        safety (the CBF's term) is unchanged, and the CLF guarantee becomes practical: ``V``
-        decreases outside ``V <= eps max |beta sigma| / (2 lambda)``
-        (:func:`~safestab.robust.robust_margins`, docs/theory.md). Default: none (Lemma 3).
+        safety (the CBF's term) is unchanged, and the CLF guarantee (for the CLF's linear
+        rate ``lam``) becomes practical: ``V`` converges exponentially to a sublevel set
+        ``V <= eps M / (2 lam)``, ``M`` the largest ``|beta sigma|`` on it
+        (:func:`~safestab.robust.robust_margins`, docs/learning.md). Default: none (Lemma 3).
 
     Attributes
     ----------
@@ -364,31 +365,10 @@ class UniversalController(Controller):
                 check_params((), **{name: weight})
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
-        if cbf_margin is not None:
-            check_real("cbf_margin", cbf_margin)
-            if np.ndim(cbf_margin) != 0:
-                raise DimensionError(
-                    f"cbf_margin must be a scalar, got shape {np.shape(cbf_margin)}"
-                )
-            if is_concrete(cbf_margin) and not (
-                np.isfinite(float(cbf_margin)) and float(cbf_margin) >= 0
-            ):
-                raise ParameterError(
-                    f"cbf_margin must be a finite number >= 0, got {float(cbf_margin)!r}"
-                )
+        for name, value in (("cbf_margin", cbf_margin), ("robust_clf_layer", robust_clf_layer)):
+            if value is not None:
+                self._check_nonnegative_scalar(name, value)
         if robust_clf_layer is not None:
-            check_real("robust_clf_layer", robust_clf_layer)
-            if np.ndim(robust_clf_layer) != 0:
-                raise DimensionError(
-                    f"robust_clf_layer must be a scalar, got shape {np.shape(robust_clf_layer)}"
-                )
-            if is_concrete(robust_clf_layer) and not (
-                np.isfinite(float(robust_clf_layer)) and float(robust_clf_layer) >= 0
-            ):
-                raise ParameterError(
-                    "robust_clf_layer must be a finite number >= 0, got "
-                    f"{float(robust_clf_layer)!r}"
-                )
             if uncertainty is None:
                 raise ParameterError(
                     "robust_clf_layer smooths the GP-robust CLF term: it needs uncertainty= "
@@ -474,6 +454,15 @@ class UniversalController(Controller):
         names += ["cbf_margin"] if self.cbf_margin is not None else []
         names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
         return tuple(names)
+
+    @staticmethod
+    def _check_nonnegative_scalar(name: str, value: Any) -> None:
+        """Check a real scalar that must be finite and >= 0 (where concrete, not traced)."""
+        check_real(name, value)
+        if np.ndim(value) != 0:
+            raise DimensionError(f"{name} must be a scalar, got shape {np.shape(value)}")
+        if is_concrete(value) and not (np.isfinite(float(value)) and float(value) >= 0):
+            raise ParameterError(f"{name} must be a finite number >= 0, got {float(value)!r}")
 
     @staticmethod
     def _formula_object(formula: Any, slack_weight: Any, parallel_rtol: Any) -> Formula:

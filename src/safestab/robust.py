@@ -140,34 +140,70 @@ def robust_margins(
     corner of the box).
 
     **The boundary layer (not in the paper).** Lemma 3's CLF term grows like ``|dV/dx|``, i.e.
-    like ``|x|`` at a quadratic CLF's minimum, while the required decrease ``lambda V`` grows
-    like ``|x|^2``: wherever ``sigma(0) > 0`` the robust CLF condition asks for an input of
-    size about ``beta sigma(0)`` (twice that from the Sontag-type formula) that does not vanish
-    at the goal and points along ``-dV/dx``, a direction that flips as the state crosses the
-    goal. A sampled loop then chatters around the goal (docs/obstacle.md measures it). With
-    ``eps > 0`` the term becomes quadratic in ``|dV/dx|`` below ``eps`` and the input goes to
-    zero continuously. What is given up is exact: since
-    ``|g| (1 - s(|g|)) <= eps / 2`` for every ``g``, the smoothed term is below Lemma 3's by at
-    most ``(eps / 2) |beta sigma(x)|`` (Euclidean norm, by Cauchy-Schwarz), so where the
-    smoothed CLF condition holds the true ``dV/dt <= -lambda V + (eps / 2) |beta sigma(x)|``
-    with Lemma 2's probability: ``V`` decreases exponentially outside the sublevel set
-    ``V <= eps max |beta sigma| / (2 lambda)`` (the max over that set), which it enters and
-    keeps (practical instead of asymptotic stability; exact in the paper's continuous time,
-    which the sampled loop does not deliver anyway when it chatters). ``eps = 0`` gives
-    Lemma 3's term bit for bit.
+    like ``|x|`` at a quadratic CLF's minimum, while the required decrease ``lambda V`` (the
+    CLF's linear rate) grows like ``|x|^2``: wherever ``sigma(0) > 0`` the robust CLF
+    condition asks for an input of size about ``(1 + kappa) beta sigma(0)`` that does not
+    vanish at the goal and points along ``-dV/dx``, a direction that flips as the state
+    crosses the goal. A sampled loop then chatters around the goal (docs/obstacle.md measures
+    it). With ``eps > 0`` the term becomes quadratic in ``|dV/dx|`` below ``eps`` and the
+    input goes to zero continuously. What is given up is exact: ``|g| (1 - s(|g|))`` is at
+    most ``0.31 eps`` for every ``g`` (at ``|g| = 0.79 eps``), so the smoothed term is below
+    Lemma 3's by at most ``(eps / 2) |beta sigma(x)|`` (Euclidean norm, by Cauchy-Schwarz).
+    Where the smoothed CLF condition holds (the compatible formula enforces it; the relaxed
+    formula and input limits do not), with Lemma 2's probability the true
+    ``dV/dt <= -lambda V + (eps / 2) |beta sigma(x)|``: every sublevel set ``{V <= c}`` with
+    ``c >= eps M_c / (2 lambda)``, ``M_c`` the largest ``|beta sigma|`` on it, is invariant,
+    and from inside it ``V(t) <= exp(-lambda t) V(0) + eps M_c / (2 lambda)`` (practical
+    instead of asymptotic stability). ``eps = 0`` gives Lemma 3's term bit for bit.
+
+    Raises
+    ------
+    ParameterError, NonFiniteError, DimensionError
+        If a concrete ``clf_layer`` is negative, not finite or not a scalar.
     """
+    if is_concrete(clf_layer):
+        if np.ndim(clf_layer) != 0:
+            raise DimensionError(f"clf_layer must be a scalar, got shape {np.shape(clf_layer)}")
+        check_scalar_range("clf_layer", clf_layer, lower=0.0)
     spread = beta * std
     weight = jnp.abs(grad_V)
-    eps = jnp.asarray(clf_layer, dtype=float)
+    layer = jnp.asarray(clf_layer, dtype=float)
     if not (is_concrete(clf_layer) and float(np.asarray(clf_layer)) == 0.0):
-        square = jnp.sum(grad_V * grad_V, -1, keepdims=True)
-        safe = jnp.where(square > 0, square, 1.0)  # no 0/0, in values or in gradients
-        # |g| / sqrt(|g|^2 + eps^2), written so that neither a huge nor a tiny |g| overflows
-        shrink = jnp.where(square > 0, 1.0 / jnp.sqrt(1.0 + eps * eps / safe), 0.0)
-        weight = jnp.where(eps > 0, weight * shrink, weight)
+        # a traced eps = 0 keeps Lemma 3's term (the where below); the smoothing is then
+        # computed with eps = 1 only so that its derivatives stay finite
+        eps = jnp.where(layer > 0, layer, 1.0)
+        # s = |g| / sqrt(|g|^2 + eps^2), |g| computed scaled by its largest entry: neither a
+        # huge nor a tiny gradient overflows or underflows, and no 0/0 at the goal (values
+        # and derivatives)
+        top = jnp.max(weight, -1, keepdims=True)
+        positive = top > 0
+        # the norm does not depend on the scale: no derivative through it (whose square
+        # underflows for tiny gradients)
+        scale = jax.lax.stop_gradient(jnp.where(positive, top, 1.0))
+        ratio2 = jnp.sum((grad_V / scale) ** 2, -1, keepdims=True)
+        norm = scale * jnp.sqrt(jnp.where(positive, ratio2, 1.0))
+        shrink = jnp.where(positive, _layer_shrink(norm, eps), 0.0)
+        weight = jnp.where(layer > 0, weight * shrink, weight)
     delta_V = jnp.sum(grad_V * mean, -1) + jnp.sum(weight * spread, -1)
     delta_h = jnp.sum(grad_h * mean, -1) - jnp.sum(jnp.abs(grad_h) * spread, -1)
     return RobustMargins(delta_V, delta_h)
+
+
+@jax.custom_jvp
+def _layer_shrink(norm: jax.Array, eps: jax.Array) -> jax.Array:
+    """``s = |g| / sqrt(|g|^2 + eps^2)`` for ``|g| >= 0``, ``eps > 0`` (scaled by hypot)."""
+    return norm / jnp.hypot(norm, eps)
+
+
+@_layer_shrink.defjvp
+def _layer_shrink_jvp(primals, tangents):
+    # ds/d|g| = eps^2 / h^3 and ds/d eps = -|g| eps / h^3 (h = hypot), written as ratios
+    # that stay finite for any magnitudes (no squares that overflow or underflow)
+    norm, eps = primals
+    d_norm, d_eps = tangents
+    h = jnp.hypot(norm, eps)
+    s, c = norm / h, eps / h
+    return s, (c * c * d_norm - s * c * d_eps) / h
 
 
 def robust_lie_terms(

@@ -339,6 +339,12 @@ def _describe_controller(controller: Any) -> str:
             f"GP-robust Lie terms (Lemma 3, Theorem 2) from {type(unc).__name__}{extra}, "
             f"beta = {np.asarray(controller.gp_beta).tolist()}."
         )
+        layer = getattr(controller, "robust_clf_layer", None)
+        if layer is not None:
+            lines.append(
+                f"Boundary layer on the robust CLF term, eps = {float(layer)!r}: the term is "
+                "multiplied by |dV/dx| / sqrt(|dV/dx|^2 + eps^2) (docs/learning.md)."
+            )
     return "\n".join(lines)
 
 

@@ -443,6 +443,7 @@ class ObstacleStudyResult(MetricsWriter):
                 "gp_controller": (
                     "exact" if sc.n_inducing == 0 else f"FastGP n_inducing<={sc.n_inducing}"
                 ),  # the inputs used per component: gp.cache.n_inducing
+                "robust_clf_layer_m": sc.robust_clf_layer,
             },
             "doa_c_star_m2": self.doa,
             "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},

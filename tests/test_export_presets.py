@@ -204,11 +204,11 @@ def test_exported_gp_controller_runs_with_the_studys_beta_method():
     assert expected != sc.gp_beta
     np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), expected)
     assert f"GP beta = {expected:.6g}, split conformal on 100 fresh trajectories" in description
-    # the preset's boundary layer on the robust CLF term reaches the controller and its header
-    from safestab.export.exporter import _describe_controller
-
+    # the preset's boundary layer on the robust CLF term reaches the controller and the
+    # exported header's description
     assert float(ctrl.robust_clf_layer) == sc.robust_clf_layer == 0.2
-    assert "Boundary layer on the robust CLF term, eps = 0.2" in _describe_controller(ctrl)
+    exported = ss.export.export_c(ctrl, "obstacle")
+    assert "Boundary layer on the robust CLF term, eps = 0.2" in exported.header
     chosen = sc.replace(beta_method="chosen")
     ctrl, description, _ = scenario_controller(chosen, "gp", n_inducing=8)
     np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), sc.gp_beta)

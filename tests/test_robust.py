@@ -236,3 +236,40 @@ def test_robust_clf_layer_is_checked_and_tunable():
     assert float(t0.a) - float(t1.a) == pytest.approx(by_hand, rel=1e-12)
     assert by_hand <= 0.5 / 2 * np.linalg.norm(np.full(3, 2.0 * 0.1))
     assert float(t1.c) == float(t0.c)
+
+
+def test_safety_filter_robust_clf_layer_matches_the_margin_by_hand():
+    # One hard CLF row and an inactive barrier, u_nom = 0: the filter's input is the least-norm
+    # one on the CLF row, u = -a~ b / |b|^2, so -b.u is the row's a~, checked against a~
+    # written by hand (V = |x|^2, f = 0, g = I) with and without the layer.
+    robot = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    clf = ss.CLF(lambda x: x @ x, lam=1.0)
+    far = ss.CBF(lambda x: 100.0 - x @ x, beta=1.0)
+    m, sd = np.array([0.02, -0.01]), np.array([0.1, 0.2])
+
+    class Band:
+        n_states = 2
+
+        def mean_std(self, x):
+            return jnp.asarray(m), jnp.asarray(sd)
+
+    common = dict(clfs=clf, uncertainty=Band(), gp_beta=2.0)
+    x = np.array([0.3, 0.2])
+    g = 2 * x
+    n = np.linalg.norm(g)
+    robust = np.sum(np.abs(g) * 2.0 * sd)
+    for layer, shrink in ((None, 1.0), (0.5, n / np.sqrt(n * n + 0.25))):
+        extra = {} if layer is None else {"robust_clf_layer": layer}
+        filt = ss.SafetyFilter(robot, far, **common, **extra)
+        out = filt.step(jnp.asarray(x))
+        a_tilde = x @ x + g @ m + shrink * robust
+        assert -float(g @ np.asarray(out.u)) == pytest.approx(a_tilde, rel=1e-12)
+        assert bool(np.all(np.asarray(out.cbf_satisfied)))
+    assert "robust_clf_layer" in filt.tunables()
+    zero = filt.replace(robust_clf_layer=0.0)
+    plain = ss.SafetyFilter(robot, far, **common)
+    np.testing.assert_array_equal(np.asarray(zero.step(x).u), np.asarray(plain.step(x).u))
+    with pytest.raises(ss.ParameterError, match="robust_clf_layer.*needs uncertainty"):
+        ss.SafetyFilter(robot, far, clfs=clf, robust_clf_layer=0.5)
+    with pytest.raises(ss.DimensionError, match="robust_clf_layer must be a scalar"):
+        ss.SafetyFilter(robot, far, robust_clf_layer=[0.1, 0.2], **common)

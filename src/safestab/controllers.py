@@ -163,6 +163,27 @@ class Controller(ControllerValue):
     cbfs: tuple[CBF, ...]  #: every CBF
 
     @staticmethod
+    def _check_nonnegative_scalar(name: str, value: Any) -> None:
+        """Check a real scalar that must be finite and >= 0 (where concrete, not traced)."""
+        check_real(name, value)
+        if np.ndim(value) != 0:
+            raise DimensionError(f"{name} must be a scalar, got shape {np.shape(value)}")
+        if is_concrete(value) and not (np.isfinite(float(value)) and float(value) >= 0):
+            raise ParameterError(f"{name} must be a finite number >= 0, got {float(value)!r}")
+
+    @classmethod
+    def _check_robust_clf_layer(cls, layer: Any, uncertainty: Any) -> None:
+        """``robust_clf_layer``: a finite scalar >= 0, and only with an uncertainty model."""
+        if layer is None:
+            return
+        cls._check_nonnegative_scalar("robust_clf_layer", layer)
+        if uncertainty is None:
+            raise ParameterError(
+                "robust_clf_layer smooths the GP-robust CLF term: it needs uncertainty= "
+                "(a model of omega), got none"
+            )
+
+    @staticmethod
     def _check_uncertainty(uncertainty: Any, gp_beta: Any, n: int) -> Any:
         """Check the uncertainty model and return ``gp_beta`` checked (as given without one)."""
         if uncertainty is None:
@@ -365,15 +386,9 @@ class UniversalController(Controller):
                 check_params((), **{name: weight})
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
-        for name, value in (("cbf_margin", cbf_margin), ("robust_clf_layer", robust_clf_layer)):
-            if value is not None:
-                self._check_nonnegative_scalar(name, value)
-        if robust_clf_layer is not None:
-            if uncertainty is None:
-                raise ParameterError(
-                    "robust_clf_layer smooths the GP-robust CLF term: it needs uncertainty= "
-                    "(a model of omega), got none"
-                )
+        if cbf_margin is not None:
+            self._check_nonnegative_scalar("cbf_margin", cbf_margin)
+        self._check_robust_clf_layer(robust_clf_layer, uncertainty)
         clf.check(system.n_states)
         cbf.check(system.n_states)
         self.params_spec: ParamSpec | None = merge_specs(
@@ -454,15 +469,6 @@ class UniversalController(Controller):
         names += ["cbf_margin"] if self.cbf_margin is not None else []
         names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
         return tuple(names)
-
-    @staticmethod
-    def _check_nonnegative_scalar(name: str, value: Any) -> None:
-        """Check a real scalar that must be finite and >= 0 (where concrete, not traced)."""
-        check_real(name, value)
-        if np.ndim(value) != 0:
-            raise DimensionError(f"{name} must be a scalar, got shape {np.shape(value)}")
-        if is_concrete(value) and not (np.isfinite(float(value)) and float(value) >= 0):
-            raise ParameterError(f"{name} must be a finite number >= 0, got {float(value)!r}")
 
     @staticmethod
     def _formula_object(formula: Any, slack_weight: Any, parallel_rtol: Any) -> Formula:

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batching import over_batch
+from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
 from .certificates import CBF, CLF
@@ -183,6 +184,10 @@ class SafetyFilter(Controller):
     uncertainty : UncertaintyModel, optional
         GP-robust terms (Lemma 3) for every row.
     gp_beta : float or array of shape (n,)
+    robust_clf_layer : float, optional
+        With an uncertainty model only: the boundary layer ``eps >= 0`` on every CLF row's
+        robust term, as for :class:`~safestab.UniversalController` (docs/learning.md);
+        default none (Lemma 3's term).
     params : pytree, optional
         An example of run-time parameters for the filter's own callable: with it, a callable
         ``u_nom`` takes ``(x, p)`` (a set-point, say). The system and the certificates declare
@@ -216,6 +221,7 @@ class SafetyFilter(Controller):
         u_max: Any = None,
         uncertainty: UncertaintyModel | None = None,
         gp_beta: Any = 2.0,
+        robust_clf_layer: float | None = None,
         params: Any = None,
         max_iter: int | None = None,
     ) -> None:
@@ -262,6 +268,7 @@ class SafetyFilter(Controller):
             else:
                 H = jnp.asarray(H, dtype=float)
         gp_beta = self._check_uncertainty(uncertainty, gp_beta, n)
+        self._check_robust_clf_layer(robust_clf_layer, uncertainty)
         #: The run-time parameters' structure shared by every function (None: none).
         self.params_spec: ParamSpec | None = merge_specs(
             [system.params_spec, *(c.params_spec for c in self.clfs + self.cbfs), own_spec]
@@ -275,6 +282,7 @@ class SafetyFilter(Controller):
         self.u_min, self.u_max = u_min, u_max
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
+        self.robust_clf_layer = None if robust_clf_layer is None else as_scalar(robust_clf_layer)
         #: The several-row formula object that solves each step's problem.
         self.formula = MultiFormula(max_iter)
         self._remember(SafetyFilter, init_args)
@@ -293,6 +301,7 @@ class SafetyFilter(Controller):
         names += ["u_min", "u_max"] if self.u_min is not None else []
         names += ["H"] if self.H is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
+        names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
         return tuple(names)
 
     def _point(self, x: jax.Array, p: Any = None):
@@ -321,9 +330,10 @@ class SafetyFilter(Controller):
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             beta = jnp.asarray(self.gp_beta)
+            layer = 0.0 if self.robust_clf_layer is None else self.robust_clf_layer
             for i, cl in enumerate(self.clfs):
                 gv = cl.grad_of(x, p)
-                a = a.at[i].add(robust_margins(gv, gv, mean, std, beta).delta_V)
+                a = a.at[i].add(robust_margins(gv, gv, mean, std, beta, layer).delta_V)
             for i, cb in enumerate(self.cbfs):
                 gh = cb.grad_of(x, p)
                 c = c.at[i].add(robust_margins(gh, gh, mean, std, beta).delta_h)

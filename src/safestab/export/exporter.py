@@ -339,13 +339,19 @@ def _describe_controller(controller: Any) -> str:
             f"GP-robust Lie terms (Lemma 3, Theorem 2) from {type(unc).__name__}{extra}, "
             f"beta = {np.asarray(controller.gp_beta).tolist()}."
         )
-        layer = getattr(controller, "robust_clf_layer", None)
-        if layer is not None:
-            lines.append(
-                f"Boundary layer on the robust CLF term, eps = {float(layer)!r}: the term is "
-                "multiplied by |dV/dx| / sqrt(|dV/dx|^2 + eps^2) (docs/learning.md)."
-            )
+        lines += _layer_lines(controller)
     return "\n".join(lines)
+
+
+def _layer_lines(obj: Any) -> list[str]:
+    """The header's line on a boundary layer on the robust CLF term(s), if there is one."""
+    layer = getattr(obj, "robust_clf_layer", None)
+    if layer is None:
+        return []
+    return [
+        f"Boundary layer on the robust CLF term, eps = {float(layer)!r}: the term is "
+        "multiplied by |dV/dx| / sqrt(|dV/dx|^2 + eps^2) (docs/learning.md)."
+    ]
 
 
 def _describe_filter(filt: Any) -> str:
@@ -375,6 +381,7 @@ def _describe_filter(filt: Any) -> str:
             f"GP-robust rows (Lemma 3) from {type(filt.uncertainty).__name__}, "
             f"beta = {np.asarray(filt.gp_beta).tolist()}."
         )
+        lines += _layer_lines(filt)
     return "\n".join(lines)
 
 

@@ -78,6 +78,18 @@ def _table(header: list[str], align: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _run_cells(run: dict) -> list[str]:
+    """One obstacle run's min h, largest input, input variation and convergence cells."""
+    settle = run["median_converge_time_s"]
+    return [
+        f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
+        f"{run['median_input_variation_mps2']:.3f}",
+        f"{run['input_variation_in_ball_share']:.2f}",
+        f"{run['max_input_variation_in_ball_mps2']:.2f}",
+        "-" if settle is None else f"{settle:.1f}",
+    ]  # fmt: skip
+
+
 def obstacle_table(doc: dict) -> str:
     """The obstacle page's outcome table from a metrics document."""
     rows = []
@@ -85,16 +97,10 @@ def obstacle_table(doc: dict) -> str:
         name, limits = key.split(" / ")
         o, stuck = run["outcomes"], run["stuck"]
         both = sum(not s["end_flag_compatible"] and not s["end_verdict_compatible"] for s in stuck)
-        settle = run["median_converge_time_s"]
         rows.append([
             name, "none" if limits == "no limits" else "+-1.5 m/s",
             *(str(o[k]) for k in ("converged", "stuck", "unsafe", "moving")),
-            f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
-            f"{run['median_input_variation_mps2']:.3f}",
-            f"{run['input_variation_in_ball_share']:.2f}",
-            f"{run['max_input_variation_in_ball_mps2']:.2f}",
-            "-" if settle is None else f"{settle:.1f}",
-            f"{both} / {len(stuck)}" if stuck else "-",
+            *_run_cells(run), f"{both} / {len(stuck)}" if stuck else "-",
         ])  # fmt: skip
     header = ["controller", "limits", "converged", "stuck", "unsafe", "moving", "min h (m^2)",
               "max abs u (m/s)", "input variation (m/s^2, median)",
@@ -111,15 +117,11 @@ def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
     for eps, d in ((f"{layer:g} m (preset)", doc), ("0 (Lemma 3)", doc_plain)):
         for limits in ("no limits", "input limits"):
             run = d["runs"][f"GP-robust / {limits}"]
-            o, settle = run["outcomes"], run["median_converge_time_s"]
+            o = run["outcomes"]
             rows.append([
                 eps, "none" if limits == "no limits" else "+-1.5 m/s",
                 " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
-                f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
-                f"{run['median_input_variation_mps2']:.3f}",
-                f"{run['input_variation_in_ball_share']:.2f}",
-                f"{run['max_input_variation_in_ball_mps2']:.2f}",
-                "-" if settle is None else f"{settle:.1f}",
+                *_run_cells(run),
             ])  # fmt: skip
     header = ["boundary layer eps", "limits", "converged / stuck / moving / unsafe",
               "min h (m^2)", "max abs u (m/s)", "input variation (m/s^2, median)",

@@ -585,6 +585,7 @@ def test_cli_run_dispatches_acc_presets(tmp_path, monkeypatch):
                 }
             },
             calibration=SimpleNamespace(per_component=[1.0], joint=1.0, rmse=[0.0]),
+            uncertainty=None,  # StudyResult's default: the summary prints no cache line
             metrics_document=lambda: {"status": "ok"},
         )
 

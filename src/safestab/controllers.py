@@ -161,6 +161,13 @@ class Controller(ControllerValue):
     step_fn: Any
     clfs: tuple[CLF, ...]  #: every CLF (a UniversalController: its one)
     cbfs: tuple[CBF, ...]  #: every CBF
+    #: The boundary layer on the robust CLF term(s); None: Lemma 3's term.
+    robust_clf_layer: Any = None
+
+    @property
+    def _clf_layer(self) -> Any:
+        """``robust_clf_layer`` as :func:`~safestab.robust.robust_margins` takes it (0: none)."""
+        return 0.0 if self.robust_clf_layer is None else self.robust_clf_layer
 
     @staticmethod
     def _check_nonnegative_scalar(name: str, value: Any) -> None:
@@ -553,8 +560,7 @@ class UniversalController(Controller):
             mean, std = self.uncertainty.mean_std(x) if given is None else given
             beta = jnp.asarray(self.gp_beta)
             grads = self.clf.grad_of(x, p), self.cbf.grad_of(x, p)
-            layer = 0.0 if self.robust_clf_layer is None else self.robust_clf_layer
-            terms = robust_lie_terms(terms, *grads, mean, std, beta, layer)
+            terms = robust_lie_terms(terms, *grads, mean, std, beta, self._clf_layer)
             status = jnp.where(
                 status != S.OK,
                 status,

@@ -330,10 +330,9 @@ class SafetyFilter(Controller):
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             beta = jnp.asarray(self.gp_beta)
-            layer = 0.0 if self.robust_clf_layer is None else self.robust_clf_layer
             for i, cl in enumerate(self.clfs):
                 gv = cl.grad_of(x, p)
-                a = a.at[i].add(robust_margins(gv, gv, mean, std, beta, layer).delta_V)
+                a = a.at[i].add(robust_margins(gv, gv, mean, std, beta, self._clf_layer).delta_V)
             for i, cb in enumerate(self.cbfs):
                 gh = cb.grad_of(x, p)
                 c = c.at[i].add(robust_margins(gh, gh, mean, std, beta).delta_h)

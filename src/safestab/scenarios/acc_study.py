@@ -358,7 +358,7 @@ def summary(result: StudyResult, document: dict[str, Any]) -> Summary:
         for name, m in result.metrics.items()
     ]
     cal = result.calibration
-    unc = getattr(result, "uncertainty", None)  # results built by hand may lack it
+    unc = result.uncertainty
     band = (
         ""
         if unc is None or unc is result.gp

@@ -11,6 +11,7 @@ import pytest
 import safestab as ss
 from safestab.errors import DimensionError, InducingPointsWarning, ParameterError
 from safestab.learning import FastGP, GaussianProcessModel, collect_data
+from safestab.learning.fast import EXCESS_WARN
 from safestab.scenarios import load_scenario
 
 
@@ -150,7 +151,7 @@ def test_std_tol_stops_below_the_exact_std_and_keeps_the_band():
     full = FastGP(gp, n_inducing=64, std_tol=0.0)
     fast = FastGP(gp, n_inducing=64, std_tol=0.1)
     assert fast.n_inducing_[0] < full.n_inducing_[0]  # measured 29 against 46
-    assert np.all(fast.std_over_exact_ <= 1.1)
+    assert fast.std_over_exact_[0] <= 1.1
     xs = (gp.x_train_ - gp.x_offset_) / gp.x_scale_
     # the stopping level: a tenth of the exact std's median at FastGP's sample of 128 inputs
     sample = np.random.default_rng(0).choice(len(xs), 128, replace=False)
@@ -168,7 +169,13 @@ def test_std_tol_stops_below_the_exact_std_and_keeps_the_band():
         kxz = k(xs, z)
         resid = amp**2 - np.sum(kxz * np.linalg.solve(k(z, z), kxz.T).T, 1)
         stopped_early = m < min(64, len(xs)) and resid.max() > 1e-14 * amp**2
-        if stopped_early:  # stopped by the level: the residual is below it ...
+        if stopped_early and m == 1 and resid.max() > level[j] ** 2:
+            # the capped component that learned nothing (the pure noise): one input, whose
+            # band is within 0.1 noise stds of the exact one at the sample
+            exact = np.sqrt(np.asarray(gp.predict(gp.x_train_[sample])[1]))[:, j]
+            sd = fast.predict(gp.x_train_[sample])[1][:, j]
+            assert np.max(sd - exact) <= EXCESS_WARN * gp.noise_[j]
+        elif stopped_early:  # stopped by the level: the residual is below it ...
             assert resid.max() <= level[j] ** 2 * (1 + 1e-6)
             # ... and one inducing input fewer would not have been (greedy choice)
             kxz1 = kxz[:, : m - 1]
@@ -243,3 +250,37 @@ def test_kernel_error_coefficient_bounds_a_kernel_value_against_50_digits(kind):
                 worst = max(worst, err)
     assert worst <= ek, (worst, ek)
     assert worst > 0.002 * ek  # not vacuous either
+
+
+def test_a_capped_component_that_learned_nothing_keeps_one_input():
+    # component 1: an amplitude far below the noise and a lengthscale far below the spacing
+    # of the data (the Monte Carlo data sets' second kinematic component): the pivoted
+    # Cholesky cannot resolve its prior at 300 scattered inputs and would stop at the cap,
+    # for a band that more inputs do not narrow. Component 0 carries a signal and also
+    # reaches the cap of 8.
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1, 1, size=(300, 2))
+    y = np.stack([np.sin(3 * x[:, 0]) + x[:, 1] ** 2, np.zeros(300)], 1)
+    y = y + 0.01 * rng.normal(size=(300, 2))
+    gp = GaussianProcessModel.from_hyperparameters(
+        x, y, amplitude=[1.0, 2e-4], noise=[0.01, 0.01],
+        lengthscale=[[0.6, 0.6], [1e-3, 1e-3]], kernel="se",
+    )  # fmt: skip
+    fast = FastGP(gp, n_inducing=8, warn=False)  # component 0 needs more than 8: warned
+    assert fast.n_inducing_.tolist() == [8, 1]
+    # the rule's premise, checked independently: at FastGP's sample of training inputs the
+    # one-input band exceeds the exact std (dense predict) by at most 0.1 noise stds ...
+    sample = np.random.default_rng(0).choice(300, 128, replace=False)
+    exact_sd = np.sqrt(np.asarray(gp.predict(x[sample])[1]))
+    _, sd = fast.predict(x[sample])
+    assert np.max(sd[:, 1] - exact_sd[:, 1]) <= EXCESS_WARN * 0.01
+    # ... while the capped cache, without the rule, is no narrower there by more than that
+    full = FastGP(gp, n_inducing=8, std_tol=0.0, warn=False)
+    assert full.n_inducing_.tolist() == [8, 8]
+    _, sd_full = full.predict(x[sample])
+    assert np.median(sd[:, 1] - sd_full[:, 1]) <= EXCESS_WARN * 0.01
+    # the band contains the exact band near the data and far from it; only component 0's
+    # width is warned about
+    xq = rng.uniform(-2, 2, size=(400, 2))
+    assert np.all(fast.coverage_of_exact_band(xq, 1.0) == 1.0)
+    assert [("component 0" in w) for w in fast.width_warnings_] == [True]

@@ -550,9 +550,11 @@ class FastGP(InducingBand):
         unknown, and the band's excess over the exact one near the data is of that order.
         Components whose GP learned next to nothing (amplitude near or below the noise, such
         as the exact kinematics of the ACC) stop after a few inputs. Where neither rule
-        stops a component before the cap ``n_inducing`` and its cache with one inducing
-        input already exceeds the exact std by at most ``EXCESS_WARN`` (0.1) noise stds at
-        every sampled training input, the component keeps that one input: its prior cannot
+        stops a component before the cap ``n_inducing``, its band there is more than
+        ``STD_RATIO_WARN`` (1.5) times the exact std (median over the sample), and its cache
+        with one inducing input already exceeds the exact std by at most ``EXCESS_WARN``
+        (0.1) noise stds at every sampled training input, the component keeps that one
+        input: its prior cannot
         be resolved at the data (a lengthscale far below their spacing), more inputs leave
         the band about as wide, and an excess below a tenth of the noise changes no decision
         (measured on the Monte Carlo stress data sets' second kinematic component: 1.98
@@ -629,25 +631,32 @@ class FastGP(InducingBand):
         cap = min(int(n_inducing), q)
         capped = [j for j, z in enumerate(zs) if cap > 1 and len(z) == cap]
         if capped and std_tol > 0:
-            # where the cap stopped the pivoted Cholesky, a component whose one-input band is
-            # already within EXCESS_WARN noise stds of the exact band at every sampled input
-            # keeps that one input: more cannot change a decision (the MC data sets'
-            # kinematic components, a lengthscale the data cannot resolve)
-            one = {j: _component(model, j, xs, 1, pivot_tol, 0.0) for j in capped}
-            self._pack(
-                model,
-                [one[j][0] if j in one else z for j, z in enumerate(zs)],
-                [one[j][1] if j in one else c for j, c in enumerate(packed)],
-            )
-            _, sd_c, merr = (np.asarray(a) for a in self._parts_batch(model.x_train_[sample]))
-            excess = np.max(sd_c + merr / self.min_beta - exact_sd, axis=0) / model.noise_
-            for j in capped:
-                if excess[j] <= EXCESS_WARN:
-                    zs[j], packed[j] = one[j]
+            # where the cap stopped the pivoted Cholesky with a band wider than STD_RATIO_WARN
+            # times the exact one, a component whose one-input band is already within
+            # EXCESS_WARN noise stds of the exact band at every sampled input keeps that one
+            # input: more cannot change a decision (the MC data sets' kinematic components,
+            # a lengthscale the data cannot resolve)
+            self._pack(model, zs, packed)
+            ratio = np.median(self._sd_at(model.x_train_[sample]) / exact_sd, axis=0)
+            one = {
+                j: _component(model, j, xs, 1, pivot_tol, 0.0)
+                for j in capped
+                if ratio[j] > STD_RATIO_WARN
+            }
+            if one:
+                self._pack(
+                    model,
+                    [one[j][0] if j in one else z for j, z in enumerate(zs)],
+                    [one[j][1] if j in one else c for j, c in enumerate(packed)],
+                )
+                sd1 = self._sd_at(model.x_train_[sample])
+                excess = np.max(sd1 - exact_sd, axis=0) / model.noise_
+                for j in one:
+                    if excess[j] <= EXCESS_WARN:
+                        zs[j], packed[j] = one[j]
         self._pack(model, zs, packed)
         self.mean_error_norm_ = np.array([c["err"] for c in packed])
-        _, sd_c, merr = (np.asarray(a) for a in self._parts_batch(model.x_train_))
-        sd = sd_c + merr / self.min_beta
+        sd = self._sd_at(model.x_train_)
         self.inflation_at_training_ = np.mean(sd / model.noise_ > INFLATION_WARN, axis=0)
         self.std_over_exact_ = np.median(sd[sample] / exact_sd, axis=0)
         excess = np.median(sd[sample] - exact_sd, axis=0) / model.noise_
@@ -663,6 +672,11 @@ class FastGP(InducingBand):
         self.width_warnings_ = tuple(notes)
         for note in notes if warn else ():
             warnings.warn(note, InducingPointsWarning, stacklevel=2)
+
+    def _sd_at(self, x: np.ndarray) -> np.ndarray:
+        """The packed cache's std at states ``x`` (N, n), per learned component (N, k)."""
+        _, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
+        return sd_c + merr / self.min_beta
 
     def mean_error_bound(self, x: Any) -> np.ndarray:
         """Bound ``E r(x)`` on ``|m~ - m|`` at states ``x`` of shape (N, n); shape (N, k)."""

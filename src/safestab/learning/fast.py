@@ -554,13 +554,12 @@ class FastGP(InducingBand):
         ``STD_RATIO_WARN`` (1.5) times the exact std (median over the sample), and its cache
         with one inducing input already exceeds the exact std by at most ``EXCESS_WARN``
         (0.1) noise stds at every sampled training input, the component keeps that one
-        input: its prior cannot
-        be resolved at the data (a lengthscale far below their spacing), more inputs leave
-        the band about as wide, and an excess below a tenth of the noise changes no decision
-        (measured on the Monte Carlo stress data sets' second kinematic component: 1.98
-        times the exact std with 1 input and 1.95 with 32, an excess of 0.02 noise stds;
-        a query cost the 32 inputs' four 32 x 32 products). ``std_tol = 0`` turns this rule
-        off too.
+        input: its prior cannot be resolved at the data (a lengthscale far below their
+        spacing), more inputs leave the band about as wide, and an excess below a tenth of
+        the noise changes no decision (measured on the Monte Carlo stress data sets' second
+        kinematic component: 1.98 times the exact std with 1 input and 1.95 with 32, an
+        excess of 0.02 noise stds; a query cost the 32 inputs' four 32 x 32 products).
+        ``std_tol = 0`` turns this rule off too.
     warn : bool
         Issue the :class:`InducingPointsWarning` (default). False only records its messages
         in ``width_warnings_``: for callers in threads, where ``warnings.catch_warnings`` is

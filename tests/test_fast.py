@@ -151,7 +151,10 @@ def test_std_tol_stops_below_the_exact_std_and_keeps_the_band():
     full = FastGP(gp, n_inducing=64, std_tol=0.0)
     fast = FastGP(gp, n_inducing=64, std_tol=0.1)
     assert fast.n_inducing_[0] < full.n_inducing_[0]  # measured 29 against 46
-    assert fast.std_over_exact_[0] <= 1.1
+    assert np.all(fast.std_over_exact_ <= 1.1)
+    # component 1 reaches the cap with a tight band (1.06 times the exact std): the
+    # one-input rule, which applies only to wide capped bands, leaves it its 64 inputs
+    assert fast.n_inducing_[1] == 64
     xs = (gp.x_train_ - gp.x_offset_) / gp.x_scale_
     # the stopping level: a tenth of the exact std's median at FastGP's sample of 128 inputs
     sample = np.random.default_rng(0).choice(len(xs), 128, replace=False)
@@ -169,13 +172,7 @@ def test_std_tol_stops_below_the_exact_std_and_keeps_the_band():
         kxz = k(xs, z)
         resid = amp**2 - np.sum(kxz * np.linalg.solve(k(z, z), kxz.T).T, 1)
         stopped_early = m < min(64, len(xs)) and resid.max() > 1e-14 * amp**2
-        if stopped_early and m == 1 and resid.max() > level[j] ** 2:
-            # the capped component that learned nothing (the pure noise): one input, whose
-            # band is within 0.1 noise stds of the exact one at the sample
-            exact = np.sqrt(np.asarray(gp.predict(gp.x_train_[sample])[1]))[:, j]
-            sd = fast.predict(gp.x_train_[sample])[1][:, j]
-            assert np.max(sd - exact) <= EXCESS_WARN * gp.noise_[j]
-        elif stopped_early:  # stopped by the level: the residual is below it ...
+        if stopped_early:  # stopped by the level: the residual is below it ...
             assert resid.max() <= level[j] ** 2 * (1 + 1e-6)
             # ... and one inducing input fewer would not have been (greedy choice)
             kxz1 = kxz[:, : m - 1]

@@ -550,7 +550,7 @@ class FastGP(InducingBand):
         unknown, and the band's excess over the exact one near the data is of that order.
         Components whose GP learned next to nothing (amplitude near or below the noise, such
         as the exact kinematics of the ACC) stop after a few inputs. Where neither rule
-        stops a component before the cap ``n_inducing``, its band there is more than
+        stops a component before the cap (``n_inducing``, or Q), its band there is more than
         ``STD_RATIO_WARN`` (1.5) times the exact std (median over the sample), and its cache
         with one inducing input already exceeds the exact std by at most ``EXCESS_WARN``
         (0.1) noise stds at every sampled training input, the component keeps that one

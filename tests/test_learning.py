@@ -594,3 +594,32 @@ def test_dataset_thin_counts_from_each_trajectorys_first_row():
         data.thin(0)
     with pytest.raises(ParameterError, match="thin needs trajectory labels"):
         Dataset(x=z, u=z, xdot=z, y=z, t=t).thin(2)
+
+
+def test_batched_mean_std_is_compiled_once_per_model_and_releases_it():
+    # a model with only mean_std: mean_std_batch compiles jit(vmap(mean_std)) once per
+    # model and keeps it while the model lives, and no longer (a bound method in the cache
+    # would keep its own key alive)
+    import gc
+    import weakref
+
+    from safestab.learning.bounds import mean_std_batch
+
+    class Linear:
+        def __init__(self, w):
+            self.w = jnp.asarray(w)
+
+        def mean_std(self, x):
+            return self.w * x, jnp.abs(x) + 1.0
+
+    x = np.arange(8.0).reshape(4, 2)
+    model = Linear([2.0, -1.0])
+    mean, std = mean_std_batch(model, x)
+    np.testing.assert_array_equal(mean, x * np.array([2.0, -1.0]))  # by hand
+    np.testing.assert_array_equal(std, np.abs(x) + 1.0)
+    other = Linear([3.0, 0.5])  # another model: its own function, not the first's constants
+    np.testing.assert_array_equal(mean_std_batch(other, x)[0], x * np.array([3.0, 0.5]))
+    ref = weakref.ref(model)
+    del model
+    gc.collect()
+    assert ref() is None

@@ -220,16 +220,27 @@ _BATCHED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _batched(model: Any) -> Any:
-    """The compiled, batched ``mean_std`` of ``model`` (made once per model)."""
+    """The compiled, batched ``mean_std`` of ``model`` (made once per model).
+
+    The function reaches the model through a weak reference: a bound ``model.mean_std`` in
+    the cached value would keep its own key alive, and every model ever batched (with its
+    compiled programs) would stay in memory.
+    """
     try:
         return _BATCHED[model]
     except (KeyError, TypeError):  # TypeError: not weakly referable or not hashable
-        fn = jax.jit(jax.vmap(model.mean_std))
-        try:
-            _BATCHED[model] = fn
-        except TypeError:
-            pass
-        return fn
+        pass
+    try:
+        ref = weakref.ref(model)
+    except TypeError:  # not weakly referable: not cached
+        return jax.jit(jax.vmap(model.mean_std))
+    # traced only while the caller holds the model (the arrays become the program's constants)
+    fn = jax.jit(jax.vmap(lambda x: ref().mean_std(x)))
+    try:
+        _BATCHED[model] = fn
+    except TypeError:  # not hashable: not cached
+        pass
+    return fn
 
 
 def _scores(model: Any, x: np.ndarray, y: np.ndarray, observation_noise: bool) -> np.ndarray:

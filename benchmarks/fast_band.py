@@ -32,7 +32,7 @@ def rows_for(preset: str) -> list[dict]:
 
     sc = load(preset)
     if preset == "obstacle":
-        test, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
+        test, gp, _, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
         n_inducing = sc.n_inducing
     else:
         train, test = collect_study_data(sc, seed=sc.seed, n_samples=sc.n_samples)

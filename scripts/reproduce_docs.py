@@ -131,6 +131,68 @@ def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
     return _table(header, ["---"] * 3 + ["---:"] * 6, rows)
 
 
+def obstacle_gain_table(doc: dict, doc_learned: dict) -> str:
+    """The GP-robust rows with the nominal gain (preset) and with the learned gain error."""
+    rows = []
+    for gain, d in (("nominal (preset)", doc), ("learned", doc_learned)):
+        gp = d["gp"]
+        for limits in ("no limits", "input limits"):
+            run = d["runs"][f"GP-robust / {limits}"]
+            o = run["outcomes"]
+            rows.append([
+                gain, "none" if limits == "no limits" else "+-1.5 m/s",
+                " / ".join(f"{v:.4f}" for v in gp["noise_mps"]), f"{gp['beta']:.2f}",
+                " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+                f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
+                f"{run['max_abs_u_off_axis_mps']:.2f}",
+                f"{run['median_input_variation_mps2']:.3f}",
+                f"{run['median_converge_time_s']:.1f}",
+            ])  # fmt: skip
+    true = doc["runs"]["true model / no limits"]
+    o = true["outcomes"]
+    rows.append([
+        "(true model)", "none", "-", "-",
+        " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+        f"{true['min_h_m2']:.3f}", f"{true['max_abs_u_mps']:.2f}",
+        f"{true['max_abs_u_off_axis_mps']:.2f}", f"{true['median_input_variation_mps2']:.3f}",
+        f"{true['median_converge_time_s']:.1f}",
+    ])  # fmt: skip
+    header = ["input gain", "limits", "GP noise std (m/s, x1 / x2)", "beta (conformal)",
+              "converged / stuck / moving / unsafe",
+              "min h (m^2)", "max abs u (m/s)", "max abs u off the axis (m/s, 68 starts)",
+              "input variation (m/s^2, median)", "time to converge (s, median)"]  # fmt: skip
+    return _table(header, ["---"] * 5 + ["---:"] * 5, rows)
+
+
+def obstacle_gain_estimate(doc_learned: dict) -> str:
+    """The learned D with its standard errors, against the true one."""
+    est = doc_learned["gp"]["input_gain"]
+    rows = []
+    for i in range(2):
+        rows.append([f"row {i + 1}"] + [
+            f"{est['matrix'][i][j]:.4f} +- {est['std'][i][j]:.4f} (true {est['true'][i][j]:.2f})"
+            for j in range(2)
+        ])  # fmt: skip
+    return _table(["D (m/s per m/s)", "column 1 (u1)", "column 2 (u2)"], ["---"] * 3, rows)
+
+
+def obstacle_axis_table(rows_in: list) -> str:
+    """benchmarks/obstacle_axis.py: the axis starts on the axis and 1 mm off it."""
+    rows = []
+    for r in rows_in:
+        o = r["outcomes"]
+        name = r["controller"] + ("" if r["input_gain"] == "-" else f" ({r['input_gain']} gain)")
+        rows.append([
+            name, f"{r['offset_m'] * 1000:g}",
+            "none" if r["limits"] == "no limits" else "+-1.5 m/s",
+            " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+            f"{r['min_h_m2']:.3f}", f"{r['max_abs_u_mps']:.2f}",
+        ])  # fmt: skip
+    header = ["controller", "x2 offset (mm)", "limits", "converged / stuck / moving / unsafe",
+              "min h (m^2)", "max abs u (m/s)"]  # fmt: skip
+    return _table(header, ["---"] * 4 + ["---:"] * 2, rows)
+
+
 def obstacle_gp_table(doc: dict) -> str:
     """The obstacle GP per component: the cache's width, beta and held-out coverage."""
     gp = doc["gp"]
@@ -410,10 +472,20 @@ def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
     _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "controller.robust_clf_layer=0",
           "--out", str(plain)])  # fmt: skip
     doc_plain = _load(plain / "obstacle_obstacle_metrics.json")
+    # the same run with the input-gain error learned with the GP
+    learned = out / "obstacle-learned-gain"
+    _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "learning.input_gain=learned",
+          "--out", str(learned)])  # fmt: skip
+    doc_learned = _load(learned / "obstacle_obstacle_metrics.json")
+    axis = out / "obstacle_axis.json"
+    _run([sys.executable, "benchmarks/obstacle_axis.py", "--json", str(axis)])
     return {
         "obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc)),
         "obstacle-gp": ("docs/obstacle.md", obstacle_gp_table(doc)),
         "obstacle-layer": ("docs/obstacle.md", obstacle_layer_table(doc, doc_plain)),
+        "obstacle-gain": ("docs/obstacle.md", obstacle_gain_table(doc, doc_learned)),
+        "obstacle-gain-estimate": ("docs/obstacle.md", obstacle_gain_estimate(doc_learned)),
+        "obstacle-axis": ("docs/obstacle.md", obstacle_axis_table(_load(axis))),
     }
 
 
@@ -521,7 +593,14 @@ LONG = {"mc-datasets", "price"}
 PRODUCES = {
     "acc": ["acc-paper", "acc-stress"],
     "swarm": ["swarm-results", "swarm-loose-solvers"],
-    "obstacle": ["obstacle-outcomes", "obstacle-gp", "obstacle-layer"],
+    "obstacle": [
+        "obstacle-outcomes",
+        "obstacle-gp",
+        "obstacle-layer",
+        "obstacle-gain",
+        "obstacle-gain-estimate",
+        "obstacle-axis",
+    ],
     "obstacle-seeds": ["obstacle-seeds"],
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],

@@ -199,7 +199,7 @@ def test_exported_gp_controller_runs_with_the_studys_beta_method():
     sc = load("obstacle").replace(n_samples=60, hyper_subset=60)
     assert sc.beta_method == "conformal"
     ctrl, description, _ = scenario_controller(sc, "gp", n_inducing=8)
-    _, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
+    _, gp, _, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
     expected = calibrate_beta(sc, FastGP(gp, n_inducing=8))["beta"]
     assert expected != sc.gp_beta
     np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), expected)

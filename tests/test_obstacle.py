@@ -362,7 +362,7 @@ def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
     small = sc.replace(n_samples=60, hyper_subset=60, n_inducing=16, delta=0.05)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InducingPointsWarning)  # Q = 60, M = 16: wide, valid
-        _, _, model = fit_obstacle_gp(small)
+        _, _, model, _ = fit_obstacle_gp(small)
     rep = calibrate_beta(small, model)
     assert rep["n_trajectories"] == 100 and rep["states_per_trajectory"] == 2
     assert rep["chosen_beta"] == sc.gp_beta and rep["probability"] == pytest.approx(0.95)

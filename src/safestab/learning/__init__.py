@@ -20,6 +20,7 @@ from .bounds import (
 from .data import Dataset, collect_data
 from .fast import FastGP
 from .gp import GaussianProcessModel
+from .input_gain import InputGain, estimate_input_gain, fit_input_gain
 from .sklearn_adapter import SklearnGPAdapter
 from .sparse import SparseGP
 
@@ -32,6 +33,7 @@ __all__ = [
     "FastGP",
     "GaussianProcessModel",
     "Hyperparameters",
+    "InputGain",
     "InducingCache",
     "SklearnGPAdapter",
     "SparseGP",
@@ -41,6 +43,8 @@ __all__ = [
     "condition",
     "confidence",
     "conformal_beta",
+    "estimate_input_gain",
+    "fit_input_gain",
     "inducing_cache",
     "information_gain",
 ]

@@ -59,7 +59,12 @@ class TrialStudy(Protocol):
         ...
 
     def gp_settings(self) -> dict[str, Any]:
-        """``n_samples`` (Q), ``kernel``, ``hyper_subset`` and ``gp_beta``."""
+        """``n_samples`` (Q), ``kernel``, ``hyper_subset``, ``gp_beta``; ``input_gain``.
+
+        ``input_gain`` (optional, default ``"nominal"``): ``"learned"`` estimates a constant
+        input-matrix error with each data set's GP (:func:`~safestab.learning.fit_input_gain`)
+        and gives the GP controllers ``g + D``.
+        """
         ...
 
     def calibration_shape(self) -> tuple[int, int]:

@@ -34,6 +34,7 @@ from ..learning import (
     information_gain,
 )
 from ..learning.batched import InducingCache, one_blas_thread
+from ..learning.input_gain import estimate_input_gain, fit_input_gain, with_input_gain
 from .loop import trial_function
 from .protocol import TrialStudy
 
@@ -85,6 +86,10 @@ class DataSetModel:
     cache_warnings : tuple of str
         FastGP's :class:`~safestab.errors.InducingPointsWarning` messages for this data set
         (the band is valid but needlessly wide); :func:`run_montecarlo` repeats them.
+    input_gain : array of shape (n, m) or None
+        The learned input-matrix error ``D`` of this data set when the study's
+        ``gp_settings()["input_gain"]`` is ``"learned"`` (the GP controllers then use
+        ``g + D``, :func:`~safestab.learning.fit_input_gain`); None otherwise.
     """
 
     index: int
@@ -94,6 +99,7 @@ class DataSetModel:
     information_gain: np.ndarray
     held_out_coverage: dict[str, float]
     cache_warnings: tuple[str, ...] = ()
+    input_gain: np.ndarray | None = None
 
 
 def calibration_draw(study: TrialStudy, seed: int, index: int) -> Any:
@@ -153,13 +159,29 @@ def _fit_dataset(study, seed, index, hyper):
     data_seed = int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
     q = gp_settings["n_samples"]
     data = dataset_draw(study, seed, index)
-    x, y, x_test = data.x[:q], data.y[:q], data.x[q:]
+    x, y, u, x_test = data.x[:q], data.y[:q], data.u[:q], data.x[q:]
+    # optional key of the protocol (a study written before it trusts its nominal g)
+    learn_gain = gp_settings.get("input_gain", "nominal") == "learned"
+    input_gain = None
     if hyper is None:
-        gp = GaussianProcessModel(kernel=gp_settings["kernel"])
-        gp.fit(x, y, hyper_subset=min(gp_settings["hyper_subset"], q), seed=data_seed)
+
+        def fit(x, y):
+            gp = GaussianProcessModel(kernel=gp_settings["kernel"])
+            return gp.fit(x, y, hyper_subset=min(gp_settings["hyper_subset"], q), seed=data_seed)
+
+        if learn_gain:
+            gp, found = fit_input_gain(fit, x, u, y, seed=data_seed)
+            input_gain = found.matrix
+        else:
+            gp = fit(x, y)
         hyper = Hyperparameters.from_model(gp)
     else:
         gp = condition(hyper, x, y, seed=data_seed)
+        if learn_gain:
+            # K does not depend on y: this is fit_input_gain's estimate with these
+            # hyperparameters, and the GP of y - D u
+            input_gain = estimate_input_gain(gp, u).matrix
+            gp = condition(hyper, x, y - u @ input_gain.T, seed=data_seed)
     gain = information_gain(gp)
     n, comps = hyper.n_states, list(hyper.components)
 
@@ -204,7 +226,7 @@ def _fit_dataset(study, seed, index, hyper):
         for name, b in betas.items()
     }
     cache = jax.tree_util.tree_map(np.asarray, cache)
-    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes)
+    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes, input_gain)
 
 
 @functools.lru_cache(maxsize=8)
@@ -220,8 +242,10 @@ def _compiled_chunk(study: TrialStudy) -> Any:
     def omega(x, params):
         return study.omega(x)
 
-    def chunk(cache, betas, x0, params):
+    def chunk(cache, betas, input_gain, x0, params):
         model = BatchedUncertainty(cache)
+        # the GP controllers' model: the nominal one, with the learned input gain if any
+        learned = nominal if input_gain is None else with_input_gain(nominal, input_gain)
         ctrls, checks = [], []
         for name in spec.controllers:
             if name == "true model":
@@ -234,7 +258,7 @@ def _compiled_chunk(study: TrialStudy) -> Any:
                 beta = betas[name]
                 ctrls.append(
                     UniversalController(
-                        nominal, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust
+                        learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust
                     )
                 )
                 checks.append((model, beta))
@@ -298,4 +322,5 @@ def _chunk_args(study, model, seed, indices, pad_to):
         idx = np.concatenate([idx, np.full(pad_to - b, idx[0])])
     x0, params = study.draw_trials(seed, idx)
     betas = {k: jnp.asarray(v) for k, v in model.betas.items() if k in study.spec.controllers}
-    return model.cache, betas, x0, params
+    gain = None if model.input_gain is None else jnp.asarray(model.input_gain)
+    return model.cache, betas, gain, x0, params

@@ -34,6 +34,8 @@ KIND = "obstacle"
 #: How the GP-robust controller's beta is set: ``gp_beta`` as given ("chosen"), or calibrated
 #: by split conformal prediction on fresh trajectories ("conformal", docs/obstacle.md).
 BETA_METHODS = ("chosen", "conformal")
+#: ``learning.input_gain``: trust the nominal input matrix, or learn its constant error.
+INPUT_GAINS = ("nominal", "learned")
 MAX_GRID = 1000  # points per axis of the start grid and the map grid
 #: Most calibration trajectories ``beta_method = "conformal"`` may collect (ceil(1/delta)).
 MAX_CALIBRATION_TRAJECTORIES = 10_000
@@ -90,9 +92,12 @@ FIELDS: dict[str, Check] = {
     **learning_fields(_POINT),  # rates Hz, horizon s, noise m/s, excitation m/s
     "learning.beta_method": choice(BETA_METHODS),  # optional, default "chosen"
     "learning.delta": _open_unit,
+    "learning.input_gain": choice(INPUT_GAINS),  # optional, default "nominal"
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),  # 0: the exact GP
 }
-_OPTIONAL = {"name", "learning.beta_method", "controller.robust_clf_layer"}
+_OPTIONAL = {
+    "name", "learning.beta_method", "learning.input_gain", "controller.robust_clf_layer"
+}  # fmt: skip
 
 
 def check_structure(doc: Mapping[str, Any], source: str) -> dict[str, Any]:

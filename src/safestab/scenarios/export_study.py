@@ -283,9 +283,13 @@ def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
     beta_note = ""
     if controller == "gp":
         say(f"collecting data and fitting the GP (Q = {sc.n_samples})")
-        _, gp, _ = fit_obstacle_gp(sc.replace(n_inducing=0))
+        _, gp, _, gain = fit_obstacle_gp(sc.replace(n_inducing=0))
         uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
         beta_note = f" GP beta = {sc.gp_beta:g} (learning.gp_beta)."
+        if gain is not None:
+            # the controller's input matrix is k_nom I + D (learning.input_gain = "learned")
+            sc = sc.replace(learned_gain=tuple(map(tuple, gain.matrix.tolist())))
+            beta_note += f" Learned input-gain error D = {gain.matrix.tolist()} (m/s per m/s)."
         if sc.beta_method == "conformal":
             # the beta the study runs with, calibrated for the exported cache itself
             say("calibrating beta on fresh trajectories (learning.beta_method = 'conformal')")

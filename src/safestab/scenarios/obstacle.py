@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..certificates import CBF, CLF, LieTerms
-from ..errors import ScenarioError
+from ..errors import ParameterError, ScenarioError
 from ..systems import ControlAffineSystem
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._obstacle_schema import KIND, check_structure, check_values
@@ -75,7 +75,10 @@ _KEYS = {
     "map_x2_half_width": "map.x2_half_width",
     "map_n_x2": "map.n_x2",
     **{k: f"simulation.{k}" for k in ("t_final", "dt", "ball_radius", "rest_speed")},
-    **{k: f"learning.{k}" for k in (*LEARNING_KEYS, "beta_method", "delta", "n_inducing")},
+    **{
+        k: f"learning.{k}"
+        for k in (*LEARNING_KEYS, "beta_method", "delta", "n_inducing", "input_gain")
+    },
 }
 
 
@@ -156,11 +159,27 @@ class ObstacleScenario:
     #: ``controller.robust_clf_layer`` (optional, m): the GP-robust controller's boundary layer
     #: on the CLF's robust term (:class:`~safestab.UniversalController`); 0: Lemma 3's term.
     robust_clf_layer: float = 0.0
+    #: ``learning.input_gain`` (optional): "nominal" trusts the nominal gain; "learned"
+    #: estimates the constant input-matrix error ``D`` (true ``k_true I = k_nom I + D``) with
+    #: the GP (:func:`~safestab.learning.fit_input_gain`) and gives the GP-robust controller
+    #: ``g + D`` (docs/obstacle.md).
+    input_gain: str = "nominal"
+    #: Not a file key: the estimated input-matrix error ``D`` (2 x 2, m/s per m/s) that
+    #: :func:`~safestab.scenarios.obstacle_study.run_obstacle_study` sets after the fit when
+    #: ``input_gain = "learned"``; :meth:`system` ``("learned")`` adds it to the nominal gain.
+    learned_gain: tuple[tuple[float, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         flat = {key: getattr(self, attr) for attr, key in _KEYS.items()}
         flat.update(name=self.name, kind=KIND)
         check_values(flat, f"scenario {self.name!r}")
+        if self.learned_gain is not None:
+            d = np.asarray(self.learned_gain, dtype=float)
+            if d.shape != (2, 2) or not np.all(np.isfinite(d)):
+                raise ScenarioError(
+                    f"scenario {self.name!r}: learned_gain must be a finite 2 x 2 matrix, got "
+                    f"{self.learned_gain!r}"
+                )
         if self.montecarlo is not None and not isinstance(self.montecarlo, MonteCarloSpec):
             raise ScenarioError(
                 f"scenario {self.name!r}: montecarlo must be a MonteCarloSpec or None, got "
@@ -200,11 +219,19 @@ class ObstacleScenario:
 
     def gain(self, which: str = "true") -> float:
         """The input gain ``k`` of the ``"true"`` or ``"nominal"`` model."""
+        if which not in ("true", "nominal"):
+            raise ParameterError(f"which must be 'true' or 'nominal', got {which!r}")
         return self.gain_true if which == "true" else self.gain_nominal
 
     def system(self, which: str = "true") -> ControlAffineSystem:
-        """The ``"true"`` model (current, true gain) or the ``"nominal"`` one (no current)."""
-        k = self.gain(which)
+        """The ``"true"`` model (current, true gain), the ``"nominal"`` one, or ``"learned"``.
+
+        ``"nominal"``: no current, gain ``k_nom``. ``"learned"``: nominal, with input matrix
+        ``k_nom I + learned_gain`` (the nominal one when no gain was learned), which the
+        GP-robust controller uses.
+        """
+        if which not in ("true", "nominal", "learned"):
+            raise ParameterError(f"which must be 'true', 'nominal' or 'learned', got {which!r}")
         if which == "true":
             f = self.current
         else:
@@ -212,7 +239,11 @@ class ObstacleScenario:
             def f(x):
                 return jnp.zeros(2)
 
-        return ControlAffineSystem(f, lambda x: k * jnp.eye(2), 2, name=f"obstacle-{which}")
+        g = self.gain("true" if which == "true" else "nominal") * np.eye(2)
+        if which == "learned" and self.learned_gain is not None:
+            g = g + np.asarray(self.learned_gain, dtype=float)
+        gj = jnp.asarray(g)
+        return ControlAffineSystem(f, lambda x: gj, 2, name=f"obstacle-{which}")
 
     def V(self, x: Any) -> Any:
         """``V = x^T P x``, m^2, shape (...,)."""
@@ -326,7 +357,10 @@ def load_obstacle_scenario(
     """
     flat, table, source = load_flat(
         name_or_path, PRESETS, __package__, check_structure, overrides,
-        defaults={"learning.beta_method": "chosen", "controller.robust_clf_layer": 0.0},
+        defaults={
+            "learning.beta_method": "chosen", "learning.input_gain": "nominal",
+            "controller.robust_clf_layer": 0.0,
+        },
     )  # fmt: skip
     v = check_values(flat, source)
     spec = (

@@ -28,7 +28,7 @@ from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..formulas import clf_cbf, compatibility
-from ..learning import FastGP, GaussianProcessModel
+from ..learning import FastGP, GaussianProcessModel, InputGain, fit_input_gain
 from ..learning.bounds import mean_std_batch
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
@@ -109,6 +109,10 @@ def classify_outcomes(
     )
 
 
+#: The model each controller is built on (``"learned"``: nominal, plus the learned gain).
+_SYSTEM_OF = {"true model": "true", "mismatched model": "nominal", "GP-robust": "learned"}
+
+
 def _params(sc: ObstacleScenario) -> dict[str, Any]:
     return {"kappa": sc.kappa, "rho": sc.rho, "phi": sc.phi, "varphi": sc.varphi}
 
@@ -123,8 +127,9 @@ def verdict(
 
     ``"true model"`` and ``"mismatched model"``: :func:`~safestab.compatibility` (Lemma 1) on
     the true or nominal Lie terms. ``"GP-robust"``: the ``updated`` verdict (eq. (20),
-    corrected) of :func:`~safestab.probabilistic_compatibility` on the nominal terms with the
-    margins of ``uncertainty`` at ``beta = gp_beta``.
+    corrected) of :func:`~safestab.probabilistic_compatibility` on the terms of
+    ``sc.system("learned")`` (the nominal ones unless a gain was learned) with the margins of
+    ``uncertainty`` at ``beta = gp_beta``.
 
     Parameters
     ----------
@@ -150,7 +155,7 @@ def verdict(
     if controller == "GP-robust" and uncertainty is None:
         raise ParameterError("the 'GP-robust' verdict needs uncertainty= (a model of omega)")
     x = jnp.asarray(x, dtype=float)
-    which = "true" if controller == "true model" else "nominal"
+    which = _SYSTEM_OF[controller]
     flat = x.reshape(-1, 2)
     terms = _terms(sc, which, flat)
     if controller != "GP-robust":
@@ -296,6 +301,8 @@ class ObstacleRun:
     def summary(self, ball_radius: float | None = None) -> dict[str, Any]:
         """Counts per outcome, min h, stuck end points with their verdicts, largest |u|.
 
+        The largest |u| of all starts, and of the starts off the x1 axis (None when none).
+
         With ``ball_radius``, also the median input variation (:meth:`input_variation`)
         over all starts, the share of it made within the ball, the largest variation within
         the ball of any start (:meth:`variation_in_ball`) and the median time to converge
@@ -304,12 +311,18 @@ class ObstacleRun:
         stuck = np.flatnonzero(self.outcome == "stuck")
         unsafe = np.flatnonzero(self.outcome == "unsafe")
         converged = self.outcome == "converged"  # inside the ball at the end: a finite time
+        off_axis = self.x0[:, 1] != 0.0
         return {
             "n_starts": int(len(self.x0)),
             "outcomes": {o: int(np.sum(self.outcome == o)) for o in OUTCOMES},
             "compatible_formula_starts": int(np.sum(self.compatible_formula)),
             "min_h_m2": float(np.min(self.h)),
             "max_abs_u_mps": float(np.max(np.abs(self.u))),
+            # the starts on the x1 axis stay on it by symmetry, where b and d are parallel
+            # (docs/obstacle.md, "The axis starts"); the largest input of the others
+            "max_abs_u_off_axis_mps": (
+                float(np.max(np.abs(self.u[off_axis]))) if np.any(off_axis) else None
+            ),
             **(
                 {}
                 if ball_radius is None
@@ -396,7 +409,8 @@ def compatibility_maps(
     params = _params(sc)
     comp = compatibility(*terms, **params)
     region = clf_cbf(*terms, **params).region
-    pc = _robust(sc, uncertainty, grid, terms, calibrated)
+    learned = terms if sc.learned_gain is None else _terms(sc, "learned", grid)
+    pc = _robust(sc, uncertainty, grid, learned, calibrated)
     shape = (len(x1), len(x2))
     return CompatibilityMaps(
         x1=x1,
@@ -533,17 +547,19 @@ def fit_obstacle_gp(
     *,
     timings: dict[str, float] | None = None,
     report: Progress | None = None,
-) -> tuple[Any, GaussianProcessModel, Any]:
+) -> tuple[Any, GaussianProcessModel, Any, InputGain | None]:
     """Collect the scenario's data and fit its GP as the study does (the pipeline's steps).
 
     Returns
     -------
-    (held_out, gp, uncertainty)
+    (held_out, gp, uncertainty, gain)
         The held-out :class:`~safestab.learning.Dataset` (``max(50, Q // 4)`` rows), the
-        fitted GP, and what the GP-robust controller uses: the GP's
-        :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP. (Before
-        the study pipeline, the first element was the whole collected data set; its training
-        rows are ``gp.x_train_``.)
+        fitted GP, what the GP-robust controller uses (the GP's
+        :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP), and
+        the learned :class:`~safestab.learning.InputGain` when ``input_gain = "learned"``
+        (the GP then learns ``y - D u``, :func:`~safestab.learning.fit_input_gain`), else
+        None. (Before the study pipeline, the first element was the whole collected data set;
+        its training rows are ``gp.x_train_``.)
     """
     timings = {} if timings is None else timings
     report = report or silent
@@ -553,13 +569,20 @@ def fit_obstacle_gp(
 
     report(f"fitting the GP (Q = {sc.n_samples}, n = 2)", 0.1)
     t0 = time.perf_counter()
-    gp = fit_study_gp(sc, train)
+    gain = None
+    if sc.input_gain == "learned":
+        gp, gain = fit_input_gain(
+            lambda x, y: fit_study_gp(sc, dataclasses.replace(train, x=x, y=y)),
+            train.x, train.u, train.y, seed=sc.seed,
+        )  # fmt: skip
+    else:
+        gp = fit_study_gp(sc, train)
     uncertainty: Any = gp
     if sc.n_inducing > 0:
         # the cache's band provably contains the exact band for beta >= min_beta (1.0)
         uncertainty = FastGP(gp, sc.n_inducing)
     timings["fit_gp"] = time.perf_counter() - t0
-    return held_out, gp, uncertainty
+    return held_out, gp, uncertainty, gain
 
 
 def obstacle_controller(
@@ -578,7 +601,7 @@ def obstacle_controller(
     """
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
-    system = sc.system("true" if name == "true model" else "nominal")
+    system = sc.system(_SYSTEM_OF[name])
     clf, cbf = sc.certificates()
     extra: dict[str, Any] = {}
     if name == "GP-robust":
@@ -638,7 +661,10 @@ def run_obstacle_study(
     timings: dict[str, float] = {}
 
     report("collecting data", 0.0)
-    held_out, gp, uncertainty = fit_obstacle_gp(sc, timings=timings, report=report)
+    held_out, gp, uncertainty, gain = fit_obstacle_gp(sc, timings=timings, report=report)
+    if gain is not None:
+        # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
+        sc = sc.replace(learned_gain=tuple(map(tuple, gain.matrix.tolist())))
     calibrated = None
     if sc.beta_method == "conformal":
         report("calibrating beta on fresh trajectories", 0.15)
@@ -652,6 +678,13 @@ def run_obstacle_study(
         coverage["calibration"] = calibrated
     if isinstance(uncertainty, FastGP):
         coverage["cache"] = _cache_width(gp, uncertainty)
+    # the fitted noise std per learned component (with a gain error not learned, it holds D u)
+    coverage["noise_mps"] = np.asarray(gp.noise_).tolist()
+    if gain is not None:
+        coverage["input_gain"] = {
+            **gain.as_dict(),
+            "true": ((sc.gain_true - sc.gain_nominal) * np.eye(2)).tolist(),
+        }
     goal_mean, goal_std = uncertainty.mean_std(jnp.zeros(2))
     coverage["at_goal"] = {  # the model the controller uses, at the goal x = 0
         "mean_mps": np.asarray(goal_mean).tolist(),

@@ -133,12 +133,20 @@ class ScenarioTrials:
         return self.scenario.omega(x)
 
     def gp_settings(self) -> dict[str, Any]:
-        """``n_samples`` (Q), ``kernel``, ``hyper_subset``, ``gp_beta`` (the chosen beta)."""
+        """``n_samples`` (Q), ``kernel``, ``hyper_subset``, ``gp_beta``, ``input_gain``.
+
+        ``gp_beta`` is the chosen beta; ``input_gain`` is ``"nominal"`` unless the scenario
+        learns it.
+        """
         sc = self.scenario
         return dict(
             n_samples=sc.n_samples, kernel=sc.kernel, hyper_subset=sc.hyper_subset,
-            gp_beta=sc.gp_beta,
+            gp_beta=sc.gp_beta, input_gain=self.input_gain(),
         )  # fmt: skip
+
+    def input_gain(self) -> str:
+        """``learning.input_gain``: the ACC scenarios trust the nominal input matrix."""
+        return "nominal"
 
     def calibration_shape(self) -> tuple[int, int]:
         """``(states per excitation trajectory, thinning stride)``: one state per second."""
@@ -272,6 +280,10 @@ class ObstacleTrials(ScenarioTrials):
     h_unit: ClassVar[str] = "m^2"
     state_names: ClassVar[str] = "x1 m, x2 m"
     kind: ClassVar[str] = "obstacle"
+
+    def input_gain(self) -> str:
+        """``learning.input_gain`` of the scenario file."""
+        return self.scenario.input_gain
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -191,3 +191,69 @@ def test_monte_carlo_gp_controllers_run_on_the_learned_model():
     for key in ("min_h", "final_V"):
         np.testing.assert_array_equal(learned[key][:, fixed], nominal[key][:, fixed])
         assert np.all(learned[key][:, gp] != nominal[key][:, gp]), (key, names)
+
+
+def test_monte_carlo_reused_hyperparameters_give_the_gls_estimate_and_its_gp():
+    """Data set 1 with data set 0's hyperparameters: D is the GLS estimate under that kernel,
+    and the shipped cache is the GP of y - D u (its mean at the held-out states)."""
+    from safestab.learning import BatchedUncertainty, condition
+    from safestab.montecarlo.trials import dataset_draw, fit_dataset
+    from safestab.scenarios import load
+
+    sc = load("obstacle").replace(input_gain="learned", n_samples=120, hyper_subset=120)
+    study = sc.trial_study()
+    first = fit_dataset(study, 3, 0, None)
+    again = fit_dataset(study, 3, 1, first.hyper)
+    data = dataset_draw(study, 3, 1)
+    x, u, y = data.x[:120], data.u[:120], data.y[:120]
+    d = estimate_input_gain(condition(first.hyper, x, y), u).matrix
+    np.testing.assert_allclose(again.input_gain, d, rtol=1e-10, atol=1e-13)
+    gp = condition(first.hyper, x, y - u @ d.T)
+    x_test = data.x[120:140]
+    mean, _ = BatchedUncertainty(again.cache).mean_std_batch(x_test)
+    exact = np.asarray(gp.predict(x_test)[0])
+    wrong = np.asarray(condition(first.hyper, x, y).predict(x_test)[0])
+    err = np.max(np.abs(np.asarray(mean) - exact))
+    assert err < 0.1 * np.max(np.abs(wrong - exact))
+
+
+def test_obstacle_gp_robust_verdict_reads_the_learned_model():
+    """The GP-robust verdict and maps use k_nom I + D; the other controllers do not."""
+    from safestab.scenarios import load
+    from safestab.scenarios.obstacle_study import compatibility_maps, verdict
+
+    class Band:
+        def mean_std(self, x):
+            return jnp.zeros(2), jnp.full(2, 0.05)
+
+    sc = load("obstacle").replace(gp_beta=1.0)
+    # a learned D = I makes the GP-robust model's gain 2: the same verdicts as a scenario
+    # whose nominal gain is 2, and other ones than the nominal gain's on the parallel set
+    big = sc.replace(input_gain="learned", learned_gain=((1.0, 0.0), (0.0, 1.0)))
+    ref = sc.replace(gain_nominal=2.0)
+    pts = sc.parallel_set()
+    learned = verdict(big, "GP-robust", pts, Band())
+    np.testing.assert_array_equal(learned, verdict(ref, "GP-robust", pts, Band()))
+    assert np.any(learned != verdict(sc, "GP-robust", pts, Band()))
+    np.testing.assert_array_equal(
+        verdict(big, "mismatched model", pts), verdict(sc, "mismatched model", pts)
+    )
+    maps = compatibility_maps(big, Band())
+    maps0 = compatibility_maps(sc, Band())
+    np.testing.assert_array_equal(maps.nominal_compatible, maps0.nominal_compatible)
+    assert np.any(maps.robust_updated != maps0.robust_updated)
+
+
+def test_stale_or_malformed_learned_gain_is_refused():
+    from safestab.scenarios import load
+
+    sc = load("obstacle")
+    with pytest.raises(ScenarioError, match="learned_gain is set only with"):
+        sc.replace(learned_gain=((0.1, 0.0), (0.0, 0.1)))
+    with pytest.raises(ScenarioError, match="finite 2 x 2"):
+        sc.replace(input_gain="learned", learned_gain=((0.1, "a"), (0.0, 0.1)))
+    with pytest.raises(ScenarioError, match="finite 2 x 2"):
+        sc.replace(input_gain="learned", learned_gain=((0.1,), (0.0, 0.1)))
+    sys = sc.system("nominal")
+    with pytest.raises(NonFiniteError, match="not finite"):
+        with_input_gain(sys, np.array([[np.nan, 0.0], [0.0, 0.0]]))

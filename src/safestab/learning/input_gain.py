@@ -15,8 +15,9 @@ hyperparameters on ``y - D u`` and conditions it there; the controller then uses
 corrected input matrix ``g(x) + D`` (:meth:`InputGain.corrected`) with the GP of the rest.
 
 What the band does not contain: the estimate's own error ``(D - D_hat) u``. Its standard
-error is reported (``InputGain.std``); in the obstacle preset it is about 1e-3 per unit of
-input, against a sensor noise of 1e-2 (docs/learning.md, "Input-gain errors"). The GP's
+error is reported (``InputGain.std``); on the obstacle preset's data it is 5e-4 to 8e-4 per
+unit of input, against a sensor noise of 1e-2 (docs/obstacle.md, "The gain error, and the
+axis starts"; docs/learning.md, "A constant input-gain error"). The GP's
 mean is conditioned on ``y - D_hat u``, so the error of ``D_hat`` also moves the mean by
 ``k(x, X) K^-1 U (D - D_hat)``; a conformal beta, calibrated against the true ``omega``,
 measures that part.
@@ -32,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from .._validation import is_concrete
 from ..errors import DimensionError, NonFiniteError
 from ..systems import ControlAffineSystem
 from .batched import Hyperparameters, condition
@@ -83,6 +85,8 @@ def with_input_gain(system: ControlAffineSystem, matrix: Any) -> ControlAffineSy
             f"({n}, {m})"
         )
     dj = jnp.asarray(matrix, float)
+    if is_concrete(dj) and not bool(jnp.all(jnp.isfinite(dj))):
+        raise NonFiniteError(f"the input-gain matrix is not finite: {np.asarray(dj).tolist()}")
     name = f"{system.name} + learned input gain"
     if system.params_spec is None:
         return ControlAffineSystem(system.f, lambda x: system.g(x) + dj, n, name=name)
@@ -101,6 +105,9 @@ def estimate_input_gain(model: GaussianProcessModel, u: Any) -> InputGain:
         A fitted (or conditioned) exact GP; its factor ``chol_`` is ``K + noise^2 I``.
     u : array of shape (Q, m)
         The inputs of the model's training rows, in the same order.
+
+    The model's prior mean is held fixed (the studies' GPs have mean zero); with a fitted
+    constant mean, ``std`` leaves out the mean's own uncertainty.
 
     Returns
     -------
@@ -176,6 +183,8 @@ def fit_input_gain(
     x, u, y = (np.asarray(a, float) for a in (x, u, y))
     if u.ndim != 2 or u.shape[0] != x.shape[0]:
         raise DimensionError(f"u must have shape (Q, m) with Q = {x.shape[0]}, got {u.shape}")
+    if not np.all(np.isfinite(u)):
+        raise NonFiniteError("u contains non-finite values")
     first = fit(x, y)
     d0 = estimate_input_gain(first, u).matrix
     second = fit(x, y - u @ d0.T)

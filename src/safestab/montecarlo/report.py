@@ -39,6 +39,7 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
             "t_final_s": study.t_final,
             "dt_s": study.dt,
             "n_samples": study.gp_settings()["n_samples"],
+            "input_gain": study.gp_settings().get("input_gain", "nominal"),
         },
         "summary": summarize(run),
         "datasets": [
@@ -51,6 +52,8 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
                 "betas": {k: np.asarray(v).tolist() for k, v in m.betas.items()},
                 "held_out_coverage": m.held_out_coverage,
                 "cache_warnings": list(m.cache_warnings),
+                # the learned input-matrix error D (gp_settings input_gain = "learned")
+                "input_gain": None if m.input_gain is None else np.asarray(m.input_gain).tolist(),
             }
             for m in run.datasets
         ],

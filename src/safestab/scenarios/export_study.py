@@ -286,10 +286,11 @@ def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
         _, gp, _, gain = fit_obstacle_gp(sc.replace(n_inducing=0))
         uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
         beta_note = f" GP beta = {sc.gp_beta:g} (learning.gp_beta)."
+        gain_note = ""
         if gain is not None:
             # the controller's input matrix is k_nom I + D (learning.input_gain = "learned")
             sc = sc.replace(learned_gain=tuple(map(tuple, gain.matrix.tolist())))
-            beta_note += f" Learned input-gain error D = {gain.matrix.tolist()} (m/s per m/s)."
+            gain_note = f" Learned input-gain error D = {gain.matrix.tolist()} (m/s per m/s)."
         if sc.beta_method == "conformal":
             # the beta the study runs with, calibrated for the exported cache itself
             say("calibrating beta on fresh trajectories (learning.beta_method = 'conformal')")
@@ -300,6 +301,7 @@ def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
                 f"trajectories for this cache (learning.beta_method = 'conformal'; the file's "
                 f"gp_beta is {cal['chosen_beta']:g}): {cal['statement']}"
             )
+        beta_note += gain_note
     ctrl = obstacle_controller(sc, _OBSTACLE_NAMES[controller], uncertainty)
     description = (
         f"Scenario '{sc.name}' (a point robot passing a disc obstacle, docs/obstacle.md), "

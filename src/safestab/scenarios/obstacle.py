@@ -174,11 +174,21 @@ class ObstacleScenario:
         flat.update(name=self.name, kind=KIND)
         check_values(flat, f"scenario {self.name!r}")
         if self.learned_gain is not None:
-            d = np.asarray(self.learned_gain, dtype=float)
+            bad = ScenarioError(
+                f"scenario {self.name!r}: learned_gain must be a finite 2 x 2 matrix, got "
+                f"{self.learned_gain!r}"
+            )
+            try:
+                d = np.asarray(self.learned_gain, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise bad from exc
             if d.shape != (2, 2) or not np.all(np.isfinite(d)):
+                raise bad
+            if self.input_gain != "learned":
+                # a gain left over from a learned run would reach the GP-robust controller
                 raise ScenarioError(
-                    f"scenario {self.name!r}: learned_gain must be a finite 2 x 2 matrix, got "
-                    f"{self.learned_gain!r}"
+                    f"scenario {self.name!r}: learned_gain is set only with "
+                    f"learning.input_gain = 'learned', got input_gain = {self.input_gain!r}"
                 )
         if self.montecarlo is not None and not isinstance(self.montecarlo, MonteCarloSpec):
             raise ScenarioError(

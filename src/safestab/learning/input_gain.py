@@ -99,15 +99,15 @@ def with_input_gain(system: ControlAffineSystem, matrix: Any) -> ControlAffineSy
 def estimate_input_gain(model: GaussianProcessModel, u: Any) -> InputGain:
     """Generalised least squares of ``model``'s own targets on the inputs ``u``.
 
+    The model's prior mean is held fixed (the studies' GPs have mean zero); with a fitted
+    constant mean, ``std`` leaves out the mean's own uncertainty.
+
     Parameters
     ----------
     model : GaussianProcessModel
         A fitted (or conditioned) exact GP; its factor ``chol_`` is ``K + noise^2 I``.
     u : array of shape (Q, m)
         The inputs of the model's training rows, in the same order.
-
-    The model's prior mean is held fixed (the studies' GPs have mean zero); with a fitted
-    constant mean, ``std`` leaves out the mean's own uncertainty.
 
     Returns
     -------

@@ -6,9 +6,10 @@ compilation cache, then a second run that reuses it (issue 22's targets).
 
 Without ``--tests`` the test run's row of the previous results is kept, with its own date.
 
-Each command runs as a new process with ``SAFESTAB_COMPILATION_CACHE`` set to a fresh
-temporary folder: the first run finds it empty (every program compiled), the second finds the
-first run's programs. Installation is excluded (the environment must exist). Writes
+Each command runs as a new process with ``SAFESTAB_COMPILATION_CACHE`` and
+``SAFESTAB_FIT_CACHE`` set to fresh temporary folders: the first run finds them empty (every
+program compiled, every GP fitted), the second finds the first run's programs and fits. The
+test run fits afresh (``SAFESTAB_FIT_CACHE=off``, as tests/conftest.py sets it). Installation is excluded (the environment must exist). Writes
 ``docs/performance_first_run.json`` and its block in ``docs/performance.md``.
 """
 
@@ -74,7 +75,9 @@ def _commands(out: Path, tests: bool) -> list[tuple[str, list[list[str]]]]:
 
 
 def _timed(cmd: list[str], cache: Path) -> float:
-    env = dict(os.environ, SAFESTAB_COMPILATION_CACHE=str(cache))
+    # the GP fit cache beside the compilation cache; the test run fits afresh (conftest.py)
+    fits = "off" if cmd[0] == "bash" else str(cache.with_name(cache.name + "-fits"))
+    env = dict(os.environ, SAFESTAB_COMPILATION_CACHE=str(cache), SAFESTAB_FIT_CACHE=fits)
     t0 = time.perf_counter()
     done = subprocess.run(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
     seconds = time.perf_counter() - t0
@@ -119,8 +122,9 @@ def markdown(r: dict) -> str:
         "## First run and second run (issue 22; `python benchmarks/first_run.py --tests`)",
         "",
         f"{measured(r)} and {r['load_average_at_end']:.1f} at the end. Each command is a fresh "
-        "process; the first run starts with an empty compilation cache "
-        "(`SAFESTAB_COMPILATION_CACHE` set to a new folder), the second reuses the first's. "
+        "process; the first run starts with an empty compilation cache and GP fit cache "
+        "(`SAFESTAB_COMPILATION_CACHE` and `SAFESTAB_FIT_CACHE` set to new folders), the "
+        "second reuses the first's (the test run fits afresh: `SAFESTAB_FIT_CACHE=off`). "
         "Installation excluded.",
         "",
         "| command | first run (s) | second run (s) | target first / second (s) | met |",

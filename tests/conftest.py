@@ -4,6 +4,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+# the tests fit their GPs afresh (the fit cache, safestab/learning/_fit_cache.py, is tested
+# on its own folder in tests/test_fit_cache.py); set SAFESTAB_FIT_CACHE to a folder to use it
+os.environ.setdefault("SAFESTAB_FIT_CACHE", "off")
+
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 import safestab  # noqa: E402,F401  (enables float64 before any test builds arrays)

@@ -3,7 +3,8 @@
 Importing safestab switches JAX to 64-bit floats (``jax_enable_x64``): every numerical routine
 here is written for float64. It also turns on JAX's persistent compilation cache in a user
 cache folder (``SAFESTAB_COMPILATION_CACHE=off`` before the import keeps it off; see
-:mod:`safestab._cache`).
+:mod:`safestab._cache`), and a cache of GP fits (``SAFESTAB_FIT_CACHE=off`` keeps it off; see
+:mod:`safestab.learning._fit_cache`).
 """
 
 import jax
@@ -18,6 +19,17 @@ from ._cache import (  # noqa: E402
 from ._cache import configure_from_environment as _configure_cache  # noqa: E402
 
 _configure_cache()  # JAX's persistent compilation cache (safestab/_cache.py)
+
+from .learning._fit_cache import (  # noqa: E402
+    configure_fit_cache_from_environment as _configure_fit_cache,
+)
+from .learning._fit_cache import (  # noqa: E402
+    disable_fit_cache,
+    enable_fit_cache,
+    fit_cache_dir,
+)
+
+_configure_fit_cache()  # the GP fit cache (safestab/learning/_fit_cache.py)
 
 from ._version import __version__ as __version__  # noqa: E402
 from .certificates import CBF, CLF, LieTerms, high_order_cbf, lie_terms  # noqa: E402
@@ -144,4 +156,7 @@ __all__ = [
     "compilation_cache_dir",
     "disable_compilation_cache",
     "enable_compilation_cache",
+    "disable_fit_cache",
+    "enable_fit_cache",
+    "fit_cache_dir",
 ]

@@ -38,6 +38,12 @@ def _main(
         help="Do not read or write JAX's persistent compilation cache (on by default in "
         "~/.cache/safestab/jax, or $SAFESTAB_COMPILATION_CACHE; safe to delete).",
     ),
+    no_fit_cache: bool = typer.Option(
+        False,
+        "--no-fit-cache",
+        help="Fit every GP afresh: do not read or write the GP fit cache (on by default in "
+        "~/.cache/safestab/fits, or $SAFESTAB_FIT_CACHE; safe to delete).",
+    ),
 ) -> None:
     """Safe stabilization with closed-form CLF-CBF formulas and GP learning."""
     import warnings
@@ -47,6 +53,10 @@ def _main(
         from ._cache import disable_compilation_cache
 
         disable_compilation_cache()
+    if no_fit_cache:
+        from .learning._fit_cache import disable_fit_cache
+
+        disable_fit_cache()
 
 
 def _format_warning(

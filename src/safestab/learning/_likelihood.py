@@ -21,6 +21,7 @@ from jax.scipy.linalg import cho_solve
 from tinygp import GaussianProcess
 
 from ..errors import ConvergenceWarning, NumericalError
+from ._fit_cache import load, problem_key, store
 from ._posterior import kernel
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "nll_tinygp",
     "nll_value_and_grad",
     "nn_noise",
+    "optimise_starts",
     "stationary",
     "unpack",
 ]
@@ -132,6 +134,22 @@ def nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
     return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
 
 
+def optimise_starts(fun, starts, bounds, lo, hi, max_iter):
+    """L-BFGS-B from each start: ``(value, theta, nit, converged, message)`` per start."""
+    results = []
+    for s in starts:
+        if max_iter == 0:
+            results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
+            continue
+        with np.errstate(all="ignore"):
+            res = scipy.optimize.minimize(
+                fun, s, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
+            )
+        ok = res.status == 0 or stationary(res.x, res.jac, lo, hi, res.fun)
+        results.append((float(res.fun), res.x, int(res.nit), bool(ok), str(res.message)))
+    return results
+
+
 def fit_component(model, xs, y, fixed_noise, rng, comp):
     """Maximise one component's log marginal likelihood over its hyperparameters.
 
@@ -216,24 +234,19 @@ def fit_component(model, xs, y, fixed_noise, rng, comp):
         v, g = nll_value_and_grad(jnp.asarray(t), *args, kind=model.kernel)
         return float(v), np.asarray(g, dtype=float)
 
-    results = []
-    for s in starts:
-        s = np.clip(s, lo, hi)
-        if model.max_iter == 0:
-            results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
-            continue
-        with np.errstate(all="ignore"):
-            res = scipy.optimize.minimize(
-                fun,
-                s,
-                jac=True,
-                method="L-BFGS-B",
-                bounds=bounds,
-                options={"maxiter": model.max_iter},
-            )
-        nit = int(res.nit)
-        ok = res.status == 0 or stationary(res.x, res.jac, lo, hi, res.fun)
-        results.append((float(res.fun), res.x, nit, ok, str(res.message)))
+    starts = [np.clip(s, lo, hi) for s in starts]
+    # the optimisation is a deterministic function of this problem: a run that poses it again
+    # reads the first run's results (_fit_cache.py; off with SAFESTAB_FIT_CACHE=off)
+    key = problem_key(
+        {"kernel": model.kernel, "max_iter": int(model.max_iter), "bounds": repr(bounds),
+         "fixed_noise": None if fixed_noise is None else float(fixed_noise).hex(),
+         "mean": model.mean, "jitter": float(model.jitter).hex()},
+        {"xs": xs, "y": y, "starts": np.stack(starts)},
+    )  # fmt: skip
+    results = load(key)
+    if results is None:
+        results = optimise_starts(fun, starts, bounds, lo, hi, model.max_iter)
+        store(key, results)
     values = np.array([r[0] for r in results])
     finite = np.isfinite(values)
     if not np.any(finite):

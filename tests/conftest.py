@@ -8,9 +8,16 @@ matplotlib.use("Agg")
 # on its own folder in tests/test_fit_cache.py); set SAFESTAB_FIT_CACHE to a folder to use it
 os.environ.setdefault("SAFESTAB_FIT_CACHE", "off")
 
+import jax  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 import safestab  # noqa: E402,F401  (enables float64 before any test builds arrays)
+
+# The library stores every compiled program (safestab/_cache.py, MIN_COMPILE_SECONDS = 0: a
+# study's second run reads its ~140 small programs back). The suite compiles about 12,000
+# small programs, and writing them all made the first test run after that change slower
+# (781 s against 454 s, 2026-11-27): here only compilations of 0.1 s or more are stored.
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 # Deterministic example generation so that CI runs are reproducible; set
 # HYPOTHESIS_PROFILE=explore locally to search with fresh random examples.
@@ -25,7 +32,6 @@ settings.register_profile("explore", deadline=None, max_examples=5000)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
-import jax  # noqa: E402
 import pytest  # noqa: E402
 
 

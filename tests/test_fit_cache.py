@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import warnings
 
 import numpy as np
@@ -28,9 +29,17 @@ def _data(q=60, seed=0, shift=0.0):
 
 @pytest.fixture
 def cache(tmp_path):
+    before = ss.fit_cache_dir()
     folder = ss.enable_fit_cache(tmp_path / "fits")
     yield folder
-    ss.disable_fit_cache()
+    _restore(before)
+
+
+def _restore(folder):
+    if folder is None:
+        ss.disable_fit_cache()
+    else:
+        ss.enable_fit_cache(folder)
 
 
 @pytest.fixture
@@ -71,6 +80,7 @@ def test_a_second_fit_reads_the_first_and_gives_the_same_model(cache, count_opti
     "change",
     [
         lambda m, x, y: (m, x, y + np.array([1e-9, 0.0])),  # the data, in the last bits
+        lambda m, x, y: (GaussianProcessModel(jitter=1e-8), x, y),  # the data, in the last bits
         lambda m, x, y: (m, x[::-1], y[::-1]),  # the same rows in another order (the subset)
         lambda m, x, y: (GaussianProcessModel(kernel="matern52"), x, y),
         lambda m, x, y: (GaussianProcessModel(n_restarts=3), x, y),
@@ -82,11 +92,13 @@ def test_a_second_fit_reads_the_first_and_gives_the_same_model(cache, count_opti
 def test_any_change_of_the_problem_misses(cache, count_optimisations, change):
     x, y = _data()
     GaussianProcessModel().fit(x, y, seed=3)
+    GaussianProcessModel().fit(x, y, seed=3)  # the control: the same problem is read back
     n = len(count_optimisations)
+    assert n == 2
     model, x2, y2 = change(GaussianProcessModel(), x, y)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model.fit(x2, y2, seed=3, hyper_subset=50)
+        model.fit(x2, y2, seed=3)
     assert len(count_optimisations) > n
 
 
@@ -94,13 +106,22 @@ def test_a_broken_entry_is_refitted_and_replaced(cache, count_optimisations):
     x, y = _data()
     first = GaussianProcessModel().fit(x, y, seed=3)
     entries = sorted(cache.glob("*.json"))
-    entries[0].write_text("{not json")
-    doc = json.loads(entries[1].read_text())
-    doc["key"] = "another"
-    entries[1].write_text(json.dumps(doc))
-    again = GaussianProcessModel().fit(x, y, seed=3)
-    assert len(count_optimisations) == 4
-    _same(first, again)
+    good = [json.loads(e.read_text()) for e in entries]
+    broken = [
+        lambda doc: "{not json",  # unreadable
+        lambda doc: json.dumps({**doc, "key": "another"}),  # another problem's
+        lambda doc: "[]",  # not an entry
+        lambda doc: json.dumps({**doc, "results": doc["results"][:1]}),  # too few starts
+        lambda doc: json.dumps({**doc, "results": [{**r, "theta": r["theta"][:2]}
+                                                   for r in doc["results"]]}),  # short theta
+        lambda doc: json.dumps({**doc, "results": [{**r, "value": "0x1p99999"}
+                                                   for r in doc["results"]]}),  # overflow
+    ]  # fmt: skip
+    for k, make in enumerate(broken):
+        entries[k % 2].write_text(make(good[k % 2]))
+        again = GaussianProcessModel().fit(x, y, seed=3)
+        assert len(count_optimisations) == 3 + k
+        _same(first, again)
     for e in entries:
         assert json.loads(e.read_text())["key"] == e.stem
 
@@ -117,6 +138,7 @@ def test_warnings_of_a_fit_are_given_again_from_the_cache(cache):
 def test_an_unwritable_folder_only_costs_time(tmp_path, count_optimisations):
     blocker = tmp_path / "file"
     blocker.write_text("")
+    before = ss.fit_cache_dir()
     ss.enable_fit_cache(blocker / "fits")  # its parent is a file: cannot be created
     try:
         x, y = _data()
@@ -125,10 +147,19 @@ def test_an_unwritable_folder_only_costs_time(tmp_path, count_optimisations):
         assert len(count_optimisations) == 4
         _same(a, b)
     finally:
-        ss.disable_fit_cache()
+        _restore(before)
+    assert not list(tmp_path.rglob("*.tmp"))
 
 
 def test_environment_and_command_line_switches(tmp_path, monkeypatch):
+    before = ss.fit_cache_dir()
+    try:
+        _switches(tmp_path, monkeypatch)
+    finally:
+        _restore(before)
+
+
+def _switches(tmp_path, monkeypatch):
     monkeypatch.setenv("SAFESTAB_FIT_CACHE", "off")
     assert fit_cache.configure_fit_cache_from_environment() is None
     assert ss.fit_cache_dir() is None
@@ -143,5 +174,7 @@ def test_environment_and_command_line_switches(tmp_path, monkeypatch):
     from safestab.cli import app
 
     ss.enable_fit_cache(tmp_path / "cli")
+    monkeypatch.setenv("SAFESTAB_FIT_CACHE", str(tmp_path / "cli"))
     result = CliRunner().invoke(app, ["--no-fit-cache", "run", "--help"])
     assert ss.fit_cache_dir() is None, result.output
+    assert os.environ["SAFESTAB_FIT_CACHE"] == "off"  # for worker processes

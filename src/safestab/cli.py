@@ -54,9 +54,12 @@ def _main(
 
         disable_compilation_cache()
     if no_fit_cache:
+        import os
+
         from .learning._fit_cache import disable_fit_cache
 
         disable_fit_cache()
+        os.environ["SAFESTAB_FIT_CACHE"] = "off"  # worker processes (Ray) read it at import
 
 
 def _format_warning(

@@ -6,12 +6,15 @@ standardised inputs, the targets, the kernel and its settings, the starts and th
 a later run poses the same problem (the same data, with a controller or a plotting option
 changed), the results of the first are read back instead of recomputed: the same optima, the
 same iteration counts and messages, so the fitted model, its warnings and every number built
-from it are those of a fresh fit.
+from it are those of a fresh fit on the same machine with the same settings.
 
 * The key is a SHA-256 of the whole problem (every array's bytes, every setting) and of
-  what computes it: the source of the likelihood and kernel modules, and the versions of
-  safestab, JAX, jaxlib, NumPy and SciPy, and the machine. Change any of them and the entry is
-  not found: nothing stale is read.
+  what computes it: the source of the likelihood and kernel modules; the versions of
+  safestab, JAX, jaxlib, NumPy and SciPy; the machine (architecture, CPU flags, JAX backend
+  and device); the BLAS thread pools (library, kernels, thread count, read at each fit: the
+  thread count changes the summation order), ``XLA_FLAGS`` and ``jax_enable_x64``. Change any
+  of them and the entry is not found. Do not share the folder between machines of different
+  kinds (a network home directory on a cluster): the key would not see every difference.
 * Entries are small JSON files (floats written exactly, as hexadecimal), written atomically
   in ``$XDG_CACHE_HOME/safestab/fits`` (``~/.cache/safestab/fits``); an unreadable entry is
   ignored and overwritten. At most :data:`MAX_ENTRIES` are kept (the oldest go first). The
@@ -28,7 +31,7 @@ import hashlib
 import json
 import os
 import platform
-import threading
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +90,7 @@ def configure_fit_cache_from_environment() -> Path | None:
 
 @functools.lru_cache(maxsize=1)
 def _versions() -> str:
+    """What computes the optimisation and does not change within a process."""
     import jax
     import jaxlib
     import scipy
@@ -95,16 +99,37 @@ def _versions() -> str:
 
     here = Path(__file__).parent
     sources = b"".join((here / name).read_bytes() for name in ("_likelihood.py", "_posterior.py"))
+    try:  # the instruction set XLA compiles for and the BLAS kernels pick
+        flags = next(
+            line for line in Path("/proc/cpuinfo").read_text().splitlines()
+            if line.startswith("flags")
+        )  # fmt: skip
+    except (OSError, StopIteration):
+        flags = platform.processor()
     return "|".join([
         __version__, jax.__version__, jaxlib.__version__, np.__version__, scipy.__version__,
-        platform.machine(), platform.processor(), hashlib.sha256(sources).hexdigest(),
+        platform.machine(), hashlib.sha256(flags.encode()).hexdigest(),
+        jax.default_backend(), jax.devices()[0].device_kind,
+        hashlib.sha256(sources).hexdigest(),
     ])  # fmt: skip
+
+
+def _environment() -> str:
+    """What can change between calls: BLAS threads (they change the summation order), x64."""
+    import jax
+    from threadpoolctl import threadpool_info
+
+    pools = sorted(
+        f"{p.get('internal_api')}:{p.get('version')}:{p.get('architecture')}:{p.get('num_threads')}"
+        for p in threadpool_info()
+    )
+    return "|".join([*pools, os.environ.get("XLA_FLAGS", ""), str(jax.config.jax_enable_x64)])
 
 
 def problem_key(settings: dict[str, Any], arrays: dict[str, Any]) -> str:
     """SHA-256 of an optimisation problem: ``settings`` (JSON-able) and ``arrays``' bytes."""
     h = hashlib.sha256()
-    h.update(f"format {_FORMAT}|{_versions()}|".encode())
+    h.update(f"format {_FORMAT}|{_versions()}|{_environment()}|".encode())
     h.update(json.dumps(settings, sort_keys=True).encode())
     for name in sorted(arrays):
         a = np.ascontiguousarray(np.asarray(arrays[name], dtype=float))
@@ -117,22 +142,31 @@ def _hex(v: float) -> str:
     return float(v).hex()
 
 
-def load(key: str) -> list[tuple[float, np.ndarray, int, bool, str]] | None:
-    """The stored starts' results ``(value, theta, nit, ok, message)``, or None."""
+def load(
+    key: str, n_starts: int, n_theta: int
+) -> list[tuple[float, np.ndarray, int, bool, str]] | None:
+    """The stored results ``(value, theta, nit, ok, message)`` of ``n_starts`` starts, or None.
+
+    None also for an entry that is unreadable or not of that shape (``theta`` of
+    ``n_theta`` entries): the fit then runs afresh and overwrites it.
+    """
     folder = fit_cache_dir()
     if folder is None:
         return None
     try:
         doc = json.loads((folder / f"{key}.json").read_text())
-        if doc.get("format") != _FORMAT or doc.get("key") != key:
+        if not isinstance(doc, dict) or doc.get("format") != _FORMAT or doc.get("key") != key:
             return None
-        return [
+        results = [
             (float.fromhex(r["value"]), np.array([float.fromhex(t) for t in r["theta"]]),
              int(r["nit"]), bool(r["ok"]), str(r["message"]))
             for r in doc["results"]
         ]  # fmt: skip
-    except (OSError, ValueError, KeyError, TypeError):
-        return None  # missing or unreadable: fit afresh (and overwrite it)
+    except Exception:  # noqa: BLE001 -- any unreadable entry: fit afresh
+        return None
+    if len(results) != n_starts or any(r[1].shape != (n_theta,) for r in results):
+        return None
+    return results
 
 
 def store(key: str, results: list[tuple[float, Any, int, bool, str]]) -> None:
@@ -149,14 +183,17 @@ def store(key: str, results: list[tuple[float, Any, int, bool, str]]) -> None:
             for v, theta, nit, ok, message in results
         ],
     }  # fmt: skip
+    tmp = None
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / f".{key}.{os.getpid()}.{threading.get_ident()}.tmp"  # one per writer
+        tmp = folder / f".{key}.{uuid.uuid4().hex}.tmp"  # one per writer, any host
         tmp.write_text(json.dumps(doc))
         tmp.replace(folder / f"{key}.json")
         _prune(folder)
     except OSError:
-        return  # the cache is an optimisation: without it everything works, only slower
+        # the cache is an optimisation: without it everything works, only slower
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
 
 
 def _prune(folder: Path) -> None:

@@ -39,7 +39,6 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
             "t_final_s": study.t_final,
             "dt_s": study.dt,
             "n_samples": study.gp_settings()["n_samples"],
-            "input_gain": study.gp_settings().get("input_gain", "nominal"),
         },
         "summary": summarize(run),
         "datasets": [

@@ -9,8 +9,9 @@ Without ``--tests`` the test run's row of the previous results is kept, with its
 Each command runs as a new process with ``SAFESTAB_COMPILATION_CACHE`` and
 ``SAFESTAB_FIT_CACHE`` set to fresh temporary folders: the first run finds them empty (every
 program compiled, every GP fitted), the second finds the first run's programs and fits. The
-test run fits afresh (``SAFESTAB_FIT_CACHE=off``, as tests/conftest.py sets it). Installation is excluded (the environment must exist). Writes
-``docs/performance_first_run.json`` and its block in ``docs/performance.md``.
+test run fits afresh (``SAFESTAB_FIT_CACHE=off``, as tests/conftest.py sets it). Installation
+is excluded (the environment must exist). Writes ``docs/performance_first_run.json`` and its
+block in ``docs/performance.md``.
 """
 
 from __future__ import annotations

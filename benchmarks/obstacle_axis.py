@@ -29,6 +29,7 @@ def rows() -> list[dict]:
 
     from safestab.scenarios import load
     from safestab.scenarios.obstacle_study import (
+        OUTCOMES,
         calibrate_beta,
         classify_outcomes,
         fit_obstacle_gp,
@@ -42,8 +43,7 @@ def rows() -> list[dict]:
     for gain in ("nominal", "learned"):
         sc = base.replace(input_gain=gain)
         _, _, unc, found = fit_obstacle_gp(sc)
-        if found is not None:
-            sc = sc.replace(learned_gain=tuple(map(tuple, found.matrix.tolist())))
+        sc = sc.with_learned_gain(found)
         if sc.beta_method == "conformal":
             sc = sc.replace(gp_beta=calibrate_beta(sc, unc)["beta"])
         setups.append(("GP-robust", gain, sc, unc))
@@ -59,8 +59,7 @@ def rows() -> list[dict]:
                 out.append({
                     "controller": name, "input_gain": gain, "offset_m": offset,
                     "limits": "input limits" if limits else "no limits",
-                    "outcomes": {k: int(np.sum(outcome == k))
-                                 for k in ("converged", "stuck", "moving", "unsafe")},
+                    "outcomes": {k: int(np.sum(outcome == k)) for k in OUTCOMES},
                     "min_h_m2": float(np.min(h)), "max_abs_u_mps": float(np.max(np.abs(u))),
                     "gp_beta": float(sc.gp_beta),
                 })  # fmt: skip

@@ -90,6 +90,11 @@ def _run_cells(run: dict) -> list[str]:
     ]  # fmt: skip
 
 
+def _outcomes(o: dict) -> str:
+    """One obstacle run's outcome counts: converged / stuck / moving / unsafe."""
+    return " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe"))
+
+
 def obstacle_table(doc: dict) -> str:
     """The obstacle page's outcome table from a metrics document."""
     rows = []
@@ -120,7 +125,7 @@ def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
             o = run["outcomes"]
             rows.append([
                 eps, "none" if limits == "no limits" else "+-1.5 m/s",
-                " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+                _outcomes(o),
                 *_run_cells(run),
             ])  # fmt: skip
     header = ["boundary layer eps", "limits", "converged / stuck / moving / unsafe",
@@ -142,7 +147,7 @@ def obstacle_gain_table(doc: dict, doc_learned: dict) -> str:
             rows.append([
                 gain, "none" if limits == "no limits" else "+-1.5 m/s",
                 " / ".join(f"{v:.4f}" for v in gp["noise_mps"]), f"{gp['beta']:.2f}",
-                " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+                _outcomes(o),
                 f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
                 f"{run['max_abs_u_off_axis_mps']:.2f}",
                 f"{run['median_input_variation_mps2']:.3f}",
@@ -152,7 +157,7 @@ def obstacle_gain_table(doc: dict, doc_learned: dict) -> str:
     o = true["outcomes"]
     rows.append([
         "(true model)", "none", "-", "-",
-        " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+        _outcomes(o),
         f"{true['min_h_m2']:.3f}", f"{true['max_abs_u_mps']:.2f}",
         f"{true['max_abs_u_off_axis_mps']:.2f}", f"{true['median_input_variation_mps2']:.3f}",
         f"{true['median_converge_time_s']:.1f}",
@@ -185,7 +190,7 @@ def obstacle_axis_table(rows_in: list) -> str:
         rows.append([
             name, f"{r['offset_m'] * 1000:g}",
             "none" if r["limits"] == "no limits" else "+-1.5 m/s",
-            " / ".join(str(o[k]) for k in ("converged", "stuck", "moving", "unsafe")),
+            _outcomes(o),
             f"{r['min_h_m2']:.3f}", f"{r['max_abs_u_mps']:.2f}",
         ])  # fmt: skip
     header = ["controller", "x2 offset (mm)", "limits", "converged / stuck / moving / unsafe",

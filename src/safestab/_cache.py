@@ -28,6 +28,8 @@ import jax
 
 __all__ = [
     "ENV_VAR",
+    "OFF_VALUES",
+    "cache_root",
     "compilation_cache_dir",
     "default_cache_dir",
     "disable_compilation_cache",
@@ -43,13 +45,19 @@ ENV_VAR = "SAFESTAB_COMPILATION_CACHE"
 MIN_COMPILE_SECONDS = 0.0
 #: Size limit of the folder: beyond it JAX removes the least recently used programs.
 MAX_BYTES = 2 * 2**30
-_OFF = frozenset({"0", "off", "no", "false", "none"})
+#: Values of a cache's environment variable that turn it off (lower case; also the fit cache's).
+OFF_VALUES = frozenset({"0", "off", "no", "false", "none"})
+
+
+def cache_root() -> Path:
+    """``$XDG_CACHE_HOME/safestab``, or ``~/.cache/safestab``: the folder of safestab's caches."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "safestab"
 
 
 def default_cache_dir() -> Path:
     """``$XDG_CACHE_HOME/safestab/jax``, or ``~/.cache/safestab/jax``."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "safestab" / "jax"
+    return cache_root() / "jax"
 
 
 def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
@@ -93,7 +101,7 @@ def configure_from_environment() -> Path | None:
     variable says so, and a folder the user already gave JAX is kept.
     """
     value = os.environ.get(ENV_VAR, "").strip()
-    if value.lower() in _OFF:
+    if value.lower() in OFF_VALUES:
         disable_compilation_cache()
         return None
     if jax.config.jax_compilation_cache_dir:  # the user's own choice

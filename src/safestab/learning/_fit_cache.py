@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from .._cache import OFF_VALUES, cache_root
+
 __all__ = [
     "FIT_ENV_VAR",
     "MAX_ENTRIES",
@@ -52,19 +54,13 @@ __all__ = [
 FIT_ENV_VAR = "SAFESTAB_FIT_CACHE"
 #: Most entries kept; beyond it the least recently written are removed.
 MAX_ENTRIES = 4000
-_OFF = frozenset({"0", "off", "no", "false", "none"})
 _FORMAT = 1
 _state: dict[str, Path | None] = {"dir": None}
 
 
-def _default_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "safestab" / "fits"
-
-
 def enable_fit_cache(path: str | Path | None = None) -> Path:
     """Read and write the fit cache in ``path`` (default ``~/.cache/safestab/fits``)."""
-    folder = Path(path).expanduser() if path is not None else _default_dir()
+    folder = Path(path).expanduser() if path is not None else cache_root() / "fits"
     _state["dir"] = folder
     return folder
 
@@ -82,7 +78,7 @@ def fit_cache_dir() -> Path | None:
 def configure_fit_cache_from_environment() -> Path | None:
     """What the import does: on in the default folder unless ``SAFESTAB_FIT_CACHE`` says."""
     value = os.environ.get(FIT_ENV_VAR, "").strip()
-    if value.lower() in _OFF:
+    if value.lower() in OFF_VALUES:
         disable_fit_cache()
         return None
     return enable_fit_cache(value or None)

@@ -289,7 +289,7 @@ def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
         gain_note = ""
         if gain is not None:
             # the controller's input matrix is k_nom I + D (learning.input_gain = "learned")
-            sc = sc.replace(learned_gain=tuple(map(tuple, gain.matrix.tolist())))
+            sc = sc.with_learned_gain(gain)
             gain_note = f" Learned input-gain error D = {gain.matrix.tolist()} (m/s per m/s)."
         if sc.beta_method == "conformal":
             # the beta the study runs with, calibrated for the exported cache itself

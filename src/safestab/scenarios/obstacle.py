@@ -30,6 +30,7 @@ import numpy as np
 
 from ..certificates import CBF, CLF, LieTerms
 from ..errors import ParameterError, ScenarioError
+from ..learning.input_gain import InputGain, with_input_gain
 from ..systems import ControlAffineSystem
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._obstacle_schema import KIND, check_structure, check_values
@@ -196,6 +197,12 @@ class ObstacleScenario:
                 f"{type(self.montecarlo).__name__}"
             )
 
+    def with_learned_gain(self, gain: InputGain | None) -> ObstacleScenario:
+        """A copy whose ``learned_gain`` is ``gain.matrix`` (itself when ``gain`` is None)."""
+        if gain is None:
+            return self
+        return self.replace(learned_gain=tuple(map(tuple, np.asarray(gain.matrix).tolist())))
+
     def replace(self, **changes: Any) -> ObstacleScenario:
         """A copy with some fields changed, checked like a loaded file.
 
@@ -242,6 +249,12 @@ class ObstacleScenario:
         """
         if which not in ("true", "nominal", "learned"):
             raise ParameterError(f"which must be 'true', 'nominal' or 'learned', got {which!r}")
+        if which == "learned":
+            nominal = self.system("nominal")
+            if self.learned_gain is None:
+                return nominal
+            return with_input_gain(nominal, np.asarray(self.learned_gain, dtype=float))
+        k = self.gain(which)
         if which == "true":
             f = self.current
         else:
@@ -249,11 +262,7 @@ class ObstacleScenario:
             def f(x):
                 return jnp.zeros(2)
 
-        g = self.gain("true" if which == "true" else "nominal") * np.eye(2)
-        if which == "learned" and self.learned_gain is not None:
-            g = g + np.asarray(self.learned_gain, dtype=float)
-        gj = jnp.asarray(g)
-        return ControlAffineSystem(f, lambda x: gj, 2, name=f"obstacle-{which}")
+        return ControlAffineSystem(f, lambda x: k * jnp.eye(2), 2, name=f"obstacle-{which}")
 
     def V(self, x: Any) -> Any:
         """``V = x^T P x``, m^2, shape (...,)."""

@@ -662,9 +662,8 @@ def run_obstacle_study(
 
     report("collecting data", 0.0)
     held_out, gp, uncertainty, gain = fit_obstacle_gp(sc, timings=timings, report=report)
-    if gain is not None:
-        # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
-        sc = sc.replace(learned_gain=tuple(map(tuple, gain.matrix.tolist())))
+    # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
+    sc = sc.with_learned_gain(gain)
     calibrated = None
     if sc.beta_method == "conformal":
         report("calibrating beta on fresh trajectories", 0.15)

@@ -65,3 +65,35 @@ def test_a_folder_given_to_jax_is_kept(tmp_path):
         + PROBE
     )
     assert f"DIR {tmp_path / 'mine'}" in _run(code, XDG_CACHE_HOME=str(tmp_path))
+
+
+def test_pruning_removes_the_least_recently_used_programs_only_past_the_limit(tmp_path):
+    from safestab._cache import PRUNE_TO, prune_compilation_cache
+
+    # ten 100-byte programs, used at times 0..9 (the access time is what JAX's reads move)
+    for i in range(10):
+        program = tmp_path / f"k{i}-cache"
+        program.write_bytes(b"x" * 100)
+        os.utime(program, (1_000_000 + i, 1_000_000 + i))
+        (tmp_path / f"k{i}-atime").write_bytes(b"t" * 8)  # JAX's record under its own limit
+    (tmp_path / "other-file").write_bytes(b"y" * 10_000)  # not a program: never counted
+    assert prune_compilation_cache(tmp_path, max_bytes=1000) == 0  # at the limit: nothing
+    assert len(list(tmp_path.glob("*-cache"))) == 10
+    removed = prune_compilation_cache(tmp_path, max_bytes=999)
+    # down to PRUNE_TO of the limit (799 bytes: 7 programs), oldest first, with their records
+    assert removed == 10 - int(PRUNE_TO * 999) // 100
+    left = sorted(int(p.name[1:-6]) for p in tmp_path.glob("*-cache"))
+    assert left == list(range(removed, 10))
+    assert sorted(int(p.name[1:-6]) for p in tmp_path.glob("*-atime")) == left
+    assert (tmp_path / "other-file").exists()
+    assert prune_compilation_cache(tmp_path / "missing") == 0  # no folder: nothing to do
+
+
+def test_jax_does_not_scan_the_folder_on_every_write(tmp_path):
+    # JAX's own size limit lists and reads the whole folder before each write (0.16 s per
+    # program with 6,400 stored): safestab keeps it off and prunes once at import instead
+    out = _run(
+        "import jax, safestab; print('MAX', jax.config.jax_compilation_cache_max_size)",
+        SAFESTAB_COMPILATION_CACHE=str(tmp_path / "c"),
+    )
+    assert "MAX -1" in out

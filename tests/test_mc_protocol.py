@@ -96,6 +96,32 @@ def test_obstacle_file_takes_a_montecarlo_table(tmp_path):
         load(_obstacle_file(tmp_path, "[montecarlo.lead]\nkind = 'random'\n"))
 
 
+def test_obstacle_trials_with_the_filter_reproduce_the_simulator():
+    """``controller.limit_method``: the trials build the study's controller (the preset's
+    SafetyFilter, the projecting formula otherwise) and reproduce ss.simulate's loop."""
+    for method, kind in (("filter", ss.SafetyFilter), ("projection", ss.UniversalController)):
+        study = OBSTACLE.replace(limit_method=method).trial_study(SPEC)
+        true_sys, _ = study.systems()
+        clf, cbf = study.certificates()
+        ctrl = study.build_controller(true_sys, clf, cbf, **study.controller_options())
+        assert type(ctrl) is kind
+    assert OBSTACLE.limit_method == "filter"  # the preset
+    starts = OBSTACLE.start_states()
+    x0, params = study.draw_trials(0, np.arange(3))
+    filt = OBSTACLE.trial_study(SPEC).build_controller(
+        true_sys, clf, cbf, **study.controller_options()
+    )
+    run = trial_function([filt], plant=true_sys, n_steps=study.n_steps, dt=study.dt)
+    rec = jax.jit(jax.vmap(run))(x0, params)
+    for i in range(3):
+        traj = ss.simulate(filt, starts[i], t_final=OBSTACLE.t_final, dt=OBSTACLE.dt,
+                           plant=true_sys)  # fmt: skip
+        assert float(rec["min_h"][i, 0]) == pytest.approx(float(np.min(traj.h)), abs=1e-9)
+        assert float(rec["final_V"][i, 0]) == pytest.approx(float(traj.V[-1, 0]), rel=1e-9)
+        # steps whose whole problem was not solved (a fallback) count as incompatible
+        assert int(rec["incompatible_steps"][i, 0]) == int(np.sum(~np.asarray(traj.compatible)[:-1]))
+
+
 def test_obstacle_study_runs_end_to_end():
     run = run_montecarlo(OBSTACLE, spec=SPEC, trials=6, datasets=1, seed=1)
     assert run.records["min_h"].shape == (6, 2) and set(run.records) == set(RECORD_FIELDS)

@@ -356,6 +356,47 @@ def test_robust_clf_layer_is_optional_and_reaches_the_gp_robust_controller(tmp_p
     assert obstacle_controller(sc, "true model").uncertainty is None  # no layer without a band
 
 
+def test_limit_method_is_optional_and_the_filter_keeps_the_box_as_constraints(tmp_path, sc):
+    from safestab.scenarios.obstacle_study import obstacle_controller
+
+    assert sc.limit_method == "filter"  # the preset
+    old = _edited(tmp_path, 'limit_method = "filter"', "#")  # a file from before the key
+    base = load_obstacle_scenario(old)
+    assert base.limit_method == "projection"
+    with pytest.raises(ScenarioError, match=r"controller\.limit_method must be one of"):
+        sc.replace(limit_method="clip")
+    free = obstacle_controller(base, "true model")
+    proj = obstacle_controller(base, "true model", limits=True)
+    filt = obstacle_controller(base.replace(limit_method="filter"), "true model", limits=True)
+    assert isinstance(proj, ss.UniversalController) and isinstance(filt, ss.SafetyFilter)
+    assert isinstance(obstacle_controller(sc, "true model"), ss.UniversalController)
+    lim = sc.input_limit
+    rng = np.random.default_rng(3)
+    x = rng.uniform([-9.0, -4.0], [3.0, 4.0], (400, 2))
+    x = x[np.asarray(sc.h(x)) > 0.05]  # states in the safe set
+    u_free = np.asarray(free.step(x).u)
+    out = filt.step(x)
+    u_filt, u_proj = np.asarray(out.u), np.asarray(proj.step(x).u)
+    # where the relaxed formula's input is inside the box, the box is inactive: the same QP
+    inside = np.all(np.abs(u_free) <= lim, -1)
+    assert 20 < inside.sum() < len(x)  # both cases occur
+    np.testing.assert_allclose(u_filt[inside], u_free[inside], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(u_proj[inside], u_free[inside], rtol=0, atol=0)
+    # elsewhere the filter's input keeps the box and the CBF condition (certified)
+    assert np.all(np.abs(u_filt) <= lim * (1 + 1e-12))
+    assert np.all(np.asarray(out.safety_certified))
+    # the CBF condition at the projected input, by hand: it fails at some of these states
+    a, b, c, d = (np.asarray(t) for t in sc.hand_lie_terms(x, "true"))
+    _, B = _hand_margins(sc, a, b, c, d)
+    assert np.any(np.sum(d * u_proj, -1) < B - 1e-9)
+    assert np.all(np.sum(d * u_filt, -1) >= B - 1e-9 * (np.abs(B) + 1))
+    # 1 mm off the axis behind the obstacle the projection leaves the safe set, the filter not
+    x0 = np.array([[-8.0, 1e-3]])
+    h_proj = ss.simulate(proj, x0, t_final=sc.t_final, dt=sc.dt, plant=sc.system("true")).h
+    h_filt = ss.simulate(filt, x0, t_final=sc.t_final, dt=sc.dt, plant=sc.system("true")).h
+    assert np.min(h_proj) < 0 < np.min(h_filt)
+
+
 def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
     from safestab.scenarios.obstacle_study import fit_obstacle_gp
 

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 
 from ..certificates import lie_terms_point
 from ..controllers import StepStatus, UniversalController
-from ..formulas import SATISFIED_RTOL, Region
+from ..filters import SafetyFilter
+from ..formulas import SATISFIED_RTOL, MultiStatus, Region
 from ..simulation import closed_loop
 from ..systems import ControlAffineSystem
 
@@ -185,8 +186,10 @@ def trial_function(
 
     Parameters
     ----------
-    controllers : sequence of UniversalController
-        ``C`` controllers (the same CLF and CBF); each drives its own copy of ``plant``.
+    controllers : sequence of UniversalController or SafetyFilter
+        ``C`` controllers (the same CLF and CBF; a filter with one of each); each drives its
+        own copy of ``plant``. A filter's ``incompatible`` record counts the steps whose
+        problem was not solved whole (``formula_status`` other than ``SOLVED``).
     plant : ControlAffineSystem
         The true dynamics.
     n_steps : int
@@ -228,7 +231,10 @@ def trial_function(
         raise ValueError("lemma2 must have one entry per controller")
     if omega is None and any(c is not None for c in checks):
         raise ValueError("lemma2 checks need omega")
-    clf, cbf = ctrls[0].clf, ctrls[0].cbf
+    first = ctrls[0]
+    # a SafetyFilter (one CLF, one CBF) or a UniversalController
+    clf, cbf = (first.clfs[0], first.cbfs[0]) if isinstance(first, SafetyFilter) else (
+        first.clf, first.cbf)  # fmt: skip
     n = plant.n_states
 
     def exo(t, x, p):
@@ -242,11 +248,16 @@ def trial_function(
             mean = std = jnp.zeros(n)
             if check is not None:
                 mean, std = check[0].mean_std(x)
-            if check is not None and check[0] is ctrl.uncertainty:
-                out = ctrl.step_with_uncertainty(x, mean, std)  # the model evaluated once
-            else:
+            if isinstance(ctrl, SafetyFilter):
                 out = ctrl.step_fn(x)
-            incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)
+                # the whole problem (CLF, CBF, box) not solved: a fallback was used
+                incompatible = out.formula_status != MultiStatus.SOLVED
+            else:
+                if check is not None and check[0] is ctrl.uncertainty:
+                    out = ctrl.step_with_uncertainty(x, mean, std)  # the model evaluated once
+                else:
+                    out = ctrl.step_fn(x)
+                incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)
             ev = {"u": out.u, "incompatible": incompatible, "status": out.status,
                   "mean": mean, "std": std}  # fmt: skip
             if reference is not None:

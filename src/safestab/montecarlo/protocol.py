@@ -51,7 +51,12 @@ class TrialStudy(Protocol):
         ...
 
     def controller_options(self) -> dict[str, Any]:
-        """Keyword arguments of every compared ``UniversalController`` (kappa, limits, ...)."""
+        """Keyword arguments of every compared ``UniversalController`` (kappa, limits, ...).
+
+        An optional member ``build_controller(system, clf, cbf, **options)`` builds each
+        compared controller instead of ``UniversalController`` (the obstacle's
+        ``controller.limit_method = "filter"``: a :class:`~safestab.SafetyFilter`).
+        """
         ...
 
     def omega(self, x: Any) -> Any:

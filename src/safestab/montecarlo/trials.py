@@ -238,6 +238,8 @@ def _compiled_chunk(study: TrialStudy) -> Any:
     common = study.controller_options()
     # optional member: extra arguments of the GP-robust controllers only (docs/montecarlo.md)
     robust = study.robust_options() if hasattr(study, "robust_options") else {}
+    # optional member: the controller's class (default: UniversalController)
+    build = getattr(study, "build_controller", UniversalController)
 
     def omega(x, params):
         return study.omega(x)
@@ -249,21 +251,19 @@ def _compiled_chunk(study: TrialStudy) -> Any:
         ctrls, checks = [], []
         for name in spec.controllers:
             if name == "true model":
-                ctrls.append(UniversalController(true_sys, clf, cbf, **common))
+                ctrls.append(build(true_sys, clf, cbf, **common))
                 checks.append(None)
             elif name == "mismatched model":
-                ctrls.append(UniversalController(nominal, clf, cbf, **common))
+                ctrls.append(build(nominal, clf, cbf, **common))
                 checks.append(None)
             else:
                 beta = betas[name]
                 ctrls.append(
-                    UniversalController(
-                        learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust
-                    )
+                    build(learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust)
                 )
                 checks.append((model, beta))
         # the reference of mean_input_gap: the true-model controller (price_metrics only)
-        ref = UniversalController(true_sys, clf, cbf, **common) if spec.price_metrics else None
+        ref = build(true_sys, clf, cbf, **common) if spec.price_metrics else None
         run = trial_function(
             ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
             exogenous=study.exogenous, omega=omega, lemma2=checks, reference=ref,

@@ -27,7 +27,9 @@ from ._schema import (
 )
 from ._schema import check_structure as _check_structure_with
 
-__all__ = ["BETA_METHODS", "FIELDS", "KIND", "check_structure", "check_values"]
+__all__ = [
+    "BETA_METHODS", "FIELDS", "KIND", "LIMIT_METHODS", "check_structure", "check_values"
+]  # fmt: skip
 
 #: The value of the required top-level ``kind`` key.
 KIND = "obstacle"
@@ -36,6 +38,9 @@ KIND = "obstacle"
 BETA_METHODS = ("chosen", "conformal")
 #: ``learning.input_gain``: trust the nominal input matrix, or learn its constant error.
 INPUT_GAINS = ("nominal", "learned")
+#: ``controller.limit_method``: the runs with input limits project the relaxed formula's input
+#: onto the box (eq. (26)), or solve the safety filter with the box as constraints.
+LIMIT_METHODS = ("projection", "filter")
 MAX_GRID = 1000  # points per axis of the start grid and the map grid
 #: Most calibration trajectories ``beta_method = "conformal"`` may collect (ceil(1/delta)).
 MAX_CALIBRATION_TRAJECTORIES = 10_000
@@ -76,6 +81,7 @@ FIELDS: dict[str, Check] = {
     "controller.slack_weight": _POS,  # 1/m^2
     "controller.robust_clf_layer": _NONNEG,  # m, optional (default 0: Lemma 3's term)
     "controller.input_limit": _POS,  # m/s per component, for the runs with limits
+    "controller.limit_method": choice(LIMIT_METHODS),  # optional, default "projection"
     "controller.doa_fraction": _open_unit,
     "starts.x1": _RANGE,
     "starts.n_x1": _GRID,
@@ -96,7 +102,8 @@ FIELDS: dict[str, Check] = {
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),  # 0: the exact GP
 }
 _OPTIONAL = {
-    "name", "learning.beta_method", "learning.input_gain", "controller.robust_clf_layer"
+    "name", "learning.beta_method", "learning.input_gain", "controller.robust_clf_layer",
+    "controller.limit_method",
 }  # fmt: skip
 
 

@@ -65,6 +65,7 @@ _KEYS = {
             "input_limit",
             "doa_fraction",
             "robust_clf_layer",
+            "limit_method",
         )  # fmt: skip
     },
     "starts_x1": "starts.x1",
@@ -160,6 +161,11 @@ class ObstacleScenario:
     #: ``controller.robust_clf_layer`` (optional, m): the GP-robust controller's boundary layer
     #: on the CLF's robust term (:class:`~safestab.UniversalController`); 0: Lemma 3's term.
     robust_clf_layer: float = 0.0
+    #: ``controller.limit_method`` (optional): how the runs with input limits keep them.
+    #: "projection" clips the relaxed formula's input to the box (eq. (26), the paper's; it
+    #: voids Theorem 1's guarantee); "filter" solves the same problem with the box as
+    #: constraints (:class:`~safestab.SafetyFilter`: the exact QP optimum, docs/obstacle.md).
+    limit_method: str = "projection"
     #: ``learning.input_gain`` (optional): "nominal" trusts the nominal gain; "learned"
     #: estimates the constant input-matrix error ``D`` (true ``k_true I = k_nom I + D``) with
     #: the GP (:func:`~safestab.learning.fit_input_gain`) and gives the GP-robust controller
@@ -378,7 +384,7 @@ def load_obstacle_scenario(
         name_or_path, PRESETS, __package__, check_structure, overrides,
         defaults={
             "learning.beta_method": "chosen", "learning.input_gain": "nominal",
-            "controller.robust_clf_layer": 0.0,
+            "controller.robust_clf_layer": 0.0, "controller.limit_method": "projection",
         },
     )  # fmt: skip
     v = check_values(flat, source)

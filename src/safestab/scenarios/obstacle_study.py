@@ -7,7 +7,9 @@ or Theorem 2 for the GP-robust controller) from starts inside that controller's 
 domain of attraction ``{V < doa_fraction c*}`` (``c*`` the smallest ``V`` at which its
 conditions are incompatible in the safe set) in the runs without input limits, and the
 relaxed formula (Theorem 3) elsewhere: outside that set, and everywhere in the runs with
-limits, where the projection (eq. (26)) voids Theorem 1's guarantee. Each trajectory ends
+limits, where the projection (eq. (26)) voids Theorem 1's guarantee. With
+``controller.limit_method = "filter"`` the runs with limits solve the relaxed problem with the
+box as constraints instead (:class:`~safestab.SafetyFilter`). Each trajectory ends
 as ``converged``, ``stuck`` (at rest outside the goal ball), ``unsafe`` (``h < 0`` at some
 sample) or ``moving`` (none of these at ``t_final``).
 """
@@ -27,6 +29,7 @@ from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
 from ..controllers import UniversalController
 from ..errors import ParameterError
+from ..filters import SafetyFilter
 from ..formulas import clf_cbf, compatibility
 from ..learning import FastGP, GaussianProcessModel, InputGain, fit_input_gain
 from ..learning.bounds import mean_std_batch
@@ -458,6 +461,7 @@ class ObstacleStudyResult(MetricsWriter):
                     "exact" if sc.n_inducing == 0 else f"FastGP n_inducing<={sc.n_inducing}"
                 ),  # the inputs used per component: gp.cache.n_inducing
                 "robust_clf_layer_m": sc.robust_clf_layer,
+                "limit_method": sc.limit_method,  # the runs with input limits
             },
             "doa_c_star_m2": self.doa,
             "doa_level_m2": {k: sc.doa_fraction * v for k, v in self.doa.items()},
@@ -592,12 +596,16 @@ def obstacle_controller(
     *,
     limits: bool = False,
     hard: bool = False,
-) -> UniversalController:
+) -> UniversalController | SafetyFilter:
     """The study's controller ``name`` (one of :data:`CONTROLLERS`).
 
     ``uncertainty`` is used by ``"GP-robust"`` only; ``limits`` adds the input limits;
     ``hard`` gives Theorem 1's formula (used inside the certified sublevel set), else the
-    relaxed one with the scenario's slack weight.
+    relaxed one with the scenario's slack weight. With limits and
+    ``controller.limit_method = "filter"`` it is a :class:`~safestab.SafetyFilter` solving
+    the same problem with the box as constraints (exactly; a CBF is relaxed only where the box
+    and the CBF conflict, reported by its ``formula_status``), else a
+    :class:`~safestab.UniversalController` that projects its input onto the box (eq. (26)).
     """
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
@@ -614,6 +622,16 @@ def obstacle_controller(
     if limits:
         u_min, u_max = sc.input_limits()
         box = {"u_min": u_min, "u_max": u_max}
+        if sc.limit_method == "filter":
+            return SafetyFilter(
+                system,
+                cbf,
+                clfs=clf,
+                slack_weight=None if hard else sc.slack_weight,
+                **_params(sc),
+                **box,
+                **extra,
+            )
     return UniversalController(
         system,
         clf,
@@ -755,6 +773,8 @@ def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
         t = np.asarray(tr.t)
         for f in ("x", "u", "V", "h", "compatible", "status"):
             arr = np.asarray(getattr(tr, f))
+            if f in ("V", "h") and arr.ndim == 3:  # a safety filter's: one CLF, one CBF
+                arr = arr[..., 0]
             if f not in fields:
                 fields[f] = np.empty((n,) + arr.shape[1:], arr.dtype)
             fields[f][sel] = arr
@@ -813,6 +833,11 @@ def summary(result: ObstacleStudyResult, document: dict[str, Any]) -> Summary:
         else f"chosen beta = {cov['beta']:g}; "
         f"stated probability (1 - delta)^2 = {cov['stated_probability']:.4f}"
     )
+    limits_how = (
+        "the safety filter with the box as constraints"
+        if sc.limit_method == "filter"
+        else "the relaxed formula's input projected onto the box (eq. (26))"
+    )
     line = (
         f"GP held-out coverage: per component "
         f"{[round(float(c), 3) for c in cov['per_component']]}, joint {cov['joint']:.3f}; {how}"
@@ -828,7 +853,7 @@ def summary(result: ObstacleStudyResult, document: dict[str, Any]) -> Summary:
             "c* [m^2]",
         ),  # fmt: skip
         rows=rows,
-        lines=[line],
+        lines=[line, f"input limits +-{sc.input_limit:g} m/s: {limits_how}"],
     )
 
 

@@ -20,7 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controllers import UniversalController
 from ..errors import ParameterError
+from ..filters import SafetyFilter
 from ..learning import collect_data
 from ._mc_schema import MonteCarloSpec
 
@@ -273,7 +275,8 @@ class ObstacleTrials(ScenarioTrials):
     ``initial.distribution = "fixed"`` starts trial ``i`` at start ``i mod S`` of the
     scenario's grid (:meth:`~safestab.scenarios.ObstacleScenario.start_states`, ``S``
     starts), so ``N = S`` trials visit each start once. The compared controllers run with
-    the scenario's input limits (``controller.input_limit``). The scenario has no lead
+    the scenario's input limits (``controller.input_limit``), kept as its
+    ``controller.limit_method`` says (:meth:`build_controller`). The scenario has no lead
     vehicle: ``lead.*`` keys are refused.
     """
 
@@ -284,6 +287,16 @@ class ObstacleTrials(ScenarioTrials):
     def input_gain(self) -> str:
         """``learning.input_gain`` of the scenario file."""
         return self.scenario.input_gain
+
+    def build_controller(self, system: Any, clf: Any, cbf: Any, **options: Any) -> Any:
+        """One compared controller, as ``controller.limit_method`` says.
+
+        ``"filter"``: a :class:`~safestab.SafetyFilter` with the box as constraints; else a
+        :class:`~safestab.UniversalController` projecting onto it (eq. (26)).
+        """
+        if self.scenario.limit_method == "filter":
+            return SafetyFilter(system, cbf, clfs=clf, **options)
+        return UniversalController(system, clf, cbf, **options)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -103,7 +103,7 @@ def obstacle_table(doc: dict) -> str:
         o, stuck = run["outcomes"], run["stuck"]
         both = sum(not s["end_flag_compatible"] and not s["end_verdict_compatible"] for s in stuck)
         rows.append([
-            name, "none" if limits == "no limits" else "+-1.5 m/s",
+            name, _limits_cell(limits, doc),
             *(str(o[k]) for k in ("converged", "stuck", "unsafe", "moving")),
             *_run_cells(run), f"{both} / {len(stuck)}" if stuck else "-",
         ])  # fmt: skip
@@ -115,6 +115,32 @@ def obstacle_table(doc: dict) -> str:
     return _table(header, ["---"] * 2 + ["---:"] * 11, rows)
 
 
+def _limits_cell(limits: str, doc: dict) -> str:
+    """``none``, or the box and how the run kept it (``controller.limit_method``)."""
+    if limits == "no limits":
+        return "none"
+    # documents from before the key kept the limits by the projection
+    return f"+-1.5 m/s ({doc.get('settings', {}).get('limit_method', 'projection')})"
+
+
+def obstacle_limits_table(doc: dict, doc_projected: dict) -> str:
+    """Each controller's runs with the input limits: the filter (preset) and the projection."""
+    rows = []
+    for d in (doc, doc_projected):
+        for name in ("true model", "mismatched model", "GP-robust"):
+            run = d["runs"][f"{name} / input limits"]
+            rows.append([
+                name, d["settings"]["limit_method"], _outcomes(run["outcomes"]),
+                f"{run['min_h_m2']:.3f}", f"{run['median_input_variation_mps2']:.3f}",
+                "-" if run["median_converge_time_s"] is None
+                else f"{run['median_converge_time_s']:.1f}",
+            ])  # fmt: skip
+    header = ["controller", "limits kept by", "converged / stuck / moving / unsafe",
+              "min h (m^2)", "input variation (m/s^2, median)",
+              "time to converge (s, median)"]  # fmt: skip
+    return _table(header, ["---"] * 3 + ["---:"] * 3, rows)
+
+
 def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
     """The GP-robust rows with the preset's boundary layer and without it (layer 0)."""
     rows = []
@@ -124,7 +150,7 @@ def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
             run = d["runs"][f"GP-robust / {limits}"]
             o = run["outcomes"]
             rows.append([
-                eps, "none" if limits == "no limits" else "+-1.5 m/s",
+                eps, _limits_cell(limits, d),
                 _outcomes(o),
                 *_run_cells(run),
             ])  # fmt: skip
@@ -137,15 +163,15 @@ def obstacle_layer_table(doc: dict, doc_plain: dict) -> str:
 
 
 def obstacle_gain_table(doc: dict, doc_learned: dict) -> str:
-    """The GP-robust rows with the nominal gain (preset) and with the learned gain error."""
+    """The GP-robust rows with the nominal gain and with the learned gain error (preset)."""
     rows = []
-    for gain, d in (("nominal (preset)", doc), ("learned", doc_learned)):
+    for gain, d in (("nominal", doc), ("learned (preset)", doc_learned)):
         gp = d["gp"]
         for limits in ("no limits", "input limits"):
             run = d["runs"][f"GP-robust / {limits}"]
             o = run["outcomes"]
             rows.append([
-                gain, "none" if limits == "no limits" else "+-1.5 m/s",
+                gain, _limits_cell(limits, d),
                 " / ".join(f"{v:.4f}" for v in gp["noise_mps"]), f"{gp['beta']:.2f}",
                 _outcomes(o),
                 f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.2f}",
@@ -189,7 +215,7 @@ def obstacle_axis_table(rows_in: list) -> str:
         name = r["controller"] + ("" if r["input_gain"] == "-" else f" ({r['input_gain']} gain)")
         rows.append([
             name, f"{r['offset_m'] * 1000:g}",
-            "none" if r["limits"] == "no limits" else "+-1.5 m/s",
+            "none" if r["limits"] == "no limits" else f"+-1.5 m/s ({r['limit_method']})",
             _outcomes(o),
             f"{r['min_h_m2']:.3f}", f"{r['max_abs_u_mps']:.2f}",
         ])  # fmt: skip
@@ -477,19 +503,25 @@ def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
     _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "controller.robust_clf_layer=0",
           "--out", str(plain)])  # fmt: skip
     doc_plain = _load(plain / "obstacle_obstacle_metrics.json")
-    # the same run with the input-gain error learned with the GP
-    learned = out / "obstacle-learned-gain"
-    _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "learning.input_gain=learned",
-          "--out", str(learned)])  # fmt: skip
-    doc_learned = _load(learned / "obstacle_obstacle_metrics.json")
+    # the same run trusting the nominal input gain (the GP of omega alone)
+    nominal = out / "obstacle-nominal-gain"
+    _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set", "learning.input_gain=nominal",
+          "--out", str(nominal)])  # fmt: skip
+    doc_nominal = _load(nominal / "obstacle_obstacle_metrics.json")
+    # the same run with the input limits kept by the projection (eq. (26))
+    projected = out / "obstacle-projection"
+    _run([*SAFESTAB, "run", "--scenario", "obstacle", "--set",
+          "controller.limit_method=projection", "--out", str(projected)])  # fmt: skip
+    doc_projected = _load(projected / "obstacle_obstacle_metrics.json")
     axis = out / "obstacle_axis.json"
     _run([sys.executable, "benchmarks/obstacle_axis.py", "--json", str(axis)])
     return {
         "obstacle-outcomes": ("docs/obstacle.md", obstacle_table(doc)),
         "obstacle-gp": ("docs/obstacle.md", obstacle_gp_table(doc)),
         "obstacle-layer": ("docs/obstacle.md", obstacle_layer_table(doc, doc_plain)),
-        "obstacle-gain": ("docs/obstacle.md", obstacle_gain_table(doc, doc_learned)),
-        "obstacle-gain-estimate": ("docs/obstacle.md", obstacle_gain_estimate(doc_learned)),
+        "obstacle-gain": ("docs/obstacle.md", obstacle_gain_table(doc_nominal, doc)),
+        "obstacle-gain-estimate": ("docs/obstacle.md", obstacle_gain_estimate(doc)),
+        "obstacle-limits": ("docs/obstacle.md", obstacle_limits_table(doc, doc_projected)),
         "obstacle-axis": ("docs/obstacle.md", obstacle_axis_table(_load(axis))),
     }
 
@@ -604,6 +636,7 @@ PRODUCES = {
         "obstacle-layer",
         "obstacle-gain",
         "obstacle-gain-estimate",
+        "obstacle-limits",
         "obstacle-axis",
     ],
     "obstacle-seeds": ["obstacle-seeds"],

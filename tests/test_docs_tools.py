@@ -208,9 +208,11 @@ def test_obstacle_table_from_a_metrics_document():
         "| true model | none | 70 | 2 | 0 | 0 | 0.020 | 2.03 | 0.052 | 0.06 | 0.07 | 13.4 | 1 / 2 |"
     )
     assert lines[3] == (
-        "| mismatched model | +-1.5 m/s | 66 | 0 | 6 | 0 | -0.231 | 1.50 | 0.049 | 0.00 | 0.00 | - "
-        "| - |"
+        "| mismatched model | +-1.5 m/s (projection) | 66 | 0 | 6 | 0 | -0.231 | 1.50 | 0.049 "
+        "| 0.00 | 0.00 | - | - |"
     )
+    doc["settings"] = {"limit_method": "filter"}  # controller.limit_method, as recorded
+    assert "| mismatched model | +-1.5 m/s (filter) | 66 |" in reproduce_docs.obstacle_table(doc)
 
 
 def test_obstacle_layer_table_from_two_metrics_documents():
@@ -236,8 +238,25 @@ def test_obstacle_layer_table_from_two_metrics_documents():
         "| 0.2 m (preset) | none | 68 / 4 / 0 / 0 | 0.189 | 4.83 | 0.383 | 0.61 | 1.23 | 5.3 |"
     )
     assert lines[5] == (
-        "| 0 (Lemma 3) | +-1.5 m/s | 68 / 4 / 0 / 0 | 0.189 | 4.83 | 0.104 | 0.61 | 0.03 | - |"
+        "| 0 (Lemma 3) | +-1.5 m/s (projection) | 68 / 4 / 0 / 0 | 0.189 | 4.83 | 0.104 | 0.61 "
+        "| 0.03 | - |"
     )
+
+
+def test_obstacle_limits_table_puts_the_filter_beside_the_projection():
+    def doc(method, unsafe):
+        run = {"outcomes": {"converged": 72 - unsafe, "stuck": 0, "unsafe": unsafe, "moving": 0},
+               "min_h_m2": -0.1484 if unsafe else 0.0183, "median_input_variation_mps2": 0.04,
+               "median_converge_time_s": None if unsafe == 72 else 13.46}  # fmt: skip
+        names = ("true model", "mismatched model", "GP-robust")
+        return {"settings": {"limit_method": method},
+                "runs": {f"{n} / input limits": run for n in names}}  # fmt: skip
+
+    lines = reproduce_docs.obstacle_limits_table(doc("filter", 0), doc("projection", 72))
+    lines = lines.splitlines()
+    assert len(lines) == 8 and all(len(ln.split("|")) == 8 for ln in lines)
+    assert lines[2] == "| true model | filter | 72 / 0 / 0 / 0 | 0.018 | 0.040 | 13.5 |"
+    assert lines[7] == "| GP-robust | projection | 0 / 0 / 0 / 72 | -0.148 | 0.040 | - |"
 
 
 def test_obstacle_gp_table_from_a_metrics_document():

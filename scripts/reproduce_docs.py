@@ -255,17 +255,23 @@ def obstacle_seed_table(docs: list[dict]) -> str:
         beta = f"{gp['beta']:.2f}" + (
             " (conformal)" if gp.get("beta_method") == "conformal" else ""
         )
+        off_axis = run.get("max_abs_u_off_axis_mps")
+        limited = doc["runs"].get("GP-robust / input limits")
         rows.append([
             str(doc["settings"]["seed"]), beta,
             f"{o['converged']} / {o['stuck']} / {o['moving']} / {o['unsafe']}",
             f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.1f}",
+            "-" if off_axis is None else f"{off_axis:.2f}",
+            "-" if limited is None
+            else f"{_outcomes(limited['outcomes'])}, {limited['min_h_m2']:.3f}",
             f"{doc['maps']['nominal_incompatible_points']} / "
             f"{doc['maps']['robust_incompatible_points']}",
         ])  # fmt: skip
     header = ["data seed", "beta", "GP-robust, no limits: converged / stuck / moving / unsafe",
-              "min h (m^2)", "largest input (m/s)",
+              "min h (m^2)", "largest input (m/s)", "largest input off the axis (m/s)",
+              "GP-robust, limits: converged / stuck / moving / unsafe, min h (m^2)",
               "incompatible map points: nominal / GP-robust"]  # fmt: skip
-    return _table(header, ["---:", "---:", "---", "---:", "---:", "---:"], rows)
+    return _table(header, ["---:", "---:", "---", "---:", "---:", "---:", "---", "---:"], rows)
 
 
 def gp_coverage_table(rows: list[dict]) -> str:

@@ -107,8 +107,9 @@ def test_bad_inputs_are_named():
 def test_obstacle_scenario_key_and_learned_system(tmp_path):
     from safestab.scenarios import load
 
-    sc = load("obstacle")
-    assert sc.input_gain == "nominal" and sc.learned_gain is None
+    preset = load("obstacle")
+    assert preset.input_gain == "learned" and preset.learned_gain is None  # set by the study
+    sc = preset.replace(input_gain="nominal")
     # without a learned gain, "learned" is the nominal model
     x = np.array([1.0, -2.0])
     np.testing.assert_array_equal(
@@ -125,7 +126,9 @@ def test_obstacle_scenario_key_and_learned_system(tmp_path):
     with pytest.raises(ScenarioError, match="learning.input_gain"):
         load("obstacle", overrides={"learning.input_gain": "fitted"})
     with pytest.raises(ScenarioError, match="learned_gain must be a finite 2 x 2"):
-        sc.replace(learned_gain=((0.1, 0.0),))
+        preset.replace(learned_gain=((0.1, 0.0),))
+    with pytest.raises(ScenarioError, match="learned_gain is set only with"):
+        sc.replace(learned_gain=((0.1, 0.0), (0.0, 0.1)))
 
 
 def test_obstacle_study_fit_learns_the_gain_and_the_controller_uses_it():
@@ -165,8 +168,9 @@ def test_monte_carlo_data_sets_learn_the_gain_with_and_without_reused_hyperparam
     for model in (first, again):
         assert model.input_gain.shape == (2, 2)
         np.testing.assert_allclose(model.input_gain, true_d, atol=0.01)
-    plain = fit_dataset(load("obstacle").replace(n_samples=120, hyper_subset=120).trial_study(),
-                         3, 0, None)  # fmt: skip
+    plain = fit_dataset(load("obstacle").replace(input_gain="nominal", n_samples=120,
+                                                 hyper_subset=120).trial_study(),
+                        3, 0, None)  # fmt: skip
     assert plain.input_gain is None
 
 
@@ -247,7 +251,7 @@ def test_obstacle_gp_robust_verdict_reads_the_learned_model():
 def test_stale_or_malformed_learned_gain_is_refused():
     from safestab.scenarios import load
 
-    sc = load("obstacle")
+    sc = load("obstacle").replace(input_gain="nominal")
     with pytest.raises(ScenarioError, match="learned_gain is set only with"):
         sc.replace(learned_gain=((0.1, 0.0), (0.0, 0.1)))
     with pytest.raises(ScenarioError, match="finite 2 x 2"):

@@ -293,7 +293,10 @@ def test_obstacle_seed_table_names_the_beta_of_each_seed():
     docs[0]["runs"]["GP-robust / no limits"]["max_abs_u_off_axis_mps"] = 2.0016
     docs[0]["runs"]["GP-robust / input limits"] = run | {"min_h_m2": 0.0221}
     line = reproduce_docs.obstacle_seed_table(docs).splitlines()[2]
-    assert line == "| 0 | 5.84 (conformal) | 68 / 4 / 0 / 0 | 0.180 | 5.2 | 2.00 | 68 / 4 / 0 / 0, 0.022 | 15 / 16 |"
+    assert line == (
+        "| 0 | 5.84 (conformal) | 68 / 4 / 0 / 0 | 0.180 | 5.2 | 2.00 | 68 / 4 / 0 / 0, 0.022 "
+        "| 15 / 16 |"
+    )
 
 
 def _acc_controller(min_h: float, gap: float | None, u: float) -> dict:

@@ -119,7 +119,8 @@ def test_obstacle_trials_with_the_filter_reproduce_the_simulator():
         assert float(rec["min_h"][i, 0]) == pytest.approx(float(np.min(traj.h)), abs=1e-9)
         assert float(rec["final_V"][i, 0]) == pytest.approx(float(traj.V[-1, 0]), rel=1e-9)
         # steps whose whole problem was not solved (a fallback) count as incompatible
-        assert int(rec["incompatible_steps"][i, 0]) == int(np.sum(~np.asarray(traj.compatible)[:-1]))
+        unsolved = int(np.sum(~np.asarray(traj.compatible)[:-1]))
+        assert int(rec["incompatible_steps"][i, 0]) == unsolved
 
 
 def test_obstacle_study_runs_end_to_end():

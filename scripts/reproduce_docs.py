@@ -130,7 +130,8 @@ def obstacle_limits_table(doc: dict, doc_projected: dict) -> str:
         for name in ("true model", "mismatched model", "GP-robust"):
             run = d["runs"][f"{name} / input limits"]
             rows.append([
-                name, d["settings"]["limit_method"], _outcomes(run["outcomes"]),
+                name, d.get("settings", {}).get("limit_method", "projection"),
+                _outcomes(run["outcomes"]),
                 f"{run['min_h_m2']:.3f}", f"{run['median_input_variation_mps2']:.3f}",
                 "-" if run["median_converge_time_s"] is None
                 else f"{run['median_converge_time_s']:.1f}",

@@ -97,3 +97,30 @@ def test_jax_does_not_scan_the_folder_on_every_write(tmp_path):
         SAFESTAB_COMPILATION_CACHE=str(tmp_path / "c"),
     )
     assert "MAX -1" in out
+
+
+def test_pruning_counts_a_program_another_process_removed_first(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from safestab._cache import prune_compilation_cache
+
+    for i in range(4):
+        program = tmp_path / f"k{i}-cache"
+        program.write_bytes(b"x" * 100)
+        os.utime(program, (1_000 + i, 1_000 + i))
+    (tmp_path / "d-cache").mkdir()  # not a file: never counted nor removed
+    real_unlink = Path.unlink
+
+    def raced(self, *args, **kwargs):
+        if self.name == "k0-cache":  # another process pruned it between listing and removal
+            real_unlink(self, *args, **kwargs)
+            raise FileNotFoundError(self)
+        return real_unlink(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "unlink", raced)
+    # 400 bytes over a limit of 399: down to 0.8 * 399 = 319 bytes, so only the oldest goes;
+    # its removal by the other process counts, and k1 is not removed as well
+    assert prune_compilation_cache(tmp_path, max_bytes=399) == 1
+    assert sorted(p.name for p in tmp_path.glob("*-cache")) == [
+        "d-cache", "k1-cache", "k2-cache", "k3-cache"
+    ]

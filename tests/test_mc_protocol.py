@@ -121,6 +121,51 @@ def test_obstacle_trials_with_the_filter_reproduce_the_simulator():
         # steps whose whole problem was not solved (a fallback) count as incompatible
         unsolved = int(np.sum(~np.asarray(traj.compatible)[:-1]))
         assert int(rec["incompatible_steps"][i, 0]) == unsolved
+    # with a box too small to hold the CBF against the current (0.3 m/s), the filter relaxes
+    # the CBF at some steps: counted, and equal to the simulator's unsolved steps
+    tight = OBSTACLE.replace(limit_method="filter", input_limit=0.3).trial_study(SPEC)
+    small = tight.build_controller(true_sys, clf, cbf, **tight.controller_options())
+    run = trial_function([small], plant=true_sys, n_steps=study.n_steps, dt=study.dt)
+    rec = jax.jit(jax.vmap(run))(x0, params)
+    counts = [int(c) for c in np.asarray(rec["incompatible_steps"][:, 0])]
+    assert max(counts) > 0
+    for i in range(3):
+        traj = ss.simulate(small, starts[i], t_final=OBSTACLE.t_final, dt=OBSTACLE.dt,
+                           plant=true_sys)  # fmt: skip
+        assert counts[i] == int(np.sum(~np.asarray(traj.compatible)[:-1]))
+
+
+def test_gp_robust_filter_step_with_given_uncertainty_is_its_step():
+    """The Monte Carlo loop evaluates the GP once per step and hands it to the filter."""
+
+    class Band:
+        n_states = 2
+
+        def mean_std(self, x):
+            return 0.05 * jnp.sin(x), 0.1 + 0.01 * x**2
+
+    sc = OBSTACLE
+    band = Band()
+    filt = ss.SafetyFilter(
+        sc.system("nominal"), sc.certificates()[1], clfs=sc.certificates()[0],
+        slack_weight=sc.slack_weight, u_min=-1.5, u_max=1.5, uncertainty=band, gp_beta=3.0,
+    )  # fmt: skip
+    for x in (jnp.array([-5.0, 0.3]), jnp.array([-2.0, 1.4]), jnp.array([1.0, -0.5])):
+        mean, std = band.mean_std(x)
+        ref, got = filt.step_fn(x), filt.step_with_uncertainty(x, mean, std)
+        for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(got),
+                        strict=True):  # fmt: skip
+            # the same arithmetic, compiled apart (a jitted step against an eager one)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=0)
+    # the given values are the ones used: another std gives another input
+    x = jnp.array([-5.0, 0.3])
+    mean, std = band.mean_std(x)
+    other = filt.step_with_uncertainty(x, mean, 5 * std)
+    assert not np.allclose(np.asarray(other.u), np.asarray(filt.step_fn(x).u))
+    with pytest.raises(ss.ParameterError, match="needs a filter with an uncertainty model"):
+        ss.SafetyFilter(sc.system("nominal"), sc.certificates()[1]).step_with_uncertainty(
+            x, mean, std
+        )
 
 
 def test_obstacle_study_runs_end_to_end():

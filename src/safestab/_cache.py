@@ -116,6 +116,8 @@ def prune_compilation_cache(folder: str | Path, max_bytes: int = MAX_BYTES) -> i
                 if not entry.name.endswith(_PROGRAM):
                     continue
                 try:
+                    if not entry.is_file(follow_symlinks=False):
+                        continue
                     st = entry.stat(follow_symlinks=False)
                 except OSError:
                     continue
@@ -131,6 +133,8 @@ def prune_compilation_cache(folder: str | Path, max_bytes: int = MAX_BYTES) -> i
             break
         try:
             (folder / name).unlink()
+        except FileNotFoundError:
+            pass  # another process pruned it first: it is gone all the same
         except OSError:
             continue
         try:

@@ -169,7 +169,7 @@ class StatisticsRecorder:
 
 
 def trial_function(
-    controllers: Sequence[UniversalController],
+    controllers: Sequence[UniversalController | SafetyFilter],
     *,
     plant: ControlAffineSystem,
     n_steps: int,
@@ -177,7 +177,7 @@ def trial_function(
     exogenous: Exogenous | None = None,
     omega: Omega | None = None,
     lemma2: Sequence[tuple[Any, jax.Array] | None] | None = None,
-    reference: UniversalController | None = None,
+    reference: UniversalController | SafetyFilter | None = None,
 ) -> Callable[[jax.Array, Any], dict[str, jax.Array]]:
     """Build ``run(x0, params) -> records`` for one trial and every controller.
 
@@ -248,15 +248,15 @@ def trial_function(
             mean = std = jnp.zeros(n)
             if check is not None:
                 mean, std = check[0].mean_std(x)
-            if isinstance(ctrl, SafetyFilter):
+            if check is not None and check[0] is ctrl.uncertainty:
+                out = ctrl.step_with_uncertainty(x, mean, std)  # the model evaluated once
+            else:
                 out = ctrl.step_fn(x)
-                # the whole problem (CLF, CBF, box) not solved: a fallback was used
+            if isinstance(ctrl, SafetyFilter):
+                # a CBF relaxed against the box, or the solver stopped uncertified: the
+                # filter's problem (soft CLF, CBF, box) was not solved whole
                 incompatible = out.formula_status != MultiStatus.SOLVED
             else:
-                if check is not None and check[0] is ctrl.uncertainty:
-                    out = ctrl.step_with_uncertainty(x, mean, std)  # the model evaluated once
-                else:
-                    out = ctrl.step_fn(x)
                 incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)
             ev = {"u": out.u, "incompatible": incompatible, "status": out.status,
                   "mean": mean, "std": std}  # fmt: skip

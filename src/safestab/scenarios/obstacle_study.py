@@ -235,7 +235,10 @@ class ObstacleRun:
     x, u : arrays of shape (N, T, 2)
     V, h : arrays of shape (N, T)
     compatible : bool array of shape (N, T)
-        The controller's own compatibility flag per step.
+        The controller's own compatibility flag per step. For a safety filter (the runs with
+        limits under ``controller.limit_method = "filter"``) it says that the filter's whole
+        problem (soft CLF, CBF, box) was solved; its slack absorbs a CLF-CBF conflict, so
+        it is not Lemma 1's verdict (``end_verdict`` is).
     status : int array of shape (N, T)
     outcome : str array of shape (N,)
         See :func:`classify_outcomes`.
@@ -601,7 +604,9 @@ def obstacle_controller(
 
     ``uncertainty`` is used by ``"GP-robust"`` only; ``limits`` adds the input limits;
     ``hard`` gives Theorem 1's formula (used inside the certified sublevel set), else the
-    relaxed one with the scenario's slack weight. With limits and
+    relaxed one with the scenario's slack weight (with limits and the filter, ``hard`` gives
+    the filter hard CLF rows, dropped where the box and the CBF leave no room; the study
+    never asks for it). With limits and
     ``controller.limit_method = "filter"`` it is a :class:`~safestab.SafetyFilter` solving
     the same problem with the box as constraints (exactly; a CBF is relaxed only where the box
     and the CBF conflict, reported by its ``formula_status``), else a

@@ -122,5 +122,8 @@ def test_pruning_counts_a_program_another_process_removed_first(tmp_path, monkey
     # its removal by the other process counts, and k1 is not removed as well
     assert prune_compilation_cache(tmp_path, max_bytes=399) == 1
     assert sorted(p.name for p in tmp_path.glob("*-cache")) == [
-        "d-cache", "k1-cache", "k2-cache", "k3-cache"
+        "d-cache",
+        "k1-cache",
+        "k2-cache",
+        "k3-cache",
     ]

@@ -382,9 +382,7 @@ class SafetyFilter(Controller):
             If ``x`` is not one state of shape (n,).
         """
         if self.uncertainty is None:
-            raise ParameterError(
-                "step_with_uncertainty needs a filter with an uncertainty model"
-            )
+            raise ParameterError("step_with_uncertainty needs a filter with an uncertainty model")
         if jnp.ndim(x) != 1:
             raise DimensionError(f"x must be one state of shape (n,), got shape {jnp.shape(x)}")
         return self._step(x, p, (mean, std))

@@ -161,6 +161,7 @@ class Controller(ControllerValue):
     step_fn: Any
     clfs: tuple[CLF, ...]  #: every CLF (a UniversalController: its one)
     cbfs: tuple[CBF, ...]  #: every CBF
+    uncertainty: Any  #: the GP-robust terms' model (None: none)
     #: The boundary layer on the robust CLF term(s); None: Lemma 3's term.
     robust_clf_layer: Any = None
 
@@ -240,6 +241,44 @@ class Controller(ControllerValue):
         out = self.step_fn(x) if p is None else self.step_fn(x, p)
         self._check_step(x, out, strict, p)
         return out
+
+    def step_with_uncertainty(
+        self, x: jax.Array, mean: jax.Array, std: jax.Array, p: Any = None
+    ) -> Any:
+        """The step at one state with the uncertainty model's mean and std there given.
+
+        For a caller that needs the model's values at ``x`` itself too (the Monte Carlo
+        study checks Lemma 2's band at every visited state): the model is then evaluated once
+        per step instead of twice (XLA does not merge the two evaluations; measured, the check
+        doubled the cost of a GP-robust step). Unchecked and jittable, like ``step_fn``.
+
+        Parameters
+        ----------
+        x : array of shape (n,)
+        mean, std : arrays of shape (n,)
+            What ``uncertainty.mean_std(x)`` returns.
+        p : pytree, optional
+            The run-time parameters, when the controller takes them.
+
+        Returns
+        -------
+        ControlOutput or FilterOutput
+            As :meth:`step`.
+
+        Raises
+        ------
+        ParameterError
+            If the controller has no uncertainty model.
+        DimensionError
+            If ``x`` is not one state of shape (n,).
+        """
+        if self.uncertainty is None:
+            raise ParameterError(
+                f"step_with_uncertainty needs a {self._owner} with an uncertainty model"
+            )
+        if jnp.ndim(x) != 1:
+            raise DimensionError(f"x must be one state of shape (n,), got shape {jnp.shape(x)}")
+        return self._step(x, p, (mean, std))
 
     _owner = "controller"
 
@@ -571,43 +610,6 @@ class UniversalController(Controller):
                 ),
             )
         return terms, status.astype(jnp.int32), weights
-
-    def step_with_uncertainty(
-        self, x: jax.Array, mean: jax.Array, std: jax.Array, p: Any = None
-    ) -> ControlOutput:
-        """The step at one state with the uncertainty model's mean and std there given.
-
-        For a caller that needs the model's values at ``x`` itself too (the Monte Carlo
-        study checks Lemma 2's band at every visited state): the model is then evaluated once
-        per step instead of twice (XLA does not merge the two evaluations; measured, the check
-        doubled the cost of a GP-robust step). Unchecked and jittable, like ``step_fn``.
-
-        Parameters
-        ----------
-        x : array of shape (n,)
-        mean, std : arrays of shape (n,)
-            What ``uncertainty.mean_std(x)`` returns.
-        p : pytree, optional
-            The run-time parameters, when the controller takes them.
-
-        Returns
-        -------
-        ControlOutput
-
-        Raises
-        ------
-        ParameterError
-            If the controller has no uncertainty model.
-        DimensionError
-            If ``x`` is not one state of shape (n,).
-        """
-        if self.uncertainty is None:
-            raise ParameterError(
-                "step_with_uncertainty needs a controller with an uncertainty model"
-            )
-        if jnp.ndim(x) != 1:
-            raise DimensionError(f"x must be one state of shape (n,), got shape {jnp.shape(x)}")
-        return self._step(x, p, (mean, std))
 
     def _step(self, x: jax.Array, p: Any = None, given: tuple | None = None) -> ControlOutput:
         terms, status, (phi, varphi) = over_batch(

@@ -353,40 +353,6 @@ class SafetyFilter(Controller):
         """
         return self._u_nom_of(x, p) if self._u_nom_of is not None else None
 
-    def step_with_uncertainty(
-        self, x: jax.Array, mean: jax.Array, std: jax.Array, p: Any = None
-    ) -> FilterOutput:
-        """The step at one state with the uncertainty model's mean and std there given.
-
-        As :meth:`~safestab.UniversalController.step_with_uncertainty`: for a caller that
-        needs the model's values at ``x`` itself too (the Monte Carlo study's Lemma 2 check),
-        so that the model is evaluated once per step. Unchecked and jittable, like ``step_fn``.
-
-        Parameters
-        ----------
-        x : array of shape (n,)
-        mean, std : arrays of shape (n,)
-            What ``uncertainty.mean_std(x)`` returns.
-        p : pytree, optional
-            The run-time parameters, when the filter takes them.
-
-        Returns
-        -------
-        FilterOutput
-
-        Raises
-        ------
-        ParameterError
-            If the filter has no uncertainty model.
-        DimensionError
-            If ``x`` is not one state of shape (n,).
-        """
-        if self.uncertainty is None:
-            raise ParameterError("step_with_uncertainty needs a filter with an uncertainty model")
-        if jnp.ndim(x) != 1:
-            raise DimensionError(f"x must be one state of shape (n,), got shape {jnp.shape(x)}")
-        return self._step(x, p, (mean, std))
-
     def _step(self, x: jax.Array, p: Any = None, given: tuple | None = None) -> FilterOutput:
         (a, b, c, d, u_nom), status = over_batch(lambda s: self._point(s, p, given), x)
         p = self.params

@@ -231,10 +231,7 @@ def trial_function(
         raise ValueError("lemma2 must have one entry per controller")
     if omega is None and any(c is not None for c in checks):
         raise ValueError("lemma2 checks need omega")
-    first = ctrls[0]
-    # a SafetyFilter (one CLF, one CBF) or a UniversalController
-    clf, cbf = (first.clfs[0], first.cbfs[0]) if isinstance(first, SafetyFilter) else (
-        first.clf, first.cbf)  # fmt: skip
+    clf, cbf = ctrls[0].clfs[0], ctrls[0].cbfs[0]  # a filter's first: the obstacle's one each
     n = plant.n_states
 
     def exo(t, x, p):

@@ -14,10 +14,9 @@ from hypothesis import HealthCheck, settings  # noqa: E402
 import safestab  # noqa: E402,F401  (enables float64 before any test builds arrays)
 
 # The library stores every compiled program (safestab/_cache.py, MIN_COMPILE_SECONDS = 0: a
-# study's second run reads its ~140 small programs back). The suite compiles about 12,000
-# small programs, and writing them all made the first test run after that change slower
-# (781 s against 454 s, 2026-11-27): here only compilations of 0.1 s or more are stored.
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+# study's second run reads its ~140 small programs back), and so does the suite (about 12,000
+# small programs). Storing them made a first test run slow (781 s against 454 s) only while
+# JAX's size limit listed the whole folder before every write (removed 2026-11-27).
 
 # Deterministic example generation so that CI runs are reproducible; set
 # HYPOTHESIS_PROFILE=explore locally to search with fresh random examples.

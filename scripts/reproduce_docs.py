@@ -115,12 +115,14 @@ def obstacle_table(doc: dict) -> str:
     return _table(header, ["---"] * 2 + ["---:"] * 11, rows)
 
 
+def _limit_method(doc: dict) -> str:
+    """``controller.limit_method`` of a run; documents from before the key projected."""
+    return doc.get("settings", {}).get("limit_method", "projection")
+
+
 def _limits_cell(limits: str, doc: dict) -> str:
     """``none``, or the box and how the run kept it (``controller.limit_method``)."""
-    if limits == "no limits":
-        return "none"
-    # documents from before the key kept the limits by the projection
-    return f"+-1.5 m/s ({doc.get('settings', {}).get('limit_method', 'projection')})"
+    return "none" if limits == "no limits" else f"+-1.5 m/s ({_limit_method(doc)})"
 
 
 def obstacle_limits_table(doc: dict, doc_projected: dict) -> str:
@@ -130,8 +132,7 @@ def obstacle_limits_table(doc: dict, doc_projected: dict) -> str:
         for name in ("true model", "mismatched model", "GP-robust"):
             run = d["runs"][f"{name} / input limits"]
             rows.append([
-                name, d.get("settings", {}).get("limit_method", "projection"),
-                _outcomes(run["outcomes"]),
+                name, _limit_method(d), _outcomes(run["outcomes"]),
                 f"{run['min_h_m2']:.3f}", f"{run['median_input_variation_mps2']:.3f}",
                 "-" if run["median_converge_time_s"] is None
                 else f"{run['median_converge_time_s']:.1f}",
@@ -260,8 +261,7 @@ def obstacle_seed_table(docs: list[dict]) -> str:
         limited = doc["runs"].get("GP-robust / input limits")
         rows.append([
             str(doc["settings"]["seed"]), beta,
-            f"{o['converged']} / {o['stuck']} / {o['moving']} / {o['unsafe']}",
-            f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.1f}",
+            _outcomes(o), f"{run['min_h_m2']:.3f}", f"{run['max_abs_u_mps']:.1f}",
             "-" if off_axis is None else f"{off_axis:.2f}",
             "-" if limited is None
             else f"{_outcomes(limited['outcomes'])}, {limited['min_h_m2']:.3f}",

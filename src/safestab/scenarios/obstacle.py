@@ -29,7 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..certificates import CBF, CLF, LieTerms
+from ..controllers import UniversalController
 from ..errors import ParameterError, ScenarioError
+from ..filters import SafetyFilter
 from ..learning.input_gain import InputGain, with_input_gain
 from ..systems import ControlAffineSystem
 from ._mc_schema import MonteCarloSpec, check_montecarlo
@@ -303,6 +305,21 @@ class ObstacleScenario:
         """``(u_min, u_max)`` in m/s for the runs with input limits."""
         lim = self.input_limit
         return [-lim, -lim], [lim, lim]
+
+    def limited_controller(
+        self, system: ControlAffineSystem, clf: CLF, cbf: CBF, **options: Any
+    ) -> UniversalController | SafetyFilter:
+        """A controller with the input limits, kept as ``controller.limit_method`` says.
+
+        ``options`` are the keyword arguments of both controllers and hold the box
+        (``u_min``, ``u_max``). ``"filter"``: a :class:`~safestab.SafetyFilter` solving the
+        relaxed problem with the box as constraints; ``"projection"``: a
+        :class:`~safestab.UniversalController` projecting its input onto the box (eq. (26)).
+        Used by the study and by its Monte Carlo trials alike.
+        """
+        if self.limit_method == "filter":
+            return SafetyFilter(system, cbf, clfs=clf, **options)
+        return UniversalController(system, clf, cbf, **options)
 
     def trial_study(self, spec: MonteCarloSpec | None = None) -> Any:
         """The Monte Carlo trial study of this scenario (:class:`~.trials.ObstacleTrials`).

@@ -623,29 +623,11 @@ def obstacle_controller(
         extra = {"uncertainty": uncertainty, "gp_beta": sc.gp_beta}
         if sc.robust_clf_layer > 0:
             extra["robust_clf_layer"] = sc.robust_clf_layer
-    box: dict[str, Any] = {}
-    if limits:
-        u_min, u_max = sc.input_limits()
-        box = {"u_min": u_min, "u_max": u_max}
-        if sc.limit_method == "filter":
-            return SafetyFilter(
-                system,
-                cbf,
-                clfs=clf,
-                slack_weight=None if hard else sc.slack_weight,
-                **_params(sc),
-                **box,
-                **extra,
-            )
-    return UniversalController(
-        system,
-        clf,
-        cbf,
-        slack_weight=None if hard else sc.slack_weight,
-        **_params(sc),
-        **box,
-        **extra,
-    )
+    options = {"slack_weight": None if hard else sc.slack_weight, **_params(sc), **extra}
+    if not limits:
+        return UniversalController(system, clf, cbf, **options)
+    u_min, u_max = sc.input_limits()
+    return sc.limited_controller(system, clf, cbf, u_min=u_min, u_max=u_max, **options)
 
 
 def run_obstacle_study(

@@ -20,9 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..controllers import UniversalController
 from ..errors import ParameterError
-from ..filters import SafetyFilter
 from ..learning import collect_data
 from ._mc_schema import MonteCarloSpec
 
@@ -294,9 +292,7 @@ class ObstacleTrials(ScenarioTrials):
         ``"filter"``: a :class:`~safestab.SafetyFilter` with the box as constraints; else a
         :class:`~safestab.UniversalController` projecting onto it (eq. (26)).
         """
-        if self.scenario.limit_method == "filter":
-            return SafetyFilter(system, cbf, clfs=clf, **options)
-        return UniversalController(system, clf, cbf, **options)
+        return self.scenario.limited_controller(system, clf, cbf, **options)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -229,6 +229,10 @@ def closed_loop(
     closed form into each of its consumers (the four RK4 stages, per state component),
     evaluating it a dozen times per step (measured: a third of the loop's time).
     """
+    # the controller is called twice (before the loop and in its body): as one jitted function
+    # it is traced once, the second call reusing the first's program (tracing a safety
+    # filter's step took about 1 s, the larger part of a second run's closed loop)
+    step_once = jax.jit(step)
 
     def run(x0: jax.Array, data: Any) -> Any:
         def body(carry, k):
@@ -237,9 +241,10 @@ def closed_loop(
             state, y = recorder.update(state, k, t, x, out, data)
             x_next = rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt)
             x_next = _materialized(x_next, k)
-            return (x_next, step((k + 1) * dt, x_next, data), state), y
+            t_next = jnp.asarray((k + 1) * dt, dtype=jnp.float64)
+            return (x_next, step_once(t_next, x_next, data), state), y
 
-        out0 = step(jnp.asarray(0.0), x0, data)
+        out0 = step_once(jnp.asarray(0.0, dtype=jnp.float64), x0, data)
         carry0 = (x0, out0, recorder.init(x0, data))
         (x_final, out_final, state), ys = jax.lax.scan(body, carry0, jnp.arange(n_steps))
         return recorder.finish(state, ys, x_final, out_final, n_steps * dt, data)
@@ -264,6 +269,8 @@ class TrajectoryRecorder:
     def __init__(self, controller: Any, params_at: Callable[[Any, Any], Any]) -> None:
         self.controller, self.params_at = controller, params_at
         self.multi = _records_rows(controller)
+        # one program for the rows of the steps and of the final state (traced once)
+        self._row_once = jax.jit(self._row)
 
     def init(self, x0: jax.Array, data: Any) -> None:
         """No running state: everything is per step."""
@@ -286,11 +293,11 @@ class TrajectoryRecorder:
 
     def update(self, state, k, t, x, out, data):
         """The step's row: the state, the input, ``V``, ``h`` and the flags."""
-        return None, self._row(x, t, out, data)
+        return None, self._row_once(x, jnp.asarray(t, jnp.float64), out, data)
 
     def finish(self, state, ys, x_final, out_final, t_final, data):
         """The rows of every step and the final state's, stacked along time (``K + 1``)."""
-        last = self._row(x_final, t_final, out_final, data)
+        last = self._row_once(x_final, jnp.asarray(t_final, jnp.float64), out_final, data)
         return tuple(jnp.concatenate([a, b[None]], 0) for a, b in zip(ys, last, strict=True))
 
 

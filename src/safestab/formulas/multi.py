@@ -320,7 +320,12 @@ def multi_kernel(
         )(pr, b, d, lo, hi, need2)
 
     skipped2 = (full, u1, jnp.zeros(flat, bool))
-    safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
+    if p == 0 or inv_sqrt_slack is not None:
+        # no hard CLF to drop: phase 2 can never run, so it is not traced nor compiled (it
+        # was a third of a soft-CLF filter's program, and of its compilation time)
+        safe, u2, ok2 = skipped2
+    else:
+        safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
     need3 = infeasible & ~(need2 & (safe.status != INFEASIBLE))
 
     skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))

@@ -340,3 +340,29 @@ def test_summary_table_prints_its_units_as_text(tmp_path, study):
     res = _invoke("--out", tmp_path)
     assert res.exit_code == 0, res.output
     assert "min h [m]" in res.stdout and "ACC study 'stress' (Q = " in res.stdout
+
+
+def test_run_takes_several_scenarios_in_order_and_checks_all_before_any_work(study, tmp_path):
+    """``run --scenario A --scenario B`` runs both studies in the order given, each with its
+    own outputs; a bad later scenario is refused before the first one starts."""
+    from safestab.cli import app
+
+    out = tmp_path / "o"
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "paper", "--seed", "3", "--out", str(out)],
+    )
+    assert res.exit_code == 0, res.output
+    assert [sc.name for sc in study.calls] == ["stress", "paper"]
+    assert all(sc.seed == 3 for sc in study.calls)  # the options apply to each
+    for name in ("stress", "paper"):
+        assert (out / f"acc_{name}_metrics.json").is_file()
+
+    study.calls.clear()
+    bad = tmp_path / "bad"
+    res = CliRunner().invoke(
+        app, ["run", "--scenario", "stress", "--scenario", "no-such", "--out", str(bad)]
+    )
+    assert res.exit_code == 2  # bad input
+    assert "no-such" in res.stderr
+    assert study.calls == [] and not list(bad.glob("*"))

@@ -198,10 +198,11 @@ def acc(
 
 @app.command()
 def run(
-    scenario: str = typer.Option(
+    scenario: list[str] = typer.Option(
         ...,
         help="A preset ('paper', 'stress', 'stress-ood', 'obstacle', 'swarm') or a TOML file "
-        "(its kind key).",
+        "(its kind key); repeatable: the studies run one after another in one process, "
+        "which compiles the programs they share once.",
     ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
     seed: int | None = typer.Option(
@@ -220,8 +221,11 @@ def run(
     """Run any scenario's study through the study pipeline, by its kind (ACC, obstacle, swarm).
 
     Writes OUT/<kind>_<name>.png, .pdf (the obstacle also _maps.png, .pdf), _metrics.json and
-    _run.json (the record of the run), all or none. The swarm learns nothing: --n-samples
-    is refused for it, and --seed seeds its start jitter.
+    _run.json (the record of the run), all or none per scenario. The swarm learns nothing:
+    --n-samples is refused for it, and --seed seeds its start jitter. With several
+    --scenario, every scenario and override is checked before any work, the options apply
+    to each, and the studies run in the order given (a failed one stops the command; the
+    outputs of those before it are kept).
     """
     import matplotlib
 
@@ -231,13 +235,17 @@ def run(
 
     def check_inputs():
         overrides = dict(parse_override(text) for text in set_)
-        sc = kinds.with_overrides(
-            load(scenario, overrides=overrides), seed=seed, n_samples=n_samples, t_final=t_final
-        )
-        return sc, ensure_writable_dir(out, name="--out")
+        scenarios = [
+            kinds.with_overrides(
+                load(name, overrides=overrides), seed=seed, n_samples=n_samples, t_final=t_final
+            )
+            for name in scenario
+        ]
+        return scenarios, ensure_writable_dir(out, name="--out")
 
-    sc, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    _study_outputs(sc, out_dir, debug)
+    scenarios, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
+    for sc in scenarios:
+        _study_outputs(sc, out_dir, debug)
 
 
 @app.command("export")

@@ -484,7 +484,7 @@ def simulate(
     fn = jax.jit(jax.vmap(run, in_axes=(0, None, None)) if x0.ndim == 2 else run)
     xs, us, Vs, hs, regions, comps, sats, stats = fn(x0, params, model)
     traj = Trajectory(
-        t=jnp.arange(n_steps + 1) * dt,
+        t=jnp.asarray(np.arange(n_steps + 1) * dt),
         x=xs,
         u=us,
         V=Vs,

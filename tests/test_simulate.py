@@ -1,5 +1,6 @@
 """Closed-loop simulation: integrator order, batching, flags and strict mode."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -103,3 +104,38 @@ def test_simulate_runs_a_safety_filter_like_a_hand_written_loop():
 def test_simulate_refuses_what_is_not_a_controller():
     with pytest.raises(ss.InputTypeError, match="UniversalController or a SafetyFilter"):
         simulate(lambda x: x, np.zeros(2), t_final=1.0)
+
+
+@pytest.mark.parametrize("kind", ["formula", "filter"])
+def test_a_simulation_traces_the_recorded_row_once_and_reuses_the_step(kind):
+    """The closed loop records a row per step and one for the final state, and calls the
+    controller before the loop and in its body: each is traced once per simulation. Counted
+    by the CBF's function: once the controller's step has been traced (by ``eval_shape``),
+    a simulation evaluates ``h`` at trace time only for the recorded row, once (it was twice
+    when the row of the final state was traced apart from the steps')."""
+    calls = {"h": 0, "f": 0}
+
+    def f(x):
+        calls["f"] += 1
+        return jnp.zeros(2)
+
+    def h(x):
+        calls["h"] += 1
+        return jnp.sum((x - jnp.array([2.0, 0.1])) ** 2) - 0.25
+
+    sys = ss.ControlAffineSystem(f, lambda x: jnp.eye(2), 2)
+    clf = ss.CLF(lambda x: jnp.sum((x - jnp.array([4.0, 0.0])) ** 2), lam=1.0)
+    cbf = ss.CBF(h, beta=2.0)
+    if kind == "formula":
+        ctrl = ss.UniversalController(
+            sys, clf, cbf, kappa=1.0, rho=0.0, phi=1.0, varphi=0.0, slack_weight=10.0
+        )
+    else:
+        ctrl = ss.SafetyFilter(sys, [cbf], clfs=[clf], slack_weight=10.0, u_min=-1.0, u_max=1.0)
+    jax.eval_shape(ctrl.step_fn, jnp.zeros(2))
+    assert calls["h"] > 0  # the step evaluates h (its Lie terms)
+    calls.update(h=0, f=0)
+    tr = simulate(ctrl, np.zeros((2, 2)), t_final=0.1, dt=0.01)
+    assert tr.ok and tr.x.shape == (2, 11, 2)
+    # h: the recorded row only; f: the plant's four RK4 stages (the step's trace is reused)
+    assert calls == {"h": 1, "f": 4}, calls

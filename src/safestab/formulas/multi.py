@@ -311,7 +311,9 @@ def multi_kernel(
         flat,
     )(pr, b, d, sw, lo, hi)
     infeasible = full.status == INFEASIBLE
-    need2 = infeasible & (p > 0) & (inv_sqrt_slack is None)
+    # phase 2 drops hard CLFs: known before any data (no CLF, or soft ones, leave none to drop)
+    hard_clfs = p > 0 and inv_sqrt_slack is None
+    need2 = infeasible & hard_clfs
 
     def phase2(_):
         return _map(
@@ -320,12 +322,12 @@ def multi_kernel(
         )(pr, b, d, lo, hi, need2)
 
     skipped2 = (full, u1, jnp.zeros(flat, bool))
-    if p == 0 or inv_sqrt_slack is not None:
-        # no hard CLF to drop: phase 2 can never run, so it is not traced nor compiled (it
-        # was a third of a soft-CLF filter's program, and of its compilation time)
-        safe, u2, ok2 = skipped2
-    else:
+    if hard_clfs:
         safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
+    else:
+        # phase 2 can never run: it is not traced nor compiled (it was a third of a soft-CLF
+        # filter's program, and of its compilation time)
+        safe, u2, ok2 = skipped2
     need3 = infeasible & ~(need2 & (safe.status != INFEASIBLE))
 
     skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))

@@ -139,3 +139,43 @@ def test_a_simulation_traces_the_recorded_row_once_and_reuses_the_step(kind):
     assert tr.ok and tr.x.shape == (2, 11, 2)
     # h: the recorded row only; f: the plant's four RK4 stages (the step's trace is reused)
     assert calls == {"h": 1, "f": 4}, calls
+
+
+def test_the_closed_loop_program_holds_one_copy_of_the_controller():
+    """XLA inlines every call: a controller called before the loop (for x_0) and in its body
+    was compiled twice. Counted by an operation only the step uses (cbrt) in the compiled
+    program, whose records are checked against a plain Python loop of the same scheme."""
+
+    class Rec:
+        def init(self, x0, data):
+            return jnp.asarray(0.0)
+
+        def update(self, s, k, t, x, out, data):
+            return s + out[0] * (k + 1), (x, out, t)
+
+        def finish(self, s, ys, x_final, out_final, t_final, data):
+            return s, ys, x_final, out_final
+
+    def step(t, x, data):
+        return jax.lax.cbrt(x) * (1.0 + t)
+
+    def rhs(t, x, out, data):
+        return -out + 0.5 * x
+
+    run = ss.closed_loop(step, rhs, Rec(), n_steps=5, dt=0.1)
+    x0 = jnp.array([1.0, -2.0])
+    assert jax.jit(run).lower(x0, None).compile().as_text().count("cbrt(") == 1
+    s, (xs, outs, ts), x_final, out_final = jax.jit(run)(x0, None)
+    # the reference: the same zero-order hold and RK4 step, one call at a time
+    x, acc = x0, 0.0
+    for k in range(5):
+        t = k * 0.1
+        out = step(t, x, None)
+        np.testing.assert_allclose(xs[k], x, rtol=1e-14)
+        np.testing.assert_allclose(outs[k], out, rtol=1e-14)
+        assert ts[k] == pytest.approx(t, abs=1e-15)
+        acc += float(out[0]) * (k + 1)
+        x = rk4_step(lambda tt, z: rhs(tt, z, out, None), t, x, 0.1)
+    np.testing.assert_allclose(x_final, x, rtol=1e-14)
+    np.testing.assert_allclose(out_final, step(0.5, x, None), rtol=1e-14)
+    assert float(s) == pytest.approx(acc, rel=1e-14)

@@ -174,20 +174,6 @@ class Recorder(Protocol):
         ...
 
 
-def _materialized(value: jax.Array, k: jax.Array) -> jax.Array:
-    """``value``, computed once into a buffer: its consumers read it instead of recomputing it.
-
-    XLA's CPU fusion copies cheap producers (the RK4 combination of the step's next state)
-    into every consumer, per element of the consumer's output: the GP's kernel values at the
-    next state, ``(M_c, B)`` per component, and every small fusion of the controller recomputed
-    the whole RK4 update (measured: a third of the Monte Carlo loop's time after the GP's
-    padding was dropped). ``optimization_barrier`` is removed by XLA's CPU pipeline before
-    fusion; a conditional is not, and nothing fuses across it. ``k`` (the step, never
-    negative, not known to XLA) picks the identity branch; the other is never taken.
-    """
-    return jax.lax.cond(k >= 0, lambda v: v, lambda v: -v, value)
-
-
 def closed_loop(
     step: Callable[[jax.Array, jax.Array, Any], Any],
     rhs: Callable[[jax.Array, jax.Array, Any, Any], jax.Array],
@@ -223,30 +209,53 @@ def closed_loop(
 
     Notes
     -----
-    The controller's output at ``x_k`` comes in the scan's carry: computed at the end of the
-    previous iteration (before the loop for ``k = 0``) from the stored next state
-    (``_materialized``). Computed at the top of the body instead, XLA fused the tail of the
-    closed form into each of its consumers (the four RK4 stages, per state component),
-    evaluating it a dozen times per step (measured: a third of the loop's time).
+    The scan runs ``K + 1`` iterations. Iteration ``k`` evaluates the controller at ``x_k``;
+    for ``k < K`` a conditional, whose branch is fixed by the step counter, then records the
+    step and integrates to ``x_{k+1}``; at ``k = K`` it does neither, and the output at
+    ``x_K`` leaves the loop in the carry. So the controller appears once in the program.
+    (Until 2026-11-28 the output at ``x_0`` was computed before the loop, a second copy of
+    the controller once XLA inlined it: a closed loop's compilation took 40 % longer.)
+
+    The conditional also makes XLA compute the held output and the next state once, into
+    buffers: nothing fuses across a conditional (and XLA's CPU pipeline removes
+    ``optimization_barrier`` before fusion). Without it, XLA fused cheap producers into each
+    consumer, per element: the tail of the controller into the four RK4 stages, and the RK4
+    update into the GP's ``(M_c, B)`` kernel values and every small fusion of the next
+    controller call (measured: a third of the Monte Carlo loop's time).
     """
-    # the controller is called twice (before the loop and in its body): as one jitted function
-    # it is traced once, the second call reusing the first's program (tracing a safety
-    # filter's step took about 1 s, the larger part of a second run's closed loop)
+    # the shapes of the output and of a recorded row come from tracing the step and the
+    # recorder's update once: as jitted functions, the loop's calls reuse those traces
     step_once = jax.jit(step)
+    update_once = jax.jit(recorder.update)
 
     def run(x0: jax.Array, data: Any) -> Any:
-        def body(carry, k):
-            x, out, state = carry
-            t = k * dt
-            state, y = recorder.update(state, k, t, x, out, data)
-            x_next = rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt)
-            x_next = _materialized(x_next, k)
-            t_next = jnp.asarray((k + 1) * dt, dtype=jnp.float64)
-            return (x_next, step_once(t_next, x_next, data), state), y
+        k0, t0 = jnp.asarray(0, jnp.int64), jnp.asarray(0.0, jnp.float64)
+        zeros = lambda tree: jax.tree_util.tree_map(  # noqa: E731
+            lambda s: jnp.zeros(s.shape, s.dtype), tree
+        )
+        state0 = recorder.init(x0, data)
+        out0 = zeros(jax.eval_shape(step_once, t0, x0, data))
+        y0 = zeros(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1])
 
-        out0 = step_once(jnp.asarray(0.0, dtype=jnp.float64), x0, data)
-        carry0 = (x0, out0, recorder.init(x0, data))
-        (x_final, out_final, state), ys = jax.lax.scan(body, carry0, jnp.arange(n_steps))
+        def body(carry, k):
+            x, _, state = carry
+            t = jnp.asarray(k * dt, jnp.float64)
+            out = step_once(t, x, data)
+
+            def advance(state):
+                state, y = update_once(state, k, t, x, out, data)
+                return rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt), state, y
+
+            # at k = K only the output at x_K is wanted: no row, no step (a branch fixed by
+            # the counter: the held output and the next state are buffers, see the notes)
+            x_next, state, y = jax.lax.cond(k == n_steps, lambda st: (x, st, y0), advance, state)
+            return (x_next, out, state), y
+
+        carry0 = (x0, out0, state0)
+        (x_final, out_final, state), ys = jax.lax.scan(
+            body, carry0, jnp.arange(n_steps + 1, dtype=jnp.int64)
+        )
+        ys = jax.tree_util.tree_map(lambda a: a[:-1], ys)
         return recorder.finish(state, ys, x_final, out_final, n_steps * dt, data)
 
     return run

@@ -189,6 +189,31 @@ def test_true_model_from_documented_compatible_region_converges_safely(sc):
     assert np.all(np.asarray(tr.compatible))  # Theorem 1's hypothesis held along the way
 
 
+def test_model_family_is_each_model_to_the_last_bit_and_runs_as_one_program(sc):
+    """The study runs the true-model and mismatched-model controllers on one parametric
+    model (one program, other data). Its drift and input matrix are each model's exactly, and
+    so are the closed loops it gives, against controllers on the models themselves."""
+    from safestab.scenarios.obstacle_study import _study_controller, obstacle_controller
+
+    family = sc.model_family()
+    x = np.random.default_rng(5).uniform([-4.0, -3.0], [4.0, 3.0], (64, 2))
+    for which in ("true", "nominal"):
+        p = sc.model_params(which)
+        model = sc.system(which)
+        for got, want in ((family.f_of, model.f), (family.g_of, model.g)):
+            a = np.asarray(jax.vmap(lambda z: got(z, p))(jnp.asarray(x)))  # noqa: B023
+            assert np.array_equal(a, np.asarray(jax.vmap(want)(jnp.asarray(x))))
+    starts = sc.start_states()[::9]
+    for name in ("true model", "mismatched model"):
+        shared, p = _study_controller(sc, name, None, False, False)
+        own = obstacle_controller(sc, name)
+        kw = {"t_final": 0.5, "dt": sc.dt, "plant": sc.system("true")}
+        a = ss.simulate(shared, starts, params=p, **kw)
+        b = ss.simulate(own, starts, **kw)
+        assert np.array_equal(np.asarray(a.x), np.asarray(b.x))
+        assert np.array_equal(np.asarray(a.u), np.asarray(b.u))
+
+
 def test_stuck_trajectories_end_incompatible(sc):
     # starts on the axis behind the obstacle: by symmetry x2 stays exactly 0
     x0 = np.array([[-8.0, 0.0], [-6.0, 0.0], [-5.0, 0.0]])

@@ -272,6 +272,29 @@ class ObstacleScenario:
 
         return ControlAffineSystem(f, lambda x: k * jnp.eye(2), 2, name=f"obstacle-{which}")
 
+    def model_family(self) -> ControlAffineSystem:
+        """The ``"true"`` and ``"nominal"`` models as one system with run-time parameters.
+
+        ``f(x, p) = p["current_scale"] w(x)`` and ``g(x, p) = p["gain"] I``: with
+        :meth:`model_params` it is either model, to the last bit (``1 w = w`` and ``0 w = 0``
+        exactly). The study's true-model and mismatched-model controllers are built on it, so
+        that they are one program with different data (compiled once; the second is read
+        from the compilation cache) instead of two.
+        """
+
+        def f(x, p):
+            return p["current_scale"] * self.current(x)
+
+        def g(x, p):
+            return p["gain"] * jnp.eye(2)
+
+        example = {"current_scale": 1.0, "gain": 1.0}
+        return ControlAffineSystem(f, g, 2, name="obstacle-model", params=example)
+
+    def model_params(self, which: str) -> dict[str, float]:
+        """The parameters of :meth:`model_family` that make it the ``which`` model."""
+        return {"current_scale": 1.0 if which == "true" else 0.0, "gain": self.gain(which)}
+
     def V(self, x: Any) -> Any:
         """``V = x^T P x``, m^2, shape (...,)."""
         x = jnp.asarray(x, dtype=float)

@@ -614,7 +614,10 @@ def obstacle_controller(
     """
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
-    system = sc.system(_SYSTEM_OF[name])
+    return _controller(sc, name, sc.system(_SYSTEM_OF[name]), uncertainty, limits, hard)
+
+
+def _controller(sc, name, system, uncertainty, limits, hard):
     clf, cbf = sc.certificates()
     extra: dict[str, Any] = {}
     if name == "GP-robust":
@@ -628,6 +631,20 @@ def obstacle_controller(
         return UniversalController(system, clf, cbf, **options)
     u_min, u_max = sc.input_limits()
     return sc.limited_controller(system, clf, cbf, u_min=u_min, u_max=u_max, **options)
+
+
+def _study_controller(sc, name, uncertainty, limits, hard):
+    """The study's controller ``name`` and the run-time parameters its closed loop needs.
+
+    The true-model and mismatched-model controllers stand on one parametric model
+    (:meth:`~safestab.scenarios.obstacle.ObstacleScenario.model_family`): the same program
+    with other data, so the second compiles nothing. Their inputs are those of
+    :func:`obstacle_controller`'s, bit for bit.
+    """
+    if name == "GP-robust":
+        return obstacle_controller(sc, name, uncertainty, limits=limits, hard=hard), None
+    which = _SYSTEM_OF[name]
+    return _controller(sc, name, sc.model_family(), None, limits, hard), sc.model_params(which)
 
 
 def run_obstacle_study(
@@ -707,7 +724,6 @@ def run_obstacle_study(
 
     x0 = sc.start_states()
     v0 = np.asarray(sc.V(x0))
-    settings = [(name, limits) for name in CONTROLLERS for limits in LIMIT_SETTINGS]
 
     def run(setting: tuple[str, str]) -> tuple[ObstacleRun, float]:
         name, limits = setting
@@ -718,24 +734,38 @@ def run_obstacle_study(
         for hard, sel in ((True, inside), (False, ~inside)):
             if not np.any(sel):
                 continue
-            ctrl = obstacle_controller(
-                sc, name, unc_of[name], limits=limits == "input limits", hard=hard
-            )
-            tr = simulate(ctrl, x0[sel], t_final=sc.t_final, dt=sc.dt, plant=true_sys)
-            parts[hard] = (sel, tr)
+            ctrl, params = _study_controller(sc, name, unc_of[name], limits == "input limits", hard)
+            # a shared model runs every start, whatever the selection: the batch, hence the
+            # program, is then the same for the true and the mismatched model (their
+            # certified sets differ). GP-robust runs its selection only: its GP's products
+            # round by the batch's size, and its results stay those of a run on its own.
+            run_all = params is not None
+            starts = x0 if run_all else x0[sel]
+            tr = simulate(ctrl, starts, t_final=sc.t_final, dt=sc.dt, plant=true_sys, params=params)
+            parts[hard] = (sel, tr, run_all)
         return _merge(sc, name, limits, x0, inside, parts, unc_of[name]), time.perf_counter() - t0
 
-    n_set = len(settings)
+    def run_pair(pair: tuple[tuple[str, str], ...]) -> list[tuple[ObstacleRun, float]]:
+        # the mismatched model after the true one, in one thread: it reuses that program
+        return [run(setting) for setting in pair]
+
+    # the longest first (GP-robust), then each true-model setting with its mismatched twin
+    groups = [((CONTROLLERS[2], lim),) for lim in LIMIT_SETTINGS] + [
+        ((CONTROLLERS[0], lim), (CONTROLLERS[1], lim)) for lim in LIMIT_SETTINGS
+    ]
+    n_set, n_groups = sum(len(g) for g in groups), len(groups)
     report(f"simulating {n_set} controller settings, {SIMULATION_THREADS} at once", 0.3)
-    done = in_threads(
-        run, settings, SIMULATION_THREADS,
-        lambda count: report(f"simulated {count} of {n_set}", 0.3 + 0.7 * count / n_set),
+    finished = in_threads(
+        run_pair, groups, SIMULATION_THREADS,
+        lambda k: report(f"simulated {k} of {n_groups} groups", 0.3 + 0.7 * k / n_groups),
     )  # fmt: skip
+    done = {s: r for g, f in zip(groups, finished, strict=True) for s, r in zip(g, f, strict=True)}
     runs: dict[tuple[str, str], ObstacleRun] = {}
-    for (name, limits), (one, seconds) in zip(settings, done, strict=True):
-        runs[(name, limits)] = one
+    for setting in [(name, limits) for name in CONTROLLERS for limits in LIMIT_SETTINGS]:
+        one, seconds = done[setting]
+        runs[setting] = one
         # wall time, with another setting's closed loop running beside it
-        timings[f"simulate {name}, {limits}"] = seconds
+        timings[f"simulate {setting[0]}, {setting[1]}"] = seconds
     report("done", 1.0)
     return ObstacleStudyResult(
         scenario=sc,
@@ -752,11 +782,15 @@ def run_obstacle_study(
 
 
 def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
-    """Put the compatible-formula and relaxed-formula batches back in start order."""
+    """Put the compatible-formula and relaxed-formula batches back in start order.
+
+    ``parts`` holds ``(selection, trajectory, run_all)`` per formula: ``run_all`` when the
+    trajectory holds every start (its selected ones are kept), else the selection only.
+    """
     n = len(x0)
     fields: dict[str, np.ndarray] = {}
     t = None
-    for sel, tr in parts.values():
+    for sel, tr, run_all in parts.values():
         t = np.asarray(tr.t)
         for f in ("x", "u", "V", "h", "compatible", "status"):
             arr = np.asarray(getattr(tr, f))
@@ -764,7 +798,7 @@ def _merge(sc, name, limits, x0, inside, parts, uncertainty) -> ObstacleRun:
                 arr = arr[..., 0]
             if f not in fields:
                 fields[f] = np.empty((n,) + arr.shape[1:], arr.dtype)
-            fields[f][sel] = arr
+            fields[f][sel] = arr[sel] if run_all else arr
     assert t is not None  # at least one part: x0 is not empty
     outcome = classify_outcomes(fields["x"], fields["h"], sc.dt, sc.ball_radius, sc.rest_speed)
     end = fields["x"][:, -1]

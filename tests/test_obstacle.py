@@ -193,7 +193,7 @@ def test_model_family_is_each_model_to_the_last_bit_and_runs_as_one_program(sc):
     """The study runs the true-model and mismatched-model controllers on one parametric
     model (one program, other data). Its drift and input matrix are each model's exactly, and
     so are the closed loops it gives, against controllers on the models themselves."""
-    from safestab.scenarios.obstacle_study import _study_controller, obstacle_controller
+    from safestab.scenarios.obstacle_study import obstacle_controller, study_controller
 
     family = sc.model_family()
     x = np.random.default_rng(5).uniform([-4.0, -3.0], [4.0, 3.0], (64, 2))
@@ -205,13 +205,15 @@ def test_model_family_is_each_model_to_the_last_bit_and_runs_as_one_program(sc):
             assert np.array_equal(a, np.asarray(jax.vmap(want)(jnp.asarray(x))))
     starts = sc.start_states()[::9]
     for name in ("true model", "mismatched model"):
-        shared, p = _study_controller(sc, name, None, False, False)
+        shared, p = study_controller(sc, name, None, False, False)
         own = obstacle_controller(sc, name)
         kw = {"t_final": 0.5, "dt": sc.dt, "plant": sc.system("true")}
         a = ss.simulate(shared, starts, params=p, **kw)
         b = ss.simulate(own, starts, **kw)
         assert np.array_equal(np.asarray(a.x), np.asarray(b.x))
         assert np.array_equal(np.asarray(a.u), np.asarray(b.u))
+    with pytest.raises(ss.ParameterError, match="controller must be one of"):
+        study_controller(sc, "nominal", None, False, False)
 
 
 def test_stuck_trajectories_end_incompatible(sc):

@@ -61,6 +61,7 @@ __all__ = [
     "compatibility_maps",
     "doa_level",
     "run_obstacle_study",
+    "study_controller",
     "verdict",
 ]
 
@@ -633,16 +634,36 @@ def _controller(sc, name, system, uncertainty, limits, hard):
     return sc.limited_controller(system, clf, cbf, u_min=u_min, u_max=u_max, **options)
 
 
-def _study_controller(sc, name, uncertainty, limits, hard):
+def study_controller(
+    sc: ObstacleScenario, name: str, uncertainty: Any, limits: bool, hard: bool
+) -> tuple[UniversalController | SafetyFilter, dict[str, float] | None]:
     """The study's controller ``name`` and the run-time parameters its closed loop needs.
 
     The true-model and mismatched-model controllers stand on one parametric model
     (:meth:`~safestab.scenarios.obstacle.ObstacleScenario.model_family`): the same program
     with other data, so the second compiles nothing. Their inputs are those of
-    :func:`obstacle_controller`'s, bit for bit.
+    :func:`obstacle_controller`'s, bit for bit. The GP-robust one is
+    :func:`obstacle_controller`'s, with no parameters (None).
+
+    Parameters
+    ----------
+    sc : ObstacleScenario
+    name : str
+        One of :data:`CONTROLLERS`.
+    uncertainty : uncertainty model or None
+        Used by ``"GP-robust"`` only.
+    limits, hard : bool
+        As in :func:`obstacle_controller`.
+
+    Returns
+    -------
+    (controller, params)
+        ``params`` goes to :func:`~safestab.simulate`'s ``params``.
     """
     if name == "GP-robust":
         return obstacle_controller(sc, name, uncertainty, limits=limits, hard=hard), None
+    if name not in CONTROLLERS:
+        raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
     which = _SYSTEM_OF[name]
     return _controller(sc, name, sc.model_family(), None, limits, hard), sc.model_params(which)
 
@@ -734,7 +755,7 @@ def run_obstacle_study(
         for hard, sel in ((True, inside), (False, ~inside)):
             if not np.any(sel):
                 continue
-            ctrl, params = _study_controller(sc, name, unc_of[name], limits == "input limits", hard)
+            ctrl, params = study_controller(sc, name, unc_of[name], limits == "input limits", hard)
             # a shared model runs every start, whatever the selection: the batch, hence the
             # program, is then the same for the true and the mismatched model (their
             # certified sets differ). GP-robust runs its selection only: its GP's products

@@ -274,6 +274,21 @@ def conformal_calibration(
 # -- run and outputs --------------------------------------------------------------------
 
 
+def _with_layout_kept(fig: Any, writer: Any) -> Any:
+    """``writer``, run with ``fig``'s layout as its previous save left it.
+
+    A constrained layout is computed again at every save: for the PDF after the PNG that is a
+    third of the save (0.4 to 0.9 s of a warm main job's four figures, 2026-11-28), for the
+    same positions. The figure is closed after the writes.
+    """
+
+    def write(fh: Any) -> Any:
+        fig.set_layout_engine("none")
+        return writer(fh)
+
+    return write
+
+
 def write_outputs(
     study: Study,
     result: Any,
@@ -324,9 +339,10 @@ def write_outputs(
         figures = study.figures(result)
         outputs = {}
         for suffix, fig in figures.items():
-            for ext in ("png", "pdf"):
-                path = out_dir / f"{stem}{suffix}.{ext}"
-                outputs[path] = figure_writer(fig, path, dpi=200)
+            png = out_dir / f"{stem}{suffix}.png"
+            outputs[png] = figure_writer(fig, png, dpi=200)
+            pdf = out_dir / f"{stem}{suffix}.pdf"
+            outputs[pdf] = _with_layout_kept(fig, figure_writer(fig, pdf, dpi=200))
         outputs[out_dir / f"{stem}_metrics.json"] = json_writer(document)
         record = out_dir / f"{stem}_run.json"
         outputs[record] = record_writer(record, scenario, list(outputs), command=command)

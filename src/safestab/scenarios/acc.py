@@ -147,6 +147,32 @@ class ACCScenario:
 
         return ControlAffineSystem(f, g, 3, name=f"acc-{which}")
 
+    def model_family(self) -> ControlAffineSystem:
+        """The ``"true"`` and ``"nominal"`` models as one system with run-time parameters.
+
+        The drag coefficients are the parameters (``{"f0", "f1", "f2"}``, the same
+        arithmetic as :meth:`system`): with :meth:`model_params` it is either model, to the
+        last bit. The study's true-model and mismatched-model controllers are built on it,
+        so that they are one program with other data (the second is read from the
+        compilation cache) instead of two.
+        """
+        M, k = self.mass, self.input_scale
+
+        def f(x, p):
+            fr = p["f0"] + p["f1"] * x[0] + p["f2"] * x[0] ** 2
+            return jnp.array([-fr / M, 0.0, x[1] - x[0]])
+
+        def g(x, p):
+            return jnp.array([[k / M], [0.0], [0.0]])
+
+        example = {"f0": 1.0, "f1": 1.0, "f2": 1.0}
+        return ControlAffineSystem(f, g, 3, name="acc-model", params=example)
+
+    def model_params(self, which: str) -> dict[str, float]:
+        """The parameters of :meth:`model_family` that make it the ``which`` model."""
+        drag = self.drag_true if which == "true" else self.drag_nominal
+        return {"f0": drag.f0, "f1": drag.f1, "f2": drag.f2}
+
     def certificates(self) -> tuple[CLF, CBF]:
         """CLF ``(v_f - v_d)^2`` and CBF ``D - tau v_f``."""
         v_d, tau = self.v_d, self.tau

@@ -251,26 +251,40 @@ def run_study(
 
     controllers = study_controllers(scenario, unc)
 
+    # the two model-based controllers stand on one parametric model: one program, other data
+    family = scenario.model_family()
+    params = {"true model": "true", "mismatched model": "nominal"}
+
     def simulated(name: str) -> tuple[Trajectory, float]:
         t0 = time.perf_counter()
+        ctrl, p = controllers[name], None
+        if name in params:
+            ctrl, p = ctrl.replace(system=family), scenario.model_params(params[name])
         traj = simulate(
-            controllers[name], np.asarray(scenario.x0), t_final=horizon, dt=scenario.dt,
-            plant=true_sys, exogenous=scenario.exogenous,
+            ctrl, np.asarray(scenario.x0), t_final=horizon, dt=scenario.dt,
+            plant=true_sys, exogenous=scenario.exogenous, params=p,
         )  # fmt: skip
         traj.h.block_until_ready()  # JAX dispatches asynchronously: time the finished run
         return traj, time.perf_counter() - t0
 
+    def job(name: str) -> Any:
+        if name == "conformal":
+            return _conformal_check(scenario, unc, seed, test)
+        if name == "models":  # the mismatched model after the true one: it reuses the program
+            return [simulated(n) for n in params]
+        return simulated(name)
+
     # the GP-corrected loop (memory-bound, most of the run) on one core; the conformal check
-    # and the two model-based loops beside it on the other (JAX releases the GIL)
-    jobs = ["GP-corrected", "conformal", "true model", "mismatched model"]
+    # and the two model-based loops (one after the other) beside it on the other (JAX
+    # releases the GIL)
+    jobs = ["GP-corrected", "conformal", "models"]
     report("simulating the controllers beside the conformal check, two at a time", 0.4)
     done = in_threads(
-        lambda job: _conformal_check(scenario, unc, seed, test)
-        if job == "conformal" else simulated(job),
-        jobs, STUDY_THREADS,
+        job, jobs, STUDY_THREADS,
         lambda count: report(f"{count} of {len(jobs)} done", 0.4 + 0.6 * count / len(jobs)),
     )  # fmt: skip
     out = dict(zip(jobs, done, strict=True))
+    out.update(zip(params, out.pop("models"), strict=True))
     conformal = out.pop("conformal")
     timings["conformal_beta"] = conformal.pop("seconds")
     trajectories: dict[str, Trajectory] = {}

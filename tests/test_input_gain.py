@@ -176,7 +176,9 @@ def test_monte_carlo_data_sets_learn_the_gain_with_and_without_reused_hyperparam
 
 def test_monte_carlo_gp_controllers_run_on_the_learned_model():
     """The chunk gives the GP controllers g + D: their records change with D, the model
-    controllers' do not."""
+    controllers' do not. Against D = 0, the nominal input matrix as data: the same compiled
+    chunk, so that only D differs between the two runs (``input_gain=None``, the chunk
+    without the term, is every other Monte Carlo test's)."""
     import dataclasses
 
     from safestab.montecarlo.trials import fit_dataset, run_chunk
@@ -186,7 +188,8 @@ def test_monte_carlo_gp_controllers_run_on_the_learned_model():
     study = sc.trial_study()
     model = fit_dataset(study, 3, 0, None)
     learned = run_chunk(study, model, 3, np.arange(3))
-    nominal = run_chunk(study, dataclasses.replace(model, input_gain=None), 3, np.arange(3))
+    zero = np.zeros_like(model.input_gain)
+    nominal = run_chunk(study, dataclasses.replace(model, input_gain=zero), 3, np.arange(3))
     names = list(study.spec.controllers)
     # (the Lemma 2 beta is so large that its controller keeps to the start's h in both)
     gp = [names.index("GP mean"), names.index("GP-robust")]

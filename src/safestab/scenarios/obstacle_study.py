@@ -619,6 +619,7 @@ def obstacle_controller(
 
 
 def _controller(sc, name, system, uncertainty, limits, hard):
+    """:func:`obstacle_controller` on ``system`` (the model itself or the parametric family)."""
     clf, cbf = sc.certificates()
     extra: dict[str, Any] = {}
     if name == "GP-robust":

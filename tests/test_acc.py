@@ -47,6 +47,9 @@ def test_model_family_is_each_model_to_the_last_bit(preset):
         shared = ss.simulate(ctrls[name].replace(system=family), np.asarray(sc.x0), params=p, **kw)
         assert np.array_equal(np.asarray(own.x), np.asarray(shared.x))
         assert np.array_equal(np.asarray(own.u), np.asarray(shared.u))
+    for method in (sc.system, sc.model_params, sc.hand_lie_terms):
+        with pytest.raises(ss.ParameterError, match="which must be 'true' or 'nominal'"):
+            method(*([x] if method == sc.hand_lie_terms else []), "True")
 
 
 def test_paper_preset_matches_table_one():

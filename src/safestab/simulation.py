@@ -155,6 +155,8 @@ class Recorder(Protocol):
     the state ``x_k`` and the controller's output there, and ``finish`` with the final state
     ``x_K`` and its output. ``update`` returns the new running state and a per-step output
     (stacked by ``lax.scan`` along a leading time axis; ``None`` to keep nothing per step).
+    ``update`` is traced, wrapped in ``jax.jit``, for the shape of its output and inside the
+    loop: it must be a pure function of its arguments (no Python side effects).
     """
 
     def init(self, x0: jax.Array, data: Any) -> Any:
@@ -214,7 +216,8 @@ def closed_loop(
     step and integrates to ``x_{k+1}``; at ``k = K`` it does neither, and the output at
     ``x_K`` leaves the loop in the carry. So the controller appears once in the program.
     (Until 2026-11-28 the output at ``x_0`` was computed before the loop, a second copy of
-    the controller once XLA inlined it: a closed loop's compilation took 40 % longer.)
+    the controller once XLA inlined it: an obstacle closed loop compiled in 5.6 to 8.6 s,
+    against 3.1 to 5.0 s now, without a compilation cache.)
 
     The conditional also makes XLA compute the held output and the next state once, into
     buffers: nothing fuses across a conditional (and XLA's CPU pipeline removes

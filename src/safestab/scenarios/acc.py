@@ -24,7 +24,7 @@ from typing import Any
 import jax.numpy as jnp
 
 from ..certificates import CBF, CLF, LieTerms
-from ..errors import ScenarioError
+from ..errors import ParameterError, ScenarioError
 from ..systems import ControlAffineSystem
 from ._acc_schema import LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
@@ -133,9 +133,20 @@ class ACCScenario:
         """Newtons per input unit: 1 for ``"newton"``, ``M g`` for ``"normalized"``."""
         return 1.0 if self.input_units == "newton" else self.mass * self.gravity
 
+    def _drag(self, which: str) -> Drag:
+        if which not in ("true", "nominal"):
+            raise ParameterError(f"which must be 'true' or 'nominal', got {which!r}")
+        return self.drag_true if which == "true" else self.drag_nominal
+
     def system(self, which: str = "true") -> ControlAffineSystem:
-        """The ACC model with the ``"true"`` or ``"nominal"`` drag coefficients."""
-        drag = self.drag_true if which == "true" else self.drag_nominal
+        """The ACC model with the ``"true"`` or ``"nominal"`` drag coefficients.
+
+        Raises
+        ------
+        ParameterError
+            If ``which`` is neither.
+        """
+        drag = self._drag(which)
         M, k = self.mass, self.input_scale
 
         def f(x):
@@ -153,8 +164,8 @@ class ACCScenario:
         The drag coefficients are the parameters (``{"f0", "f1", "f2"}``, the same
         arithmetic as :meth:`system`): with :meth:`model_params` it is either model, to the
         last bit. The study's true-model and mismatched-model controllers are built on it,
-        so that they are one program with other data (the second is read from the
-        compilation cache) instead of two.
+        so that they are one program with other data (with the compilation cache on, the
+        default, the second's compilation is a cache hit) instead of two.
         """
         M, k = self.mass, self.input_scale
 
@@ -170,7 +181,7 @@ class ACCScenario:
 
     def model_params(self, which: str) -> dict[str, float]:
         """The parameters of :meth:`model_family` that make it the ``which`` model."""
-        drag = self.drag_true if which == "true" else self.drag_nominal
+        drag = self._drag(which)
         return {"f0": drag.f0, "f1": drag.f1, "f2": drag.f2}
 
     def certificates(self) -> tuple[CLF, CBF]:
@@ -187,7 +198,7 @@ class ACCScenario:
         ``c = v_l - v_f + tau F_r/M + beta h``, ``d = -tau k/M`` with ``k`` the input scale.
         The paper prints an extra factor ``F_r`` in ``b`` and writes ``b, d`` as 3-vectors.
         """
-        drag = self.drag_true if which == "true" else self.drag_nominal
+        drag = self._drag(which)
         x = jnp.asarray(x, dtype=float)
         vf, vl, D = x[..., 0], x[..., 1], x[..., 2]
         fr = drag.f0 + drag.f1 * vf + drag.f2 * vf**2

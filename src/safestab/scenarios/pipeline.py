@@ -275,11 +275,12 @@ def conformal_calibration(
 
 
 def _with_layout_kept(fig: Any, writer: Any) -> Any:
-    """``writer``, run with ``fig``'s layout as its previous save left it.
+    """``writer``, run with ``fig``'s layout as its previous save left it (call it after one).
 
-    A constrained layout is computed again at every save: for the PDF after the PNG that is a
-    third of the save (0.4 to 0.9 s of a warm main job's four figures, 2026-11-28), for the
-    same positions. The figure is closed after the writes.
+    A constrained layout is computed again at every save: for the PDF after the PNG that is
+    about a third of the save, for nearly the same positions (the PDF's text metrics differ
+    from Agg's by a little). It switches the figure's layout engine off: :func:`write_outputs`
+    writes the PNG first and closes the figures afterwards.
     """
 
     def write(fh: Any) -> Any:

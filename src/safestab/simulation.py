@@ -176,6 +176,11 @@ class Recorder(Protocol):
         ...
 
 
+def _zeros_of(shapes: Any) -> Any:
+    """Zero arrays of the shapes and dtypes of a pytree of ``ShapeDtypeStruct`` (``eval_shape``)."""
+    return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+
 def closed_loop(
     step: Callable[[jax.Array, jax.Array, Any], Any],
     rhs: Callable[[jax.Array, jax.Array, Any, Any], jax.Array],
@@ -233,12 +238,9 @@ def closed_loop(
 
     def run(x0: jax.Array, data: Any) -> Any:
         k0, t0 = jnp.asarray(0, jnp.int64), jnp.asarray(0.0, jnp.float64)
-        zeros = lambda tree: jax.tree_util.tree_map(  # noqa: E731
-            lambda s: jnp.zeros(s.shape, s.dtype), tree
-        )
         state0 = recorder.init(x0, data)
-        out0 = zeros(jax.eval_shape(step_once, t0, x0, data))
-        y0 = zeros(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1])
+        out0 = _zeros_of(jax.eval_shape(step_once, t0, x0, data))
+        y0 = _zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1])
 
         def body(carry, k):
             x, _, state = carry
@@ -332,7 +334,7 @@ def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]
             f"params must be a pytree or a function params(t) of the time; calling it failed: {err}"
         ) from None
     # check the structure and leaf shapes of params(t) against the example, symbolically
-    spec.check(jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out), "params(t)")
+    spec.check(_zeros_of(out), "params(t)")
     fn = params
 
     def params_at(t: Any, _: Any) -> Any:

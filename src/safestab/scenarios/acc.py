@@ -146,41 +146,42 @@ class ACCScenario:
         ParameterError
             If ``which`` is neither.
         """
-        drag = self._drag(which)
-        M, k = self.mass, self.input_scale
+        p = self.model_params(which)
+        return ControlAffineSystem(
+            lambda x: self._drift(x, p), lambda x: self._input_matrix(), 3, name=f"acc-{which}"
+        )
 
-        def f(x):
-            fr = drag.f0 + drag.f1 * x[0] + drag.f2 * x[0] ** 2
-            return jnp.array([-fr / M, 0.0, x[1] - x[0]])
+    def _drift(self, x: Any, p: Any) -> Any:
+        """``f(x)`` with the drag coefficients ``p`` (``{"f0", "f1", "f2"}``): both models'."""
+        fr = p["f0"] + p["f1"] * x[0] + p["f2"] * x[0] ** 2
+        return jnp.array([-fr / self.mass, 0.0, x[1] - x[0]])
 
-        def g(x):
-            return jnp.array([[k / M], [0.0], [0.0]])
-
-        return ControlAffineSystem(f, g, 3, name=f"acc-{which}")
+    def _input_matrix(self) -> Any:
+        """``g``, (3, 1): the input acts on the follower's acceleration only."""
+        return jnp.array([[self.input_scale / self.mass], [0.0], [0.0]])
 
     def model_family(self) -> ControlAffineSystem:
         """The ``"true"`` and ``"nominal"`` models as one system with run-time parameters.
 
-        The drag coefficients are the parameters (``{"f0", "f1", "f2"}``, the same
-        arithmetic as :meth:`system`): with :meth:`model_params` it is either model, to the
-        last bit. The study's true-model and mismatched-model controllers are built on it,
-        so that they are one program with other data (with the compilation cache on, the
+        The drag coefficients are the parameters (``{"f0", "f1", "f2"}``; :meth:`system`
+        binds them, with the same function): with :meth:`model_params` it is either model, to
+        the last bit. The study's true-model and mismatched-model controllers are built on
+        it, so that they are one program with other data (with the compilation cache on, the
         default, the second's compilation is a cache hit) instead of two.
         """
-        M, k = self.mass, self.input_scale
-
-        def f(x, p):
-            fr = p["f0"] + p["f1"] * x[0] + p["f2"] * x[0] ** 2
-            return jnp.array([-fr / M, 0.0, x[1] - x[0]])
-
-        def g(x, p):
-            return jnp.array([[k / M], [0.0], [0.0]])
-
         example = {"f0": 1.0, "f1": 1.0, "f2": 1.0}
-        return ControlAffineSystem(f, g, 3, name="acc-model", params=example)
+        return ControlAffineSystem(
+            self._drift, lambda x, p: self._input_matrix(), 3, name="acc-model", params=example
+        )
 
     def model_params(self, which: str) -> dict[str, float]:
-        """The parameters of :meth:`model_family` that make it the ``which`` model."""
+        """The parameters of :meth:`model_family` that make it the ``which`` model.
+
+        Raises
+        ------
+        ParameterError
+            If ``which`` is neither ``"true"`` nor ``"nominal"``.
+        """
         drag = self._drag(which)
         return {"f0": drag.f0, "f1": drag.f1, "f2": drag.f2}
 

@@ -253,13 +253,13 @@ def run_study(
 
     # the two model-based controllers stand on one parametric model: one program, other data
     family = scenario.model_family()
-    params = {"true model": "true", "mismatched model": "nominal"}
+    model_of = {"true model": "true", "mismatched model": "nominal"}
 
     def simulated(name: str) -> tuple[Trajectory, float]:
         t0 = time.perf_counter()
         ctrl, p = controllers[name], None
-        if name in params:
-            ctrl, p = ctrl.replace(system=family), scenario.model_params(params[name])
+        if name in model_of:
+            ctrl, p = ctrl.replace(system=family), scenario.model_params(model_of[name])
         traj = simulate(
             ctrl, np.asarray(scenario.x0), t_final=horizon, dt=scenario.dt,
             plant=true_sys, exogenous=scenario.exogenous, params=p,
@@ -271,7 +271,7 @@ def run_study(
         if name == "conformal":
             return _conformal_check(scenario, unc, seed, test)
         if name == "models":  # the mismatched model after the true one: it reuses the program
-            return [simulated(n) for n in params]
+            return [simulated(n) for n in model_of]
         return simulated(name)
 
     # the GP-corrected loop (memory-bound, most of the run) on one core; the conformal check
@@ -284,7 +284,7 @@ def run_study(
         lambda count: report(f"{count} of {len(jobs)} done", 0.4 + 0.6 * count / len(jobs)),
     )  # fmt: skip
     out = dict(zip(jobs, done, strict=True))
-    out.update(zip(params, out.pop("models"), strict=True))
+    out.update(zip(model_of, out.pop("models"), strict=True))
     conformal = out.pop("conformal")
     timings["conformal_beta"] = conformal.pop("seconds")
     trajectories: dict[str, Trajectory] = {}

@@ -179,3 +179,43 @@ def test_the_closed_loop_program_holds_one_copy_of_the_controller():
     np.testing.assert_allclose(x_final, x, rtol=1e-14)
     np.testing.assert_allclose(out_final, step(0.5, x, None), rtol=1e-14)
     assert float(s) == pytest.approx(acc, rel=1e-14)
+
+
+def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
+    """Two controllers built alike (equal structure, the same system and certificates, equal
+    parameters) share one compiled loop: the second controller's runs are not traced, and
+    with equal params they record exactly what the first's did. Other parameter values, or a controller traced
+    under a user's jit, get their own program."""
+    calls = {"f": 0}
+
+    def f(x, p):
+        calls["f"] += 1
+        return p["a"] * x
+
+    sys = ss.ControlAffineSystem(f, lambda x, p: jnp.eye(2), 2, params={"a": 0.0})
+    clf = ss.CLF(lambda x: jnp.sum((x - jnp.array([1.0, 0.5])) ** 2), lam=1.0)
+    cbf = ss.CBF(lambda x: 4.0 - jnp.sum(x**2), beta=1.0)
+    opts = dict(kappa=1.0, rho=0.0, phi=1.0, varphi=0.0, slack_weight=10.0)
+    ctrl = ss.UniversalController(sys, clf, cbf, **opts)
+    twin = ss.UniversalController(sys, clf, cbf, **opts)
+    x0 = np.array([[0.2, -0.1], [-0.5, 0.3]])
+    run = dict(t_final=0.5, dt=0.01)
+
+    alone = simulate(twin, x0, params={"a": -0.3}, **run)  # traced for the twin
+    traced = calls["f"]
+    assert traced > 0
+    first = simulate(ctrl, x0, params={"a": 0.1}, **run)
+    reused = simulate(ctrl, x0, params={"a": -0.3}, **run)
+    assert calls["f"] == traced  # neither traced again
+    for a, b in ((reused.x, alone.x), (reused.u, alone.u), (reused.h, alone.h)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not np.array_equal(np.asarray(first.x), np.asarray(reused.x))  # the params count
+
+    traced = calls["f"]
+    other = simulate(ctrl.replace(kappa=2.0), x0, params={"a": -0.3}, **run)
+    assert calls["f"] > traced  # another kappa: another program
+    assert not np.array_equal(np.asarray(other.u), np.asarray(alone.u))
+
+    # a controller that is an argument of a user's jit: traced leaves, a program of its own
+    xs = jax.jit(lambda c: simulate(c, x0, params={"a": -0.3}, **run).x)(twin)
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(alone.x), rtol=1e-12, atol=1e-14)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import inspect
+import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -27,6 +30,7 @@ from .systems import ControlAffineSystem
 
 __all__ = [
     "MAX_STEPS",
+    "PROGRAMS_KEPT",
     "Recorder",
     "Trajectory",
     "TrajectoryRecorder",
@@ -181,6 +185,11 @@ def _zeros_of(shapes: Any) -> Any:
     return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
+def _tied(tree: Any, tie: jax.Array) -> Any:
+    """``tree``'s values, made to depend on the scalar ``tie`` (``tie == tie`` selects them)."""
+    return jax.tree_util.tree_map(lambda z: jnp.where(tie == tie, z, z), tree)
+
+
 def closed_loop(
     step: Callable[[jax.Array, jax.Array, Any], Any],
     rhs: Callable[[jax.Array, jax.Array, Any, Any], jax.Array],
@@ -239,8 +248,12 @@ def closed_loop(
     def run(x0: jax.Array, data: Any) -> Any:
         k0, t0 = jnp.asarray(0, jnp.int64), jnp.asarray(0.0, jnp.float64)
         state0 = recorder.init(x0, data)
-        out0 = _zeros_of(jax.eval_shape(step_once, t0, x0, data))
-        y0 = _zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1])
+        # placeholders, never read (the body replaces the output, the last row is dropped),
+        # tied to x0: under vmap they are then batched like the values that replace them,
+        # and the scan's batching rule passes over the body once instead of twice
+        tie = x0.reshape(-1)[0]
+        out0 = _tied(_zeros_of(jax.eval_shape(step_once, t0, x0, data)), tie)
+        y0 = _tied(_zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1]), tie)
 
         def body(carry, k):
             x, _, state = carry
@@ -350,6 +363,89 @@ def _model_as_data(model: Any) -> Any:
     return model if jax.tree_util.tree_leaves(model) else None
 
 
+#: How many compiled closed loops :func:`simulate` keeps for reuse in this process.
+PROGRAMS_KEPT = 16
+_programs: collections.OrderedDict[Any, tuple[Callable[..., Any], tuple]]
+_programs = collections.OrderedDict()
+_programs_lock = threading.Lock()
+
+
+def _identity(obj: Any) -> Any:
+    """A key naming ``obj`` by identity (a bound method: its object's and function's)."""
+    if obj is None:
+        return None
+    if inspect.ismethod(obj):  # a new bound-method object at every attribute access
+        return ("method", id(obj.__self__), id(obj.__func__))
+    return ("id", id(obj))
+
+
+def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched) -> Any:
+    """What a closed loop of :func:`simulate` is compiled from, or None (do not reuse).
+
+    The controller by its pytree structure (its class, options, system, certificates and
+    uncertainty model; the objects among them by identity) and the values of its numeric
+    leaves, which the program holds as constants; the plant, ``exogenous`` and a
+    ``params(t)`` function by identity; the horizon, step and batching. A controller with
+    a traced leaf (under a user's ``jit``) is not reused.
+    """
+    leaves, treedef = jax.tree_util.tree_flatten(controller)
+    values = []
+    for leaf in leaves:
+        if isinstance(leaf, jax.core.Tracer):
+            return None
+        a = np.asarray(leaf)
+        values.append((type(leaf), a.dtype.str, a.shape, a.tobytes()))
+    ids = tuple(_identity(o) for o in (plant, exogenous, params_fn))
+    return (treedef, tuple(values), ids, n_steps, dt, batched)
+
+
+def _simulation_program(
+    controller, plant, exogenous, params_at, params_fn, n_steps, dt, batched
+) -> Callable[[jax.Array, Any, Any], Any]:
+    """The jitted closed loop ``loop(x0, params, model)`` of :func:`simulate`.
+
+    An equal earlier request (:func:`_program_key`) gets the function built for it, so it
+    is neither traced nor lowered again: the true-model and mismatched-model loops of a
+    study, which share a parametric model and differ in ``params`` only, are one program
+    in one process. The last :data:`PROGRAMS_KEPT` are kept.
+    """
+    key = _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched)
+    if key is not None:
+        with _programs_lock:
+            found = _programs.get(key)
+            if found is not None:
+                _programs.move_to_end(key)
+                return found[0]
+
+    def rhs(t, x, out, data):
+        p = params_at(t, data)
+        xdot = plant.f_of(x, p) + plant.g_of(x, p) @ out.u
+        return xdot if exogenous is None else xdot + exogenous(t)
+
+    def loop(ctrl: Any) -> Callable[[jax.Array, Any], Any]:
+        def step(t, x, data):
+            p = params_at(t, data)
+            return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
+
+        return closed_loop(step, rhs, TrajectoryRecorder(ctrl, params_at), n_steps=n_steps, dt=dt)
+
+    def run(x0: jax.Array, params: Any, model: Any) -> Any:
+        # the uncertainty model's arrays are arguments of the compiled loop, not constants
+        # baked into it (a GP's Q x Q factor made the program, and its compilation, as large as
+        # the data); a model that is not a pytree stays where the controller holds it
+        ctrl = controller if model is None else controller.replace(uncertainty=model)
+        return loop(ctrl)(x0, params)
+
+    fn = jax.jit(jax.vmap(run, in_axes=(0, None, None)) if batched else run)
+    if key is not None:
+        with _programs_lock:
+            # the objects named by identity in the key are kept alive with it
+            _programs[key] = (fn, (controller, plant, exogenous, params_fn))
+            while len(_programs) > PROGRAMS_KEPT:
+                _programs.popitem(last=False)
+    return fn
+
+
 def simulate(
     controller: Controller,
     x0: Any,
@@ -421,6 +517,14 @@ def simulate(
     A state that stops being finite (a diverging plant) is not an error: the trajectory
     records status ``NONFINITE_STATE`` from that step on, and :meth:`Trajectory.failure_summary`
     names the first one.
+
+    The compiled loop is reused, untraced, by a later call with an equal request: a
+    controller of the same structure (class, options, and the same system, certificates and
+    uncertainty model objects) with equal parameter values, the same ``plant``,
+    ``exogenous`` and ``params(t)`` objects, horizon, step and batching (the last
+    :data:`PROGRAMS_KEPT` requests). So two controllers on one parametric model that differ
+    in ``params`` only run one program. As with ``jax.jit``, a later change to a global
+    variable that the model's functions read is not seen by such a reused loop.
     """
     if not isinstance(controller, Controller):
         raise InputTypeError(
@@ -471,32 +575,14 @@ def simulate(
             f" GiB): {n_steps} steps x {batch} trajectories; use fewer steps or a smaller batch"
         )
     spec = merge_specs([getattr(controller, "params_spec", None), plant.params_spec])
+    params_fn = params if callable(params) else None
     params, params_at = _params_of_time(spec, params)
 
-    def rhs(t, x, out, data):
-        p = params_at(t, data)
-        xdot = plant.f_of(x, p) + plant.g_of(x, p) @ out.u
-        return xdot if exogenous is None else xdot + exogenous(t)
-
-    def loop(ctrl: Any) -> Callable[[jax.Array, Any], Any]:
-        def step(t, x, data):
-            p = params_at(t, data)
-            return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
-
-        return closed_loop(
-            step, rhs, TrajectoryRecorder(ctrl, params_at), n_steps=n_steps, dt=float(dt)
-        )
-
-    def run(x0: jax.Array, params: Any, model: Any) -> Any:
-        # the uncertainty model's arrays are arguments of the compiled loop, not constants
-        # baked into it (a GP's Q x Q factor made the program, and its compilation, as large as
-        # the data); a model that is not a pytree stays where the controller holds it
-        ctrl = controller if model is None else controller.replace(uncertainty=model)
-        return loop(ctrl)(x0, params)
-
     model = _model_as_data(getattr(controller, "uncertainty", None))
-    fn = jax.jit(jax.vmap(run, in_axes=(0, None, None)) if x0.ndim == 2 else run)
-    xs, us, Vs, hs, regions, comps, sats, stats = fn(x0, params, model)
+    loop = _simulation_program(
+        controller, plant, exogenous, params_at, params_fn, n_steps, float(dt), x0.ndim == 2
+    )
+    xs, us, Vs, hs, regions, comps, sats, stats = loop(x0, params, model)
     traj = Trajectory(
         t=jnp.asarray(np.arange(n_steps + 1) * dt),
         x=xs,

@@ -166,8 +166,8 @@ class ACCScenario:
         The drag coefficients are the parameters (``{"f0", "f1", "f2"}``; :meth:`system`
         binds them, with the same function): with :meth:`model_params` it is either model, to
         the last bit. The study's true-model and mismatched-model controllers are built on
-        it, so that they are one program with other data (with the compilation cache on, the
-        default, the second's compilation is a cache hit) instead of two.
+        it, so that they are one program with other data (:func:`~safestab.simulate` reuses the
+        first's compiled loop for the second) instead of two.
         """
         example = {"f0": 1.0, "f1": 1.0, "f2": 1.0}
         return ControlAffineSystem(

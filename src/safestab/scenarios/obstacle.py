@@ -278,9 +278,9 @@ class ObstacleScenario:
         ``f(x, p) = p["current_scale"] w(x)`` and ``g(x, p) = p["gain"] I``: with
         :meth:`model_params` it is either model, to the last bit (``1 w = w`` and ``0 w = 0``
         exactly, up to the sign of a zero). The study's true-model and mismatched-model
-        controllers are built on it, so that they are one program with different data (with
-        the compilation cache on, the default, the second's compilation is a cache hit)
-        instead of two.
+        controllers are built on it, so that they are one program with different data
+        (:func:`~safestab.simulate` reuses the first's compiled loop for the second) instead
+        of two.
         """
 
         def f(x, p):

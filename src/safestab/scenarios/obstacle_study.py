@@ -643,8 +643,8 @@ def study_controller(
 
     The true-model and mismatched-model controllers stand on one parametric model
     (:meth:`~safestab.scenarios.obstacle.ObstacleScenario.model_family`): the same program
-    with other data (with the compilation cache on, the default, the second's compilation is
-    a cache hit). Their inputs are those of
+    with other data (:func:`~safestab.simulate` reuses the first's compiled loop for a
+    controller built alike, and the study gives both the same object). Their inputs are those of
     :func:`obstacle_controller`'s, bit for bit. The GP-robust one is
     :func:`obstacle_controller`'s, with no parameters (None).
 
@@ -748,6 +748,17 @@ def run_obstacle_study(
 
     x0 = sc.start_states()
     v0 = np.asarray(sc.V(x0))
+    # the true and mismatched models of a setting share one controller (on the parametric
+    # model): simulate then reuses the first one's compiled loop for the second, untraced
+    shared: dict[tuple[str, bool], Any] = {}
+
+    def controller_of(name: str, limits: str, hard: bool) -> tuple[Any, Any]:
+        ctrl, params = study_controller(
+            sc, name, unc_of[name], limits=limits == "input limits", hard=hard
+        )
+        if params is None:
+            return ctrl, params
+        return shared.setdefault((limits, hard), ctrl), params
 
     def run(setting: tuple[str, str]) -> tuple[ObstacleRun, float]:
         name, limits = setting
@@ -758,9 +769,7 @@ def run_obstacle_study(
         for hard, sel in ((True, inside), (False, ~inside)):
             if not np.any(sel):
                 continue
-            ctrl, params = study_controller(
-                sc, name, unc_of[name], limits=limits == "input limits", hard=hard
-            )
+            ctrl, params = controller_of(name, limits, hard)
             # a shared model runs every start, whatever the selection: the batch, hence the
             # program, is then the same for the true and the mismatched model (their
             # certified sets differ). GP-robust runs its selection only: its GP's products

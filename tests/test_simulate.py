@@ -184,8 +184,8 @@ def test_the_closed_loop_program_holds_one_copy_of_the_controller():
 def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
     """Two controllers built alike (equal structure, the same system and certificates, equal
     parameters) share one compiled loop: the second controller's runs are not traced, and
-    with equal params they record exactly what the first's did. Other parameter values, or a controller traced
-    under a user's jit, get their own program."""
+    with equal params they record exactly what the first's did. Other parameter values, or a
+    controller traced under a user's jit, get their own program."""
     calls = {"f": 0}
 
     def f(x, p):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
@@ -67,11 +68,14 @@ __all__ = [
 
 #: The three controllers, as in the ACC study.
 CONTROLLERS = ("true model", "mismatched model", "GP-robust")
+#: The controllers that use no data (the true and the nominal model): their part of the
+#: study runs in a thread of its own once the GP is fitted, beside the GP-robust part.
+MODEL_BASED = CONTROLLERS[:2]
 #: The runs without and with the input box.
 LIMIT_SETTINGS = ("no limits", "input limits")
-#: The settings' closed loops run (and compile, on a first run) this many at once, in threads
-#: (GP-robust's settings one each, a true-model setting then its mismatched twin): JAX
-#: releases the GIL while it compiles and runs. Results do not depend on it.
+#: GP-robust's two settings' closed loops run (and compile, on a first run) this many at once,
+#: in threads, beside the model-based controllers' thread: JAX releases the GIL while it
+#: compiles and runs. Results do not depend on it.
 SIMULATION_THREADS = 2
 #: How a trajectory ends, in order of precedence.
 OUTCOMES = ("unsafe", "converged", "stuck", "moving")
@@ -705,101 +709,117 @@ def run_obstacle_study(
     sc = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
     true_sys = sc.system("true")
     timings: dict[str, float] = {}
-
-    report("collecting data", 0.0)
-    held_out, gp, uncertainty, gain = fit_obstacle_gp(sc, timings=timings, report=report)
-    # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
-    sc = sc.with_learned_gain(gain)
-    calibrated = None
-    if sc.beta_method == "conformal":
-        report("calibrating beta on fresh trajectories", 0.15)
-        t0 = time.perf_counter()
-        calibrated = calibrate_beta(sc, uncertainty)
-        # every GP-robust use below (verdicts, maps, controllers, coverage) reads gp_beta
-        sc = sc.replace(gp_beta=calibrated["beta"])
-        timings["calibrate_beta"] = time.perf_counter() - t0
-    coverage = _coverage(sc, uncertainty, held_out.x, calibrated is not None)
-    if calibrated is not None:
-        coverage["calibration"] = calibrated
-    if isinstance(uncertainty, FastGP):
-        coverage["cache"] = _cache_width(gp, uncertainty)
-    # the fitted noise std per learned component (with a gain error not learned, it holds D u)
-    coverage["noise_mps"] = np.asarray(gp.noise_).tolist()
-    if gain is not None:
-        coverage["input_gain"] = {
-            **gain.as_dict(),
-            "true": ((sc.gain_true - sc.gain_nominal) * np.eye(2)).tolist(),
-        }
-    goal_mean, goal_std = uncertainty.mean_std(jnp.zeros(2))
-    coverage["at_goal"] = {  # the model the controller uses, at the goal x = 0
-        "mean_mps": np.asarray(goal_mean).tolist(),
-        "std_mps": np.asarray(goal_std).tolist(),
-        "omega_mps": np.asarray(sc.omega(jnp.zeros(2))).tolist(),
-    }
-
-    report("domains of attraction and maps", 0.2)
-    t0 = time.perf_counter()
-    unc_of = {"true model": None, "mismatched model": None, "GP-robust": uncertainty}
-    pset = sc.parallel_set()
-    pverd = {c: verdict(sc, c, pset, unc_of[c]) for c in CONTROLLERS}
-    doa = {c: doa_level(sc, c, verdicts=pverd[c]) for c in CONTROLLERS}
-    maps = compatibility_maps(sc, uncertainty, calibrated=calibrated is not None)
-    timings["doa_and_maps"] = time.perf_counter() - t0
-
     x0 = sc.start_states()
     v0 = np.asarray(sc.V(x0))
+    pset = sc.parallel_set()
     # the true and mismatched models of a setting share one controller (on the parametric
     # model): simulate then reuses the first one's compiled loop for the second, untraced
     shared: dict[tuple[str, bool], Any] = {}
 
-    def controller_of(name: str, limits: str, hard: bool) -> tuple[Any, Any]:
-        ctrl, params = study_controller(
-            sc, name, unc_of[name], limits=limits == "input limits", hard=hard
-        )
+    def controller_of(scn, name, unc, limits, hard) -> tuple[Any, Any]:
+        ctrl, params = study_controller(scn, name, unc, limits=limits == "input limits", hard=hard)
         if params is None:
             return ctrl, params
         return shared.setdefault((limits, hard), ctrl), params
 
-    def run(setting: tuple[str, str]) -> tuple[ObstacleRun, float]:
+    def run(scn, setting, level, unc) -> tuple[ObstacleRun, float]:
         name, limits = setting
         t0 = time.perf_counter()
         # Theorem 1 (2) applies inside the certified sublevel set and without limits
-        inside = (v0 < sc.doa_fraction * doa[name]) & (limits == "no limits")
+        inside = (v0 < scn.doa_fraction * level) & (limits == "no limits")
         parts = {}
         for hard, sel in ((True, inside), (False, ~inside)):
             if not np.any(sel):
                 continue
-            ctrl, params = controller_of(name, limits, hard)
+            ctrl, params = controller_of(scn, name, unc, limits, hard)
             # a shared model runs every start, whatever the selection: the batch, hence the
             # program, is then the same for the true and the mismatched model (their
             # certified sets differ). GP-robust runs its selection only: its GP's products
             # round by the batch's size, and its results stay those of a run on its own.
             run_all = params is not None
             starts = x0 if run_all else x0[sel]
-            tr = simulate(ctrl, starts, t_final=sc.t_final, dt=sc.dt, plant=true_sys, params=params)
+            tr = simulate(
+                ctrl, starts, t_final=scn.t_final, dt=scn.dt, plant=true_sys, params=params
+            )
             parts[hard] = (sel, tr, run_all)
-        return _merge(sc, name, limits, x0, inside, parts, unc_of[name]), time.perf_counter() - t0
+        return _merge(scn, name, limits, x0, inside, parts, unc), time.perf_counter() - t0
 
-    def run_pair(pair: tuple[tuple[str, str], ...]) -> list[tuple[ObstacleRun, float]]:
-        # the mismatched model after the true one, in one thread: it reuses that program
-        return [run(setting) for setting in pair]
+    def model_based(scn: ObstacleScenario) -> tuple[dict, dict, dict]:
+        # the true and mismatched models use no data: their verdicts on the parallel set,
+        # certified levels and closed loops (each setting's mismatched loop after its true
+        # one: it reuses that program)
+        verdicts = {c: verdict(scn, c, pset, None) for c in MODEL_BASED}
+        levels = {c: doa_level(scn, c, verdicts=verdicts[c]) for c in MODEL_BASED}
+        done = {
+            (c, lim): run(scn, (c, lim), levels[c], None)
+            for lim in LIMIT_SETTINGS
+            for c in MODEL_BASED
+        }
+        return verdicts, levels, done
 
-    # the longest first (GP-robust), then each true-model setting with its mismatched twin
-    groups = [(("GP-robust", lim),) for lim in LIMIT_SETTINGS] + [
-        (("true model", lim), ("mismatched model", lim)) for lim in LIMIT_SETTINGS
-    ]
-    n_set, n_groups = sum(len(g) for g in groups), len(groups)
-    report(f"simulating {n_set} controller settings, {SIMULATION_THREADS} at once", 0.3)
-    finished = in_threads(
-        run_pair, groups, SIMULATION_THREADS,
-        lambda k: report(f"simulated {k} of {n_groups} groups", 0.3 + 0.7 * k / n_groups),
-    )  # fmt: skip
-    done = {s: r for g, f in zip(groups, finished, strict=True) for s, r in zip(g, f, strict=True)}
+    report("collecting data", 0.0)
+    held_out, gp, uncertainty, gain = fit_obstacle_gp(sc, timings=timings, report=report)
+    # the model-based part runs in a thread of its own from here, beside the calibration,
+    # the maps and the GP-robust runs (mostly compilation on a first run: JAX releases the
+    # GIL while it compiles and runs). Not during the fit: that already uses every core, and
+    # a third thread only made both slower.
+    with ThreadPoolExecutor(max_workers=1) as background:
+        models_job = background.submit(model_based, sc)
+        # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
+        sc = sc.with_learned_gain(gain)
+        calibrated = None
+        if sc.beta_method == "conformal":
+            report("calibrating beta on fresh trajectories", 0.15)
+            t0 = time.perf_counter()
+            calibrated = calibrate_beta(sc, uncertainty)
+            # every GP-robust use below (verdicts, maps, controllers, coverage) reads gp_beta
+            sc = sc.replace(gp_beta=calibrated["beta"])
+            timings["calibrate_beta"] = time.perf_counter() - t0
+        coverage = _coverage(sc, uncertainty, held_out.x, calibrated is not None)
+        if calibrated is not None:
+            coverage["calibration"] = calibrated
+        if isinstance(uncertainty, FastGP):
+            coverage["cache"] = _cache_width(gp, uncertainty)
+        # the fitted noise std per learned component (with a gain error not learned, D u)
+        coverage["noise_mps"] = np.asarray(gp.noise_).tolist()
+        if gain is not None:
+            coverage["input_gain"] = {
+                **gain.as_dict(),
+                "true": ((sc.gain_true - sc.gain_nominal) * np.eye(2)).tolist(),
+            }
+        goal_mean, goal_std = uncertainty.mean_std(jnp.zeros(2))
+        coverage["at_goal"] = {  # the model the controller uses, at the goal x = 0
+            "mean_mps": np.asarray(goal_mean).tolist(),
+            "std_mps": np.asarray(goal_std).tolist(),
+            "omega_mps": np.asarray(sc.omega(jnp.zeros(2))).tolist(),
+        }
+
+        report("domains of attraction and maps", 0.2)
+        t0 = time.perf_counter()
+        robust_verdicts = verdict(sc, "GP-robust", pset, uncertainty)
+        robust_level = doa_level(sc, "GP-robust", verdicts=robust_verdicts)
+        maps = compatibility_maps(sc, uncertainty, calibrated=calibrated is not None)
+        timings["doa_and_maps"] = time.perf_counter() - t0
+
+        report(f"simulating GP-robust, {SIMULATION_THREADS} settings at once", 0.3)
+        finished = in_threads(
+            lambda lim: run(sc, ("GP-robust", lim), robust_level, uncertainty),
+            LIMIT_SETTINGS, SIMULATION_THREADS,
+            lambda k: report(f"simulated {k} of {len(LIMIT_SETTINGS)} GP-robust settings",
+                             0.3 + 0.6 * k / len(LIMIT_SETTINGS)),
+        )  # fmt: skip
+        report("finishing the true-model and mismatched-model runs", 0.9)
+        model_verdicts, model_levels, done = models_job.result()
+    done.update({("GP-robust", lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
+    pverd = {**model_verdicts, "GP-robust": robust_verdicts}
+    pverd = {c: pverd[c] for c in CONTROLLERS}
+    doa = {**model_levels, "GP-robust": robust_level}
+    doa = {c: doa[c] for c in CONTROLLERS}
     runs: dict[tuple[str, str], ObstacleRun] = {}
     for setting in [(name, limits) for name in CONTROLLERS for limits in LIMIT_SETTINGS]:
         one, seconds = done[setting]
         runs[setting] = one
-        # wall time, with another setting's closed loop running beside it
+        # wall time, with other work running beside it
         timings[f"simulate {setting[0]}, {setting[1]}"] = seconds
     report("done", 1.0)
     return ObstacleStudyResult(

@@ -181,11 +181,22 @@ def test_the_closed_loop_program_holds_one_copy_of_the_controller():
     assert float(s) == pytest.approx(acc, rel=1e-14)
 
 
+class _SmallBand:
+    """A hand-made uncertainty model: zero mean, a constant standard deviation."""
+
+    n_states = 2
+
+    def mean_std(self, x):
+        return jnp.zeros(2), jnp.full(2, 0.01)
+
+
 def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
     """Two controllers built alike (equal structure, the same system and certificates, equal
     parameters) share one compiled loop: the second controller's runs are not traced, and
     with equal params they record exactly what the first's did. Other parameter values, or a
     controller traced under a user's jit, get their own program."""
+    from safestab import simulation
+
     calls = {"f": 0}
 
     def f(x, p):
@@ -215,6 +226,26 @@ def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
     other = simulate(ctrl.replace(kappa=2.0), x0, params={"a": -0.3}, **run)
     assert calls["f"] > traced  # another kappa: another program
     assert not np.array_equal(np.asarray(other.u), np.asarray(alone.u))
+
+    # another step, another plant object (the same functions), or a cleared store: traced
+    twin_plant = ss.ControlAffineSystem(f, lambda x, p: jnp.eye(2), 2, params={"a": 0.0})
+    for kwargs in ({"t_final": 0.5, "dt": 0.02}, {**run, "plant": twin_plant}, run):
+        if kwargs is run:
+            simulation.clear_programs()
+        traced = calls["f"]
+        again = simulate(ctrl, x0, params={"a": -0.3}, **kwargs)
+        assert calls["f"] > traced, kwargs
+        if kwargs is not run:
+            continue
+        np.testing.assert_array_equal(np.asarray(again.x), np.asarray(alone.x))
+
+    # a controller with an uncertainty model is not kept (its data would stay alive): traced
+    # at each call
+    gp_ctrl = ctrl.replace(uncertainty=_SmallBand(), gp_beta=1.0)
+    for _ in range(2):
+        traced = calls["f"]
+        simulate(gp_ctrl, x0, params={"a": -0.3}, **run)
+        assert calls["f"] > traced
 
     # a controller that is an argument of a user's jit: traced leaves, a program of its own
     xs = jax.jit(lambda c: simulate(c, x0, params={"a": -0.3}, **run).x)(twin)

@@ -34,6 +34,7 @@ __all__ = [
     "Recorder",
     "Trajectory",
     "TrajectoryRecorder",
+    "clear_programs",
     "closed_loop",
     "rk4_step",
     "simulate",
@@ -379,15 +380,24 @@ def _identity(obj: Any) -> Any:
     return ("id", id(obj))
 
 
+def clear_programs() -> None:
+    """Forget the compiled closed loops :func:`simulate` keeps for reuse (and what they hold)."""
+    with _programs_lock:
+        _programs.clear()
+
+
 def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched) -> Any:
     """What a closed loop of :func:`simulate` is compiled from, or None (do not reuse).
 
-    The controller by its pytree structure (its class, options, system, certificates and
-    uncertainty model; the objects among them by identity) and the values of its numeric
-    leaves, which the program holds as constants; the plant, ``exogenous`` and a
-    ``params(t)`` function by identity; the horizon, step and batching. A controller with
-    a traced leaf (under a user's ``jit``) is not reused.
+    The controller by its pytree structure (its class, options, system and certificates;
+    the objects among them by identity) and the values of its numeric leaves, which the
+    program holds as constants; the plant, ``exogenous`` and a ``params(t)`` function by
+    identity; the horizon, step and batching. Not reused: a controller with a traced leaf
+    (under a user's ``jit``), and one with an uncertainty model (kept, its data would stay
+    alive with it).
     """
+    if getattr(controller, "uncertainty", None) is not None:
+        return None
     leaves, treedef = jax.tree_util.tree_flatten(controller)
     values = []
     for leaf in leaves:
@@ -518,13 +528,16 @@ def simulate(
     records status ``NONFINITE_STATE`` from that step on, and :meth:`Trajectory.failure_summary`
     names the first one.
 
-    The compiled loop is reused, untraced, by a later call with an equal request: a
-    controller of the same structure (class, options, and the same system, certificates and
-    uncertainty model objects) with equal parameter values, the same ``plant``,
-    ``exogenous`` and ``params(t)`` objects, horizon, step and batching (the last
-    :data:`PROGRAMS_KEPT` requests). So two controllers on one parametric model that differ
-    in ``params`` only run one program. As with ``jax.jit``, a later change to a global
-    variable that the model's functions read is not seen by such a reused loop.
+    The compiled loop is reused by a later call with an equal request: a controller of the
+    same structure (class, options, and the same system and certificate objects) with equal
+    parameter values and no uncertainty model, the same ``plant``, ``exogenous`` and
+    ``params(t)`` objects, horizon, step and batching (the last :data:`PROGRAMS_KEPT`
+    requests; :func:`clear_programs` forgets them). It is not traced again unless the batch
+    size or the structure of ``params`` is new (as with ``jax.jit``). So two controllers on
+    one parametric model that differ in ``params`` only run one program. As with
+    ``jax.jit``, a reused loop does not see a change made since to those objects in place
+    (an attribute of the object behind a bound method ``exogenous``, say) or to a global
+    variable their functions read: pass new objects, or call :func:`clear_programs`.
     """
     if not isinstance(controller, Controller):
         raise InputTypeError(

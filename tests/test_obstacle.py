@@ -488,6 +488,36 @@ def test_overrides_are_checked_like_the_file(sc):
         sc.replace(dt=-1.0)
 
 
+def test_an_error_in_the_study_does_not_wait_for_its_model_based_thread(sc, monkeypatch):
+    """The true and mismatched models' part runs in a thread beside the GP-robust part; an
+    error in the latter is raised at once, not after that thread (which finishes on its own).
+    Here the thread waits on an event the test sets only after the study has raised."""
+    import threading
+
+    from safestab.scenarios import obstacle_study
+
+    release, finished = threading.Event(), threading.Event()
+
+    def held_verdict(*args, **kwargs):  # the model-based thread's first call
+        release.wait(60)
+        finished.set()
+        raise RuntimeError("released")
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(obstacle_study, "fit_obstacle_gp", lambda sc, **kw: (None,) * 4)
+    monkeypatch.setattr(obstacle_study, "verdict", held_verdict)
+    monkeypatch.setattr(obstacle_study, "calibrate_beta", boom)
+    monkeypatch.setattr(obstacle_study, "_coverage", boom)
+    try:
+        with pytest.raises(RuntimeError, match="boom"):
+            run_obstacle_study(sc)
+        assert not finished.is_set()  # raised while the model-based thread still waited
+    finally:
+        release.set()
+
+
 # -- the whole study (slow) --------------------------------------------------------------
 
 

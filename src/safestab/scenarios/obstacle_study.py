@@ -763,8 +763,9 @@ def run_obstacle_study(
     # the maps and the GP-robust runs (mostly compilation on a first run: JAX releases the
     # GIL while it compiles and runs). Not during the fit: that already uses every core, and
     # a third thread only made both slower.
-    with ThreadPoolExecutor(max_workers=1) as background:
-        models_job = background.submit(model_based, sc)
+    background = ThreadPoolExecutor(max_workers=1)
+    models_job = background.submit(model_based, sc)
+    try:
         # every GP-robust use below (verdicts, maps, controllers) reads sc.system("learned")
         sc = sc.with_learned_gain(gain)
         calibrated = None
@@ -810,6 +811,10 @@ def run_obstacle_study(
         )  # fmt: skip
         report("finishing the true-model and mismatched-model runs", 0.9)
         model_verdicts, model_levels, done = models_job.result()
+    finally:
+        # on an error above, return at once (not after the model-based part): that thread
+        # finishes on its own, and its result or error is dropped for the one raised here
+        background.shutdown(wait=False, cancel_futures=True)
     done.update({("GP-robust", lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
     pverd = {**model_verdicts, "GP-robust": robust_verdicts}
     pverd = {c: pverd[c] for c in CONTROLLERS}

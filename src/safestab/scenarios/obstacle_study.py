@@ -816,10 +816,9 @@ def run_obstacle_study(
         # finishes on its own, and its result or error is dropped for the one raised here
         background.shutdown(wait=False, cancel_futures=True)
     done.update({("GP-robust", lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
+    # in the order of CONTROLLERS: the model-based ones (MODEL_BASED), then GP-robust
     pverd = {**model_verdicts, "GP-robust": robust_verdicts}
-    pverd = {c: pverd[c] for c in CONTROLLERS}
     doa = {**model_levels, "GP-robust": robust_level}
-    doa = {c: doa[c] for c in CONTROLLERS}
     runs: dict[tuple[str, str], ObstacleRun] = {}
     for setting in [(name, limits) for name in CONTROLLERS for limits in LIMIT_SETTINGS]:
         one, seconds = done[setting]

@@ -237,28 +237,36 @@ def solve_qp(Q, z0, G, r, hint=None, dps=60):
         rm = [_mp(x) for x in r]
         tiny = mp.mpf(10) ** (25 - dps)
 
+        # the Gram matrix of every row in the Q^-1 metric and the unconstrained residuals, once
+        GT = mp.matrix([[Gm[i][j] for i in range(n)] for j in range(dim)]) if n else None
+        QiGT = Qi * GT if n else None
+        P = GT.T * QiGT if n else None
+        res0 = [mp.fsum(Gm[i][j] * z0m[j] for j in range(dim)) - rm[i] for i in range(n)]
+
         def attempt(S):
             if S:
-                GS = mp.matrix([Gm[i] for i in S])
-                M = GS * Qi * GS.T
-                nr = [mp.sqrt(M[i, i]) for i in range(len(S))]
-                if any(x == 0 for x in nr):
+                k = len(S)
+                M = mp.matrix([[P[i, j] for j in S] for i in S])
+                nr2 = [M[i, i] for i in range(k)]
+                if any(x == 0 for x in nr2):
                     return None
-                Mn = mp.matrix(len(S), len(S))
-                for i in range(len(S)):
-                    for j in range(len(S)):
-                        Mn[i, j] = M[i, j] / (nr[i] * nr[j])
-                if abs(mp.det(Mn)) < mp.mpf(10) ** (20 - 2 * dps):
-                    return None
+                # one LU factorisation gives the normalised determinant
+                # det(M) / prod M_ii (the Gram matrix of the unit rows) and the multipliers
                 try:
-                    lam = mp.lu_solve(M, GS * z0m - mp.matrix([rm[i] for i in S]))
+                    LU, piv = mp.mp.LU_decomp(M)
                 except ZeroDivisionError:  # dependent rows: a smaller subset gives the point
                     return None
-                z = z0m - Qi * (GS.T * lam)
+                det = mp.fprod(LU[i, i] for i in range(k)) / mp.fprod(nr2)
+                if abs(det) < mp.mpf(10) ** (20 - 2 * dps):
+                    return None
+                lam = mp.mp.U_solve(LU, mp.mp.L_solve(LU, mp.matrix([res0[i] for i in S]), piv))
+                z = z0m - mp.matrix(
+                    [mp.fsum(QiGT[j, i] * lam[t] for t, i in enumerate(S)) for j in range(dim)]
+                )
                 lmax = max(abs(t) for t in lam)
                 if any(t < -tiny * lmax for t in lam):
                     return None
-                lam = [lam[i] for i in range(len(S))]
+                lam = [lam[i] for i in range(k)]
             else:
                 z, lam = z0m, []
             for i in range(n):

@@ -394,6 +394,63 @@ def test_fit_records_optimiser_status_and_warns():
         GaussianProcessModel(n_restarts=1.5)  # type: ignore[arg-type]
 
 
+def _record_thread_pools(monkeypatch):
+    """``(items, workers)`` of every ``in_threads`` call of the likelihood module."""
+    import safestab.learning._likelihood as lik
+
+    pools = []
+    real = lik.in_threads
+
+    def recording(fn, items, workers, done):
+        pools.append((len(items), workers))
+        return real(fn, items, workers, done)
+
+    monkeypatch.setattr(lik, "in_threads", recording)
+    return pools
+
+
+def test_fit_runs_its_starts_in_threads_under_one_blas_thread_with_the_same_results(
+    toy_data, monkeypatch
+):
+    """Where BLAS runs one thread, every start of every component runs in a pool of threads."""
+    from safestab.errors import ConvergenceWarning
+    from safestab.learning.batched import one_blas_thread
+
+    pools = _record_thread_pools(monkeypatch)
+    x, y = toy_data
+    fields = ("amplitude_", "noise_", "mean_", "lengthscale_", "log_marginal_likelihood_",
+              "start_log_marginal_likelihoods_", "n_iter_", "chol_", "alpha_")  # fmt: skip
+    with one_blas_thread():
+        fits = [
+            GaussianProcessModel(n_restarts=3, n_threads=k).fit(x, y, seed=3) for k in (1, 3, 8)
+        ]
+    assert [w for n, w in pools if n > 1] == [1, 3, 8]  # one pool: 2 components x 5 starts
+    assert {n for n, _ in pools if n > 1} == {10}
+    for gp in fits[1:]:
+        for name in fields:
+            assert np.array_equal(np.asarray(getattr(gp, name)), np.asarray(getattr(fits[0], name)))
+    # the warnings of the fit point at its caller, component by component
+    with one_blas_thread(), pytest.warns(ConvergenceWarning) as record:
+        GaussianProcessModel(max_iter=1, n_threads=2).fit(x, y)
+    assert [w.filename for w in record] == [__file__, __file__]
+    assert ["component 0" in str(w.message) for w in record] == [True, False]
+    for bad in (0, True, 1.5):
+        with pytest.raises(ParameterError, match=r"n_threads must be None or an integer >= 1"):
+            GaussianProcessModel(n_threads=bad)  # type: ignore[arg-type]
+
+
+def test_fit_with_a_multi_threaded_blas_runs_its_starts_one_after_the_other(toy_data, monkeypatch):
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    if not any(p.get("user_api") == "blas" for p in threadpool_info()):
+        pytest.skip("no BLAS thread pool")
+    pools = _record_thread_pools(monkeypatch)
+    x, y = toy_data
+    with threadpool_limits(limits=2, user_api="blas"):
+        GaussianProcessModel(n_threads=4).fit(x, y)
+    assert [w for n, w in pools if n > 1] == [1]
+
+
 def test_manual_likelihood_gradient_matches_autodiff_of_tinygp():
     import jax
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any
@@ -50,3 +51,10 @@ def in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callabl
             results[futures[fut]] = fut.result()
             done(count)
     return results
+
+
+def cpu_count() -> int:
+    """The CPUs this process may run on (its affinity where the platform tells it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1

@@ -1,9 +1,10 @@
 """The GP's log marginal likelihood, its gradient and its maximisation (internal).
 
 :class:`~safestab.learning.GaussianProcessModel` fits each learned component's
-hyperparameters with :func:`fit_component`: SciPy's L-BFGS-B on the likelihood and gradient
-of :func:`nll_value_and_grad` (unchecked and jittable; the data are arguments), from several
-starts. The hyperparameter vector ``theta`` of one component is
+hyperparameters with :func:`pose_component` and :func:`fit_components`: SciPy's L-BFGS-B on
+the likelihood and gradient of :func:`nll_value_and_grad` (unchecked and jittable; the data are
+arguments), from several starts, every component's starts in one pool of threads. The
+hyperparameter vector ``theta`` of one component is
 ``[log amplitude, log noise, mean, log lengthscale_1, ..., log lengthscale_n]`` (lengthscales
 of the standardised inputs).
 """
@@ -20,16 +21,18 @@ import scipy.optimize
 from jax.scipy.linalg import cho_solve
 from tinygp import GaussianProcess
 
+from .._batching import cpu_count, in_threads
 from ..errors import ConvergenceWarning, NumericalError
 from ._fit_cache import fit_cache_dir, load, problem_key, store
 from ._posterior import kernel
 
 __all__ = [
-    "fit_component",
+    "fit_components",
     "nll_tinygp",
     "nll_value_and_grad",
     "nn_noise",
     "optimise_starts",
+    "pose_component",
     "stationary",
     "unpack",
 ]
@@ -134,52 +137,112 @@ def nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
     return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
 
 
-def optimise_starts(fun, starts, bounds, lo, hi, max_iter):
-    """L-BFGS-B from each start: ``(value, theta, nit, converged, message)`` per start."""
-    results = []
-    for s in starts:
+def optimise_starts(fun, starts, bounds, lo, hi, max_iter, workers=1):
+    """L-BFGS-B from each start: ``(value, theta, nit, converged, message)`` per start.
+
+    ``workers`` starts run at once in threads; the results, in the order of ``starts``, do not
+    depend on it where BLAS has one thread (see :func:`fit_components`).
+    """
+
+    def one(s):
         if max_iter == 0:
-            results.append((fun(s)[0], s, 0, False, "max_iter=0: start values kept"))
-            continue
+            return (fun(s)[0], s, 0, False, "max_iter=0: start values kept")
         with np.errstate(all="ignore"):
             res = scipy.optimize.minimize(
                 fun, s, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
             )
         ok = res.status == 0 or stationary(res.x, res.jac, lo, hi, res.fun)
-        results.append((float(res.fun), res.x, int(res.nit), bool(ok), str(res.message)))
-    return results
+        return (float(res.fun), res.x, int(res.nit), bool(ok), str(res.message))
+
+    return in_threads(one, starts, workers, lambda count: None)
 
 
-def fit_component(model, xs, y, fixed_noise, rng, comp):
-    """Maximise one component's log marginal likelihood over its hyperparameters.
+def fit_components(model, problems):
+    """Maximise each component's log marginal likelihood over its hyperparameters.
 
-    L-BFGS-B from the data-driven and ``model.n_restarts`` seeded random starts; the best
-    finite start is kept. Warns (``stacklevel`` for a call from ``model.fit``) when the fit
-    did not converge or a hyperparameter sits at its bound.
+    L-BFGS-B from the data-driven and ``model.n_restarts`` seeded random starts of each
+    problem (:func:`pose_component`); the best finite start is kept. The starts of every
+    component are independent optimisations. Where BLAS runs one thread
+    (:func:`~safestab.learning.batched.one_blas_thread`, entered by the caller), they run
+    ``model.n_threads`` at a time in threads (default one per CPU; JAX releases the GIL
+    while the likelihood runs): no start's arithmetic then depends on what runs beside it,
+    so the results do not depend on the count. With a multi-threaded BLAS they run one after
+    the other (two threads in a multi-threaded BLAS could split its work otherwise). Warns
+    (``stacklevel`` for a call from ``model.fit``) when a fit did not converge or a
+    hyperparameter sits at its bound, component by component.
 
     Parameters
     ----------
     model : GaussianProcessModel
-        Its settings ``kernel``, ``mean``, ``jitter``, ``max_iter`` and ``n_restarts``.
+        Its settings ``kernel``, ``mean``, ``jitter``, ``max_iter``, ``n_restarts`` and
+        ``n_threads``.
+    problems : list of dict
+        One :func:`pose_component` per component.
+
+    Returns
+    -------
+    list of dict
+        Per component: ``amplitude``, ``noise`` (effective), ``mean``, ``lengthscale`` (n,) of
+        the standardised inputs, ``lml``, ``start_lmls``, ``nit``, ``converged``, ``message``.
+
+    Raises
+    ------
+    NumericalError
+        If a component's likelihood is not finite at any start.
+    """
+    # the optimisation is a deterministic function of the problem: a run that poses it again
+    # reads the first run's results (_fit_cache.py; off with SAFESTAB_FIT_CACHE=off)
+    found = [
+        None if pr["key"] is None else load(pr["key"], *np.shape(pr["starts"])) for pr in problems
+    ]
+    tasks = [(i, s) for i, pr in enumerate(problems) if found[i] is None for s in pr["starts"]]
+
+    def run(task):
+        i, s = task
+        pr = problems[i]
+        return optimise_starts(pr["fun"], [s], pr["bounds"], pr["lo"], pr["hi"], model.max_iter)[0]
+
+    workers = min(len(tasks), model.n_threads or cpu_count()) if _blas_single_threaded() else 1
+    done = iter(in_threads(run, tasks, workers, lambda count: None))
+    for i, pr in enumerate(problems):
+        if found[i] is None:
+            found[i] = [next(done) for _ in pr["starts"]]
+            if pr["key"] is not None:
+                store(pr["key"], found[i])
+    fits = []
+    for pr, results in zip(problems, found, strict=True):  # a loop: stacklevel counts frames
+        fits.append(_finish(model, pr, results))
+    return fits
+
+
+def _blas_single_threaded() -> bool:
+    """Whether every BLAS library loaded in this process (threadpoolctl's view) runs one thread."""
+    from threadpoolctl import threadpool_info
+
+    pools = [p.get("num_threads") for p in threadpool_info() if p.get("user_api") == "blas"]
+    return bool(pools) and all(n == 1 for n in pools)  # none found: assume several
+
+
+def pose_component(model, xs, y, fixed_noise, rng, comp):
+    """One component's likelihood problem: its starts (drawn from ``rng``), bounds and data.
+
+    Parameters
+    ----------
+    model : GaussianProcessModel
     xs : array of shape (Q, n)
         Standardised inputs.
     y : array of shape (Q,)
     fixed_noise : float or None
         Known noise std; fitted when None.
     rng : numpy.random.Generator
+        Draws the nearest-neighbour noise rows and the random starts, in this order.
     comp : int
         The component's index (for messages).
 
     Returns
     -------
     dict
-        ``amplitude``, ``noise`` (effective), ``mean``, ``lengthscale`` (n,) of the
-        standardised inputs, ``lml``, ``start_lmls``, ``nit``, ``converged``, ``message``.
-
-    Raises
-    ------
-    NumericalError
-        If the likelihood is not finite at any start.
+        What :func:`fit_components` needs (``fun``, ``starts``, ``bounds``, ``key``, ...).
     """
     n = xs.shape[1]
     sd = float(np.std(y))
@@ -235,19 +298,23 @@ def fit_component(model, xs, y, fixed_noise, rng, comp):
         return float(v), np.asarray(g, dtype=float)
 
     starts = [np.clip(s, lo, hi) for s in starts]
-    # the optimisation is a deterministic function of this problem: a run that poses it again
-    # reads the first run's results (_fit_cache.py; off with SAFESTAB_FIT_CACHE=off)
     key = None if fit_cache_dir() is None else problem_key(
         {"kernel": model.kernel, "max_iter": int(model.max_iter), "bounds": repr(bounds),
          "fixed_noise": None if fixed_noise is None else float(fixed_noise).hex(),
          "mean": model.mean, "jitter": float(model.jitter).hex()},
         {"xs": xs, "y": y, "starts": np.stack(starts)},
     )  # fmt: skip
-    results = None if key is None else load(key, len(starts), len(starts[0]))
-    if results is None:
-        results = optimise_starts(fun, starts, bounds, lo, hi, model.max_iter)
-        if key is not None:
-            store(key, results)
+    return {
+        "comp": comp, "n": n, "sd": sd, "fixed_noise": fixed_noise, "fun": fun,
+        "starts": starts, "bounds": bounds, "lo": lo, "hi": hi, "lo_noise": lo_noise,
+        "lo_ls": lo_ls, "key": key,
+    }  # fmt: skip
+
+
+def _finish(model, pr, results):
+    """One component's fit from the results of its starts (see :func:`fit_components`)."""
+    comp, n, fixed_noise, sd = pr["comp"], pr["n"], pr["fixed_noise"], pr["sd"]
+    lo_noise, lo_ls, starts = pr["lo_noise"], pr["lo_ls"], pr["starts"]
     values = np.array([r[0] for r in results])
     finite = np.isfinite(values)
     if not np.any(finite):
@@ -263,14 +330,14 @@ def fit_component(model, xs, y, fixed_noise, rng, comp):
             f"max_iter=0: component {comp} keeps the best of {len(starts)} start values; "
             "the hyperparameters are not fitted",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     elif not converged:
         warnings.warn(
             f"the fit of component {comp} did not converge: L-BFGS-B stopped after {nit} "
             f"iterations ({message}); raise max_iter= or check the data",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     amp, nz, mu, ls = (np.asarray(v) for v in unpack(jnp.asarray(theta), n))
     if fixed_noise is not None:
@@ -281,7 +348,7 @@ def fit_component(model, xs, y, fixed_noise, rng, comp):
             f"{1e-6 * sd:.3g}): the likelihood sees no noise (duplicate rows? an "
             "interpolating fit?); fix noise= from the sensor's specification",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     noise_eff = float(np.sqrt(nz**2 + model.jitter * amp**2))
     # a lengthscale at its lower bound matters only where the signal is not negligible
@@ -293,7 +360,7 @@ def fit_component(model, xs, y, fixed_noise, rng, comp):
             "predicts the prior mean between them (noise=0 or too small on noisy data? too "
             "few rows?); fit the noise or give the sensor's noise",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     return {
         "amplitude": float(amp),

@@ -30,7 +30,7 @@ from ..errors import (
     ParameterError,
 )
 from ._checks import check_fitted, check_seed
-from ._likelihood import fit_component
+from ._likelihood import fit_components, pose_component
 from ._posterior import exact_point, factor, panels, predict_batch
 
 __all__ = [
@@ -93,6 +93,12 @@ class GaussianProcessModel:
         a :class:`~safestab.errors.ConvergenceWarning`).
     n_restarts : int
         Seeded random starts in addition to the :data:`N_DATA_STARTS` data-driven ones.
+    n_threads : int, optional
+        Where BLAS runs one thread
+        (:func:`~safestab.learning.batched.one_blas_thread`; the studies and the Monte Carlo
+        runner fit inside it), how many starts, of all components, :meth:`fit` optimises at
+        once in threads; default one per CPU. The fit does not depend on this count. With a
+        multi-threaded BLAS the starts run one after the other.
 
     Attributes
     ----------
@@ -147,6 +153,7 @@ class GaussianProcessModel:
         jitter: float = DEFAULT_JITTER,
         max_iter: int = 200,
         n_restarts: int = 2,
+        n_threads: int | None = None,
     ) -> None:
         if kernel not in KERNELS:
             raise ParameterError(f"kernel must be one of {KERNELS}, got {kernel!r}")
@@ -158,12 +165,19 @@ class GaussianProcessModel:
         for name, value in (("max_iter", max_iter), ("n_restarts", n_restarts)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
                 raise ParameterError(f"{name} must be an integer >= 0, got {value!r}")
+        if n_threads is not None and (
+            isinstance(n_threads, bool)
+            or not isinstance(n_threads, int | np.integer)
+            or n_threads < 1
+        ):
+            raise ParameterError(f"n_threads must be None or an integer >= 1, got {n_threads!r}")
         self.kernel = kernel
         self.mean = mean
         self.noise = noise
         self.jitter = float(jitter)
         self.max_iter = int(max_iter)
         self.n_restarts = int(n_restarts)
+        self.n_threads = None if n_threads is None else int(n_threads)
 
     # ------------------------------------------------------------------------------ fit
 
@@ -290,10 +304,15 @@ class GaussianProcessModel:
         idx = np.sort(rng.choice(q, n_fit, replace=False)) if n_fit < q else np.arange(q)
         self._warn_about_data(x[idx], y[idx][:, list(comps)], comps)
 
-        fits = []
-        for j, comp in enumerate(comps):
-            fixed = None if noise is None else float(noise[j])
-            fits.append(fit_component(self, xs[idx], y[idx, comp], fixed, rng, comp))
+        # every component's problem first (in order: each draws its starts from rng), then
+        # all their starts in one pool (fit_components)
+        problems = [
+            pose_component(
+                self, xs[idx], y[idx, comp], None if noise is None else float(noise[j]), rng, comp
+            )
+            for j, comp in enumerate(comps)
+        ]
+        fits = fit_components(self, problems)
 
         self.n_states_ = n
         self.components_ = comps

@@ -238,12 +238,14 @@ def solve_qp(Q, z0, G, r, hint=None, dps=60):
         tiny = mp.mpf(10) ** (25 - dps)
 
         # the Gram matrix of every row in the Q^-1 metric and the unconstrained residuals, once
-        GT = mp.matrix([[Gm[i][j] for i in range(n)] for j in range(dim)]) if n else None
-        QiGT = Qi * GT if n else None
-        P = GT.T * QiGT if n else None
+        GT = mp.matrix([[Gm[i][j] for i in range(n)] for j in range(dim)]) if n and dim else None
+        QiGT = Qi * GT if GT is not None else None
+        P = GT.T * QiGT if GT is not None else None
         res0 = [mp.fsum(Gm[i][j] * z0m[j] for j in range(dim)) - rm[i] for i in range(n)]
 
         def attempt(S):
+            if S and not dim:  # rows without columns: zero norms
+                return None
             if S:
                 k = len(S)
                 M = mp.matrix([[P[i, j] for j in S] for i in S])

@@ -50,13 +50,13 @@ STARTS = 4
 def count_optimisations(monkeypatch):
     """One entry per L-BFGS-B run (:data:`STARTS` per component optimised)."""
     calls = []
-    real = likelihood.optimise_starts
+    real = likelihood.optimise_start
 
     def counted(*args, **kwargs):
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(likelihood, "optimise_starts", counted)
+    monkeypatch.setattr(likelihood, "optimise_start", counted)
     return calls
 
 

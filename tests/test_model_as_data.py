@@ -199,3 +199,16 @@ def test_in_threads_keeps_the_order_of_its_items_and_raises_their_errors():
     with pytest.raises(ValueError, match="item 3"):
         in_threads(fail, range(5), 2, lambda count: None)
     assert in_threads(work, [4], 2, counts.append) == [16]  # one item: no threads
+
+    started = []
+
+    def first_fails(k):
+        started.append(k)
+        if k == 0:
+            raise ValueError("item 0")
+        time.sleep(0.2)
+        return k
+
+    with pytest.raises(ValueError, match="item 0"):
+        in_threads(first_fails, range(20), 2, lambda count: None)
+    assert len(started) <= 4  # the items not started when it failed are dropped

@@ -35,7 +35,8 @@ def in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callabl
 
     JAX releases the GIL while it compiles and runs, so independent programs (Monte Carlo
     chunks, a study's closed loops) share the cores. Results come back in the order of
-    ``items``; the first exception raised by ``fn`` is raised here.
+    ``items``; the first exception raised by ``fn`` is raised here, once the items already
+    running have finished (those not started are dropped).
     """
     items = list(items)
     if workers == 1 or len(items) <= 1:
@@ -47,9 +48,14 @@ def in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callabl
     results: list[Any] = [None] * len(items)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
-        for count, fut in enumerate(as_completed(futures), 1):
-            results[futures[fut]] = fut.result()
-            done(count)
+        try:
+            for count, fut in enumerate(as_completed(futures), 1):
+                results[futures[fut]] = fut.result()
+                done(count)
+        except BaseException:  # an error or an interrupt: the items not started are dropped
+            for fut in futures:
+                fut.cancel()
+            raise
     return results
 
 

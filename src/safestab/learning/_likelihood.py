@@ -3,7 +3,8 @@
 :class:`~safestab.learning.GaussianProcessModel` fits each learned component's
 hyperparameters with :func:`pose_component` and :func:`fit_components`: SciPy's L-BFGS-B on
 the likelihood and gradient of :func:`nll_value_and_grad` (unchecked and jittable; the data are
-arguments), from several starts, every component's starts in one pool of threads. The
+arguments), from several starts, every component's starts in one pool of threads where BLAS
+runs one thread (:func:`fit_components`). The
 hyperparameter vector ``theta`` of one component is
 ``[log amplitude, log noise, mean, log lengthscale_1, ..., log lengthscale_n]`` (lengthscales
 of the standardised inputs).
@@ -31,7 +32,7 @@ __all__ = [
     "nll_tinygp",
     "nll_value_and_grad",
     "nn_noise",
-    "optimise_starts",
+    "optimise_start",
     "pose_component",
     "stationary",
     "unpack",
@@ -137,24 +138,22 @@ def nn_noise(xs: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> float:
     return float(np.sqrt(np.median(diff**2) / (2 * 0.4549)))
 
 
-def optimise_starts(fun, starts, bounds, lo, hi, max_iter, workers=1):
-    """L-BFGS-B from each start: ``(value, theta, nit, converged, message)`` per start.
+def optimise_start(fun, start, bounds, lo, hi, max_iter):
+    """L-BFGS-B from one start: ``(value, theta, nit, converged, message)``."""
+    if max_iter == 0:
+        return (fun(start)[0], start, 0, False, "max_iter=0: start values kept")
+    with np.errstate(all="ignore"):  # in the calling thread (NumPy's error state is per thread)
+        res = scipy.optimize.minimize(
+            fun, start, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
+        )
+    ok = res.status == 0 or stationary(res.x, res.jac, lo, hi, res.fun)
+    return (float(res.fun), res.x, int(res.nit), bool(ok), str(res.message))
 
-    ``workers`` starts run at once in threads; the results, in the order of ``starts``, do not
-    depend on it where BLAS has one thread (see :func:`fit_components`).
-    """
 
-    def one(s):
-        if max_iter == 0:
-            return (fun(s)[0], s, 0, False, "max_iter=0: start values kept")
-        with np.errstate(all="ignore"):
-            res = scipy.optimize.minimize(
-                fun, s, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
-            )
-        ok = res.status == 0 or stationary(res.x, res.jac, lo, hi, res.fun)
-        return (float(res.fun), res.x, int(res.nit), bool(ok), str(res.message))
-
-    return in_threads(one, starts, workers, lambda count: None)
+#: Starts run at once only while their working arrays together stay under this many bytes
+#: (about ``8 Q^2 (n + 6)`` each: the (Q, Q, n) differences and a few Q x Q matrices), so
+#: that a fit on many rows keeps the peak memory of one start.
+THREADS_MEMORY = 2 * 2**30
 
 
 def fit_components(model, problems):
@@ -167,7 +166,8 @@ def fit_components(model, problems):
     ``model.n_threads`` at a time in threads (default one per CPU; JAX releases the GIL
     while the likelihood runs): no start's arithmetic then depends on what runs beside it,
     so the results do not depend on the count. With a multi-threaded BLAS they run one after
-    the other (two threads in a multi-threaded BLAS could split its work otherwise). Warns
+    the other (two threads in a multi-threaded BLAS could split its work otherwise), and so
+    they do where their working arrays together would exceed :data:`THREADS_MEMORY`. Warns
     (``stacklevel`` for a call from ``model.fit``) when a fit did not converge or a
     hyperparameter sits at its bound, component by component.
 
@@ -200,9 +200,12 @@ def fit_components(model, problems):
     def run(task):
         i, s = task
         pr = problems[i]
-        return optimise_starts(pr["fun"], [s], pr["bounds"], pr["lo"], pr["hi"], model.max_iter)[0]
+        return optimise_start(pr["fun"], s, pr["bounds"], pr["lo"], pr["hi"], model.max_iter)
 
     workers = min(len(tasks), model.n_threads or cpu_count()) if _blas_single_threaded() else 1
+    if tasks:
+        per_start = max(8 * pr["q"] ** 2 * (pr["n"] + 6) for pr in problems)
+        workers = max(1, min(workers, THREADS_MEMORY // per_start))
     done = iter(in_threads(run, tasks, workers, lambda count: None))
     for i, pr in enumerate(problems):
         if found[i] is None:
@@ -305,7 +308,7 @@ def pose_component(model, xs, y, fixed_noise, rng, comp):
         {"xs": xs, "y": y, "starts": np.stack(starts)},
     )  # fmt: skip
     return {
-        "comp": comp, "n": n, "sd": sd, "fixed_noise": fixed_noise, "fun": fun,
+        "comp": comp, "n": n, "q": xs.shape[0], "sd": sd, "fixed_noise": fixed_noise, "fun": fun,
         "starts": starts, "bounds": bounds, "lo": lo, "hi": hi, "lo_noise": lo_noise,
         "lo_ls": lo_ls, "key": key,
     }  # fmt: skip

@@ -202,10 +202,12 @@ def fit_components(model, problems):
         pr = problems[i]
         return optimise_start(pr["fun"], s, pr["bounds"], pr["lo"], pr["hi"], model.max_iter)
 
-    workers = min(len(tasks), model.n_threads or cpu_count()) if _blas_single_threaded() else 1
-    if tasks:
+    workers = 1  # one after the other: all read from the cache, or a multi-threaded BLAS
+    if tasks and _blas_single_threaded():
         per_start = max(8 * pr["q"] ** 2 * (pr["n"] + 6) for pr in problems)
-        workers = max(1, min(workers, THREADS_MEMORY // per_start))
+        workers = max(
+            1, min(len(tasks), model.n_threads or cpu_count(), THREADS_MEMORY // per_start)
+        )
     done = iter(in_threads(run, tasks, workers, lambda count: None))
     for i, pr in enumerate(problems):
         if found[i] is None:

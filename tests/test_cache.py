@@ -127,3 +127,60 @@ def test_pruning_counts_a_program_another_process_removed_first(tmp_path, monkey
         "k2-cache",
         "k3-cache",
     ]
+
+
+def test_programs_are_written_whole_then_renamed_into_place(tmp_path, monkeypatch):
+    """A reader in another process finds a program whole or not at all."""
+    from pathlib import Path
+
+    from jax._src.lru_cache import LRUCache
+
+    from safestab._cache import install_atomic_writes
+
+    assert install_atomic_writes() and install_atomic_writes()  # on since import; idempotent
+    cache = LRUCache(str(tmp_path), max_size=-1)
+    renames = []
+    real_replace = os.replace
+
+    def replace(src, dst):
+        # at the rename the final name does not exist yet and the whole value is written
+        assert not Path(dst).exists() and Path(src).read_bytes() == b"program bytes"
+        renames.append((Path(src).name, Path(dst).name))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    cache.put("k1", b"program bytes")
+    ((src, dst),) = renames
+    assert src.startswith(".k1.") and src.endswith("-writing") and dst == "k1-cache"
+    assert cache.get("k1") == b"program bytes"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k1-cache"]
+    cache.put("k1", b"other bytes")  # as JAX: a stored entry is kept
+    assert cache.get("k1") == b"program bytes" and len(renames) == 1
+
+    # a failed write leaves neither the program nor its temporary file
+    def full_disk(self, data):
+        with Path.open(self, "wb") as fh:
+            fh.write(data[:3])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    try:
+        cache.put("k2", b"program bytes")
+    except OSError:
+        pass
+    else:
+        raise AssertionError("the write error was swallowed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k1-cache"]
+
+
+def test_pruning_removes_writes_left_by_a_dead_process(tmp_path):
+    from safestab._cache import STALE_WRITE_SECONDS, prune_compilation_cache
+
+    old, new = tmp_path / ".a.1.ff-writing", tmp_path / ".b.2.ee-writing"
+    for f in (old, new):
+        f.write_bytes(b"half")
+    long_ago = os.path.getmtime(new) - STALE_WRITE_SECONDS - 60
+    os.utime(old, (long_ago, long_ago))
+    (tmp_path / "k-cache").write_bytes(b"x")
+    assert prune_compilation_cache(tmp_path) == 0  # no program removed
+    assert sorted(p.name for p in tmp_path.iterdir()) == [new.name, "k-cache"]

@@ -19,6 +19,12 @@ most about :data:`MAX_BYTES`: when the import finds it larger, the least recentl
 programs go first (:func:`prune_compilation_cache`). It is safe to delete at any time (the
 next run compiles again), and nothing else reads it.
 
+Several processes may share the folder (``safestab run`` runs studies of different kinds in
+parallel processes, Ray workers on one machine): JAX writes a program in place, so another
+process could read it half written (JAX then warns and compiles again) or two could write
+one at once. safestab writes each program to a temporary file and renames it into place
+(:func:`install_atomic_writes`), so a reader finds a program whole or not at all.
+
 JAX's own size limit (``jax_compilation_cache_max_size``) is not used: with it set, JAX lists
 and reads the whole folder, under a file lock, before every program it writes, which costs
 0.16 s per program with 6,400 programs stored (20 new programs in 3.7 s against 0.56 s
@@ -28,6 +34,8 @@ without the limit; 2 CPUs, 2026-11-27), so a first run slowed as the folder grew
 from __future__ import annotations
 
 import os
+import time
+import uuid
 from pathlib import Path
 
 import jax
@@ -40,6 +48,7 @@ __all__ = [
     "default_cache_dir",
     "disable_compilation_cache",
     "enable_compilation_cache",
+    "install_atomic_writes",
     "prune_compilation_cache",
 ]
 
@@ -57,6 +66,10 @@ PRUNE_TO = 0.8
 #: JAX's names of a stored program and of its access-time record (written only under JAX's
 #: own size limit, as safestab set it before 2026-11-27).
 _PROGRAM, _ATIME = "-cache", "-atime"
+#: Suffix of a program being written (:func:`install_atomic_writes`); pruning removes those
+#: older than :data:`STALE_WRITE_SECONDS` (a process that died while writing).
+_WRITING = "-writing"
+STALE_WRITE_SECONDS = 3600.0
 #: Values of a cache's environment variable that turn it off (lower case; also the fit cache's).
 OFF_VALUES = frozenset({"0", "off", "no", "false", "none"})
 
@@ -90,8 +103,54 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", -1)  # no scan per write: see above
     jax.config.update("jax_enable_compilation_cache", True)
+    install_atomic_writes()
     prune_compilation_cache(folder)
     return folder
+
+
+def install_atomic_writes() -> bool:
+    """Make JAX write each stored program whole: to a temporary file, then renamed.
+
+    Applies to JAX's file cache without a size limit on a local folder (as safestab sets it);
+    otherwise JAX's own write runs. Idempotent.
+
+    Returns
+    -------
+    bool
+        Whether the writes are atomic now (False if this JAX has no such cache class).
+    """
+    try:
+        from jax._src import lru_cache
+    except ImportError:  # pragma: no cover - another JAX layout: JAX's own writes stay
+        return False
+    cls = getattr(lru_cache, "LRUCache", None)
+    local = getattr(lru_cache, "_is_local_filesystem", None)
+    if cls is None or local is None or not hasattr(cls, "put"):
+        return False  # pragma: no cover
+    if getattr(cls.put, "_safestab_atomic", False):
+        return True
+    original = cls.put
+
+    def put(self: object, key: str, value: bytes) -> None:
+        path = getattr(self, "path", None)
+        if getattr(self, "eviction_enabled", True) or path is None or not local(str(path)):
+            return original(self, key, value)
+        if not key:
+            raise ValueError("key cannot be empty")
+        final = Path(str(path)) / f"{key}{_PROGRAM}"
+        if final.exists():  # as JAX: an entry, once written, is kept
+            return None
+        temporary = final.with_name(f".{key}.{os.getpid()}.{uuid.uuid4().hex}{_WRITING}")
+        try:
+            temporary.write_bytes(value)
+            os.replace(temporary, final)
+        finally:
+            temporary.unlink(missing_ok=True)  # only if the rename did not happen
+        return None
+
+    put._safestab_atomic = True  # type: ignore[attr-defined]
+    cls.put = put
+    return True
 
 
 def prune_compilation_cache(folder: str | Path, max_bytes: int = MAX_BYTES) -> int:
@@ -110,9 +169,17 @@ def prune_compilation_cache(folder: str | Path, max_bytes: int = MAX_BYTES) -> i
     folder = Path(folder)
     found: list[tuple[float, str, int]] = []
     total = 0
+    stale = time.time() - STALE_WRITE_SECONDS
     try:
         with os.scandir(folder) as entries:
             for entry in entries:
+                if entry.name.endswith(_WRITING):  # left by a process that died writing it
+                    try:
+                        if entry.stat(follow_symlinks=False).st_mtime < stale:
+                            os.unlink(entry.path)
+                    except OSError:
+                        pass
+                    continue
                 if not entry.name.endswith(_PROGRAM):
                     continue
                 try:
@@ -170,5 +237,6 @@ def configure_from_environment() -> Path | None:
         disable_compilation_cache()
         return None
     if jax.config.jax_compilation_cache_dir:  # the user's own choice
+        install_atomic_writes()
         return compilation_cache_dir()
     return enable_compilation_cache(value or None)

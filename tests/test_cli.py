@@ -366,3 +366,138 @@ def test_run_takes_several_scenarios_in_order_and_checks_all_before_any_work(stu
     assert res.exit_code == 2  # bad input
     assert "no-such" in res.stderr
     assert study.calls == [] and not list(bad.glob("*"))
+
+
+# -- studies of different kinds in several processes (--jobs) ---------------------------
+
+
+def test_lanes_keep_each_kind_in_one_process_in_order():
+    from safestab import cli
+
+    names = ["paper", "obstacle", "stress", "swarm", "stress-ood"]
+    kinds = ["acc", "obstacle", "acc", "swarm", "acc"]
+    assert cli._lanes(names, kinds, 1) == [names]
+    assert cli._lanes(names, kinds, 2) == [["paper", "stress", "swarm", "stress-ood"], ["obstacle"]]
+    assert cli._lanes(names, kinds, 3) == [["paper", "stress", "stress-ood"], ["obstacle"],
+                                           ["swarm"]]  # fmt: skip
+    assert cli._lanes(names, kinds, 8) == cli._lanes(names, kinds, 3)  # one per kind at most
+    assert cli._lanes(["paper", "stress"], ["acc", "acc"], None) == [["paper", "stress"]]
+
+
+def _fake_lane(monkeypatch, script):
+    """Make the other processes run ``python -c script`` (given the real command line)."""
+    import sys
+
+    from safestab import cli
+
+    seen, real = [], cli._lane_command
+
+    def command(names, options):
+        seen.append(real(names, options))
+        return [sys.executable, "-c", script, *seen[-1]]
+
+    monkeypatch.setattr(cli, "_lane_command", command)
+    return seen
+
+
+def test_jobs_run_other_kinds_in_another_process_and_print_their_output(
+    study, tmp_path, monkeypatch
+):
+    from safestab.cli import app
+
+    script = (
+        "import os, sys; print('other process:', ' '.join(sys.argv[1:]));"
+        "print('cache', os.environ['SAFESTAB_COMPILATION_CACHE'], "
+        "os.environ['SAFESTAB_FIT_CACHE']); print('a warning', file=sys.stderr)"
+    )
+    seen = _fake_lane(monkeypatch, script)
+    out = tmp_path / "o"
+    args = ["run", "--scenario", "stress", "--scenario", "swarm", "--seed", "3",
+            "--t-final", "2.5", "--out", str(out), "--jobs", "2"]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert [sc.name for sc in study.calls] == ["stress"]  # this process: the ACC kind
+    assert (out / "acc_stress_metrics.json").is_file()
+    (cmd,) = seen
+    assert cmd[1:5] == ["-m", "safestab.cli", "run", "--scenario"] and cmd[5] == "swarm"
+    assert cmd[6:] == ["--out", str(out), "--jobs", "1", "--seed", "3", "--t-final", "2.5"]
+    assert "running swarm in another process" in res.stdout
+    assert "other process: " + " ".join(cmd) in res.stdout
+    # the process's caches are passed on (the fit cache is off in the tests)
+    from safestab._cache import compilation_cache_dir
+
+    assert f"cache {compilation_cache_dir()} off" in res.stdout
+    assert "a warning" in res.stderr
+
+
+def test_a_failure_in_another_process_fails_the_command_after_this_ones_studies(
+    study, tmp_path, monkeypatch
+):
+    from safestab.cli import app
+
+    _fake_lane(monkeypatch, "import sys; print('error: StudyError: boom', file=sys.stderr); "
+               "sys.exit(1)")  # fmt: skip
+    out = tmp_path / "o"
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "swarm", "--jobs", "2", "--out", str(out)],
+    )
+    assert res.exit_code == 1
+    assert "error: StudyError: boom" in res.stderr
+    assert (out / "acc_stress_metrics.json").is_file()  # this process's study finished
+    # a failure here: the other process still finishes, and its output is printed
+    _fake_lane(monkeypatch, "print('the other one finished')")
+    study.state["error"] = NumericalError("Cholesky failed")
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "swarm", "--jobs", "2", "--out", str(out)],
+    )
+    assert res.exit_code == 1
+    assert "the other one finished" in res.stdout
+    assert "error: NumericalError: Cholesky failed" in res.stderr
+    # a process ended by a signal is a failure too, named
+    _fake_lane(monkeypatch, "import os, signal; os.kill(os.getpid(), signal.SIGKILL)")
+    study.state["error"] = None
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "swarm", "--jobs", "2", "--out", str(out)],
+    )
+    assert res.exit_code == 1
+    assert "the process running swarm ended by signal 9" in res.stderr
+
+
+def test_another_process_computes_what_this_one_does(study, tmp_path):
+    """A real second process (a small swarm) writes the metrics that a run here writes."""
+    from importlib.resources import files
+
+    from safestab.cli import app
+
+    text = (files("safestab.scenarios") / "swarm.toml").read_text()
+    for old, new in (('name = "swarm"', 'name = "small"'), ("n_robots = 12", "n_robots = 4"),
+                     ("arena_radius = 4.0", "arena_radius = 2.0"),
+                     ("t_final = 16.0", "t_final = 0.5")):  # fmt: skip
+        assert old in text
+        text = text.replace(old, new)
+    small = tmp_path / "small.toml"
+    small.write_text(text)
+    here, there = tmp_path / "here", tmp_path / "there"
+    res = CliRunner().invoke(app, ["run", "--scenario", str(small), "--out", str(here)])
+    assert res.exit_code == 0, res.output
+    # the ACC study (a stub) here, the swarm in a real second process
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", str(small), "--jobs", "2", "--out",
+         str(there)],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "running " + str(small) + " in another process" in res.stdout
+    assert "Swarm" in res.stdout or "swarm" in res.stdout
+
+    def metrics(folder):
+        doc = json.loads((folder / "swarm_small_metrics.json").read_text())
+        doc.pop("timings_s", None)
+        return doc
+
+    assert metrics(there) == metrics(here)
+    record = json.loads((there / "swarm_small_run.json").read_text())
+    assert record["command"].endswith(f"--scenario {small} --out {there} --jobs 1")

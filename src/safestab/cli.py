@@ -216,6 +216,14 @@ def run(
         help="Override a scenario key, TABLE.KEY=VALUE (a TOML value), checked like the "
         "file; repeatable, e.g. --set starts.n_x1=3.",
     ),
+    jobs: int | None = typer.Option(
+        None,
+        "--jobs",
+        min=1,
+        help="Processes that run studies at once (default: one per CPU, at most one per "
+        "kind). The studies of one kind always share a process and run in the order given; "
+        "1 runs every study in this process, one after another.",
+    ),
     debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
 ) -> None:
     """Run any scenario's study through the study pipeline, by its kind (ACC, obstacle, swarm).
@@ -223,9 +231,13 @@ def run(
     Writes OUT/<kind>_<name>.png, .pdf (the obstacle also _maps.png, .pdf), _metrics.json and
     _run.json (the record of the run), all or none per scenario. The swarm learns nothing:
     --n-samples is refused for it, and --seed seeds its start jitter. With several
-    --scenario, every scenario and override is checked before any work, the options apply
-    to each, and the studies run in the order given (a failed one stops the command; the
-    outputs of those before it are kept).
+    --scenario, every scenario and override is checked before any work and the options apply
+    to each. The studies of one kind run in one process, in the order given (they share
+    compiled programs; a failed one stops those after it, whose outputs are not written; the
+    outputs of those before it are kept). Studies of different kinds run in up to --jobs
+    processes at once: this one shows its progress, the others print their summaries when
+    they end; the command exits non-zero if any study failed. The results do not depend on
+    --jobs (each study computes alone, whichever process runs it).
     """
     import matplotlib
 
@@ -244,8 +256,105 @@ def run(
         return scenarios, ensure_writable_dir(out, name="--out")
 
     scenarios, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    for sc in scenarios:
-        _study_outputs(sc, out_dir, debug)
+    lanes = _lanes(scenario, [kinds.study_of(sc).kind for sc in scenarios], jobs)
+    options = _run_options(out_dir, seed, n_samples, t_final, set_, debug)
+    children: list[_Lane] = []
+    first_failure = None
+    try:
+        children += [_start_lane(names, options) for names in lanes[1:]]
+        try:
+            for name, sc in zip(scenario, scenarios, strict=True):
+                if name in lanes[0]:
+                    _study_outputs(sc, out_dir, debug)
+        except typer.Exit as exc:  # the other processes still finish their studies
+            first_failure = exc.exit_code
+        codes = [_finish_lane(child) for child in children]
+    except BaseException:  # interrupted: stop the other processes too
+        for child in children:
+            child.process.kill()
+            child.process.wait()
+        raise
+    failed = [code for code in [first_failure, *codes] if code]
+    if failed:
+        raise typer.Exit(code=failed[0])
+
+
+def _lanes(names: list[str], kinds: list[str], jobs: int | None) -> list[list[str]]:
+    """The scenarios of each process, this one's first, each in the order given.
+
+    The kinds, in order of first appearance, are dealt round-robin to ``min(kinds, jobs)``
+    processes (``jobs`` default: the CPUs).
+    """
+    from ._batching import cpu_count
+
+    order = list(dict.fromkeys(kinds))
+    n = max(1, min(len(order), jobs if jobs is not None else cpu_count()))
+    lane_of = {kind: i % n for i, kind in enumerate(order)}
+    return [
+        [name for name, kind in zip(names, kinds, strict=True) if lane_of[kind] == i]
+        for i in range(n)
+    ]
+
+
+def _run_options(out_dir, seed, n_samples, t_final, set_, debug) -> list[str]:
+    """The options of ``safestab run`` that a process running some of its scenarios takes."""
+    options = ["--out", str(out_dir), "--jobs", "1"]
+    for flag, value in (("--seed", seed), ("--n-samples", n_samples), ("--t-final", t_final)):
+        if value is not None:
+            options += [flag, repr(value)]
+    for text in set_:
+        options += ["--set", text]
+    return options + (["--debug"] if debug else [])
+
+
+class _Lane:
+    """A process running some scenarios (``safestab run ... --jobs 1``), its output in files."""
+
+    def __init__(self, names: list[str], process: Any, stdout: Any, stderr: Any) -> None:
+        self.names, self.process, self.stdout, self.stderr = names, process, stdout, stderr
+
+
+def _lane_command(names: list[str], options: list[str]) -> list[str]:
+    """The command line of a process that runs ``names`` (a separate function: tests swap it)."""
+    import sys
+
+    scenarios = [arg for name in names for arg in ("--scenario", name)]
+    return [sys.executable, "-m", "safestab.cli", "run", *scenarios, *options]
+
+
+def _start_lane(names: list[str], options: list[str]) -> _Lane:
+    """Start a process for ``names``, with this process's caches (or none) and environment."""
+    import os
+    import subprocess
+    import tempfile
+
+    from ._cache import ENV_VAR, compilation_cache_dir
+    from .learning._fit_cache import FIT_ENV_VAR, fit_cache_dir
+
+    env = dict(os.environ)
+    for var, folder in ((ENV_VAR, compilation_cache_dir()), (FIT_ENV_VAR, fit_cache_dir())):
+        env[var] = "off" if folder is None else str(folder)
+    typer.echo(f"running {', '.join(names)} in another process: its output follows when it ends")
+    stdout, stderr = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+    process = subprocess.Popen(_lane_command(names, options), stdout=stdout, stderr=stderr, env=env)
+    return _Lane(names, process, stdout, stderr)
+
+
+def _finish_lane(lane: _Lane) -> int:
+    """Wait for a lane's process, print its output; its exit code."""
+    code = lane.process.wait()
+    for fh, err in ((lane.stdout, False), (lane.stderr, True)):
+        fh.seek(0)
+        text = fh.read().decode(errors="replace")
+        fh.close()
+        if text:
+            typer.echo(text, nl=not text.endswith("\n"), err=err)
+    if code < 0:  # ended by a signal: no line of its own says so
+        typer.echo(
+            f"error: the process running {', '.join(lane.names)} ended by signal {-code}", err=True
+        )
+        return EXIT_RUN_FAILED
+    return code
 
 
 @app.command("export")

@@ -212,6 +212,62 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 
+def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
+    """Phases 1 and 2 (hard CLFs) with one instance of the solver, in a loop of one or two.
+
+    Both phases solve problems of the same shapes (phase 2 leaves the CLF rows out by
+    ``use``): one instance of the solver in a loop compiles once instead of twice (the
+    solver is most of a filter's program and of its compilation time). The second pass runs
+    only if some problem of the batch needs it, and only for those (the others' solver stops
+    at once); each pass computes exactly what the phase computed on its own.
+    Returns ``(full, u1, chi1, ok1, safe, u2, ok2)`` over the flattened batch.
+    """
+    flat, (p, m) = b.shape[0], b.shape[-2:]
+    n_rows = pr.r.shape[-1]
+    batched = flat != 1
+    rows = jnp.arange(n_rows)
+
+    def solve(pr, use, run):
+        return solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0), batched)
+
+    solve_all = _map(solve, flat)
+
+    def solve_pass(phase, carry):
+        first, second = carry
+        use = jnp.broadcast_to((rows >= p) | (phase == 0), (flat, n_rows))
+        run = (phase == 0) | (first.status == INFEASIBLE)
+        sol = solve_all(pr, use, run)
+        tree_where = lambda keep, old: jax.tree_util.tree_map(  # noqa: E731
+            lambda x, y: jnp.where(keep, y, x), old, sol
+        )
+        return tree_where(phase == 0, first), tree_where(phase == 1, second)
+
+    def body(phase, carry):
+        # the second pass only if some problem needs it (a batch-level cond, as before)
+        needed = (phase == 0) | jnp.any(carry[0].status == INFEASIBLE)
+        return jax.lax.cond(needed, solve_pass, lambda _, carry: carry, phase, carry)
+
+    empty = jax.eval_shape(solve_all, pr, jnp.ones((flat, n_rows), bool), jnp.ones(flat, bool))
+    zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), empty)
+    # a loop of a fixed count: reverse-mode differentiable (a while loop is not)
+    full, safe = jax.lax.fori_loop(0, 2, body, (zeros, zeros))
+    ran2 = jnp.any(full.status == INFEASIBLE)
+
+    def finish(pr, b, d, lo, hi, full, safe):
+        u1 = _input(pr, full.w, m, lo, hi)
+        ok1 = full.certified & _conditions_hold(pr, b, d, u1, jnp.zeros(p), True)
+        u2 = _input(pr, safe.w, m, lo, hi)
+        ok2 = safe.certified & _conditions_hold(pr, b, d, u2, jnp.zeros(p), False)
+        return u1, ok1, u2, ok2
+
+    u1, ok1, u2, ok2 = _map(finish, flat)(pr, b, d, lo, hi, full, safe)
+    # as the separate phases: without a second pass, its results are phase 1's
+    safe = jax.tree_util.tree_map(lambda x, y: jnp.where(ran2, x, y), safe, full)
+    u2 = jnp.where(ran2, u2, u1)
+    ok2 = jnp.where(ran2, ok2, False)
+    return full, u1, jnp.zeros((flat, p)), ok1, safe, u2, ok2
+
+
 #: Problems of a batch solved together by the last-resort phase, at most. Its coordinates
 #: include a slack per CBF, so its rows and factors take ``(rows + m + k)(m + k)`` numbers per
 #: problem: the problems that need it are gathered into chunks of at most this many, and of
@@ -306,28 +362,22 @@ def multi_kernel(
     params = [bc(v, ()) for v in (kappa, rho, phi, varphi)]
     sw, lo, hi = bc(inv_sqrt_slack, (p,)), bc(lo, (m,)), bc(hi, (m,))
     pr = _map(_setup, flat)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
-    full, u1, chi1, ok1 = _map(
-        lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter, flat != 1),
-        flat,
-    )(pr, b, d, sw, lo, hi)
-    infeasible = full.status == INFEASIBLE
     # phase 2 drops hard CLFs: known before any data (no CLF, or soft ones, leave none to drop)
     hard_clfs = p > 0 and inv_sqrt_slack is None
-    need2 = infeasible & hard_clfs
-
-    def phase2(_):
-        return _map(
-            lambda pr, b, d, lo, hi, run: _phase_no_clf(pr, b, d, lo, hi, run, max_iter, flat != 1),
-            flat,
-        )(pr, b, d, lo, hi, need2)
-
-    skipped2 = (full, u1, jnp.zeros(flat, bool))
     if hard_clfs:
-        safe, u2, ok2 = jax.lax.cond(jnp.any(need2), phase2, lambda _: skipped2, None)
+        full, u1, chi1, ok1, safe, u2, ok2 = _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter)
+        infeasible = full.status == INFEASIBLE
+        need2 = infeasible
     else:
+        full, u1, chi1, ok1 = _map(
+            lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter, flat != 1),
+            flat,
+        )(pr, b, d, sw, lo, hi)
+        infeasible = full.status == INFEASIBLE
         # phase 2 can never run: it is not traced nor compiled (it was a third of a soft-CLF
         # filter's program, and of its compilation time)
-        safe, u2, ok2 = skipped2
+        need2 = jnp.zeros(flat, bool)
+        safe, u2, ok2 = full, u1, jnp.zeros(flat, bool)
     need3 = infeasible & ~(need2 & (safe.status != INFEASIBLE))
 
     skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))

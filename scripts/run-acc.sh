@@ -5,8 +5,8 @@
 # Extra arguments go to every run, e.g. --seed 3.
 source "$(dirname "$0")/_venv.sh" test
 # one command for the three learning studies: the two ACC studies share a process (it
-# imports once and traces the programs they share once), the obstacle study runs in a second
-# process beside it (--jobs, default one per CPU)
+# imports once and traces the programs they share once); with two CPUs or more the obstacle
+# study runs in a second process beside it (--jobs, default one per CPU)
 .venv/bin/safestab run --scenario paper --scenario stress --scenario obstacle --out results "$@"
 # the swarm learns nothing (no --n-samples) and its file has other keys (no --set): it takes
 # --seed and --t-final of the extra arguments

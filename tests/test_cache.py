@@ -137,7 +137,9 @@ def test_programs_are_written_whole_then_renamed_into_place(tmp_path, monkeypatc
 
     from safestab._cache import install_atomic_writes
 
-    assert install_atomic_writes() and install_atomic_writes()  # on since import; idempotent
+    assert install_atomic_writes()  # on since the import
+    wrapped = LRUCache.put
+    assert install_atomic_writes() and LRUCache.put is wrapped  # idempotent: not wrapped twice
     cache = LRUCache(str(tmp_path), max_size=-1)
     renames = []
     real_replace = os.replace
@@ -151,7 +153,7 @@ def test_programs_are_written_whole_then_renamed_into_place(tmp_path, monkeypatc
     monkeypatch.setattr(os, "replace", replace)
     cache.put("k1", b"program bytes")
     ((src, dst),) = renames
-    assert src.startswith(".k1.") and src.endswith("-writing") and dst == "k1-cache"
+    assert src.startswith(".") and src.endswith("-writing") and dst == "k1-cache"
     assert cache.get("k1") == b"program bytes"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["k1-cache"]
     cache.put("k1", b"other bytes")  # as JAX: a stored entry is kept

@@ -376,12 +376,39 @@ def test_lanes_keep_each_kind_in_one_process_in_order():
 
     names = ["paper", "obstacle", "stress", "swarm", "stress-ood"]
     kinds = ["acc", "obstacle", "acc", "swarm", "acc"]
-    assert cli._lanes(names, kinds, 1) == [names]
-    assert cli._lanes(names, kinds, 2) == [["paper", "stress", "swarm", "stress-ood"], ["obstacle"]]
-    assert cli._lanes(names, kinds, 3) == [["paper", "stress", "stress-ood"], ["obstacle"],
+    assert cli.plan_lanes(names, kinds, 1) == [names]
+    assert cli.plan_lanes(names, kinds, 2) == [
+        ["paper", "stress", "swarm", "stress-ood"],
+        ["obstacle"],
+    ]
+    assert cli.plan_lanes(names, kinds, 3) == [["paper", "stress", "stress-ood"], ["obstacle"],
                                            ["swarm"]]  # fmt: skip
-    assert cli._lanes(names, kinds, 8) == cli._lanes(names, kinds, 3)  # one per kind at most
-    assert cli._lanes(["paper", "stress"], ["acc", "acc"], None) == [["paper", "stress"]]
+    assert cli.plan_lanes(names, kinds, 8) == cli.plan_lanes(
+        names, kinds, 3
+    )  # one per kind at most
+    assert cli.plan_lanes(["paper", "stress"], ["acc", "acc"], None) == [["paper", "stress"]]
+
+
+def test_lanes_default_to_one_process_per_cpu():
+    from safestab import cli
+
+    names, kinds = ["paper", "obstacle", "swarm"], ["acc", "obstacle", "swarm"]
+    assert cli.plan_lanes(names, kinds, None, cpus=1) == [names]
+    assert cli.plan_lanes(names, kinds, None, cpus=2) == [["paper", "swarm"], ["obstacle"]]
+    assert cli.plan_lanes(names, kinds, 1, cpus=2) == [names]  # --jobs wins
+
+
+def test_other_processes_get_this_ones_caches_whatever_set_them(tmp_path):
+    from safestab import cli
+
+    environ = {"SAFESTAB_COMPILATION_CACHE": "/elsewhere", "PATH": "/bin"}
+    env = cli.lane_environment(environ, None, tmp_path / "fits")  # --no-compilation-cache
+    assert env["SAFESTAB_COMPILATION_CACHE"] == "off"
+    assert env["SAFESTAB_FIT_CACHE"] == str(tmp_path / "fits") and env["PATH"] == "/bin"
+    env = cli.lane_environment(environ, tmp_path / "jax", None)  # --no-fit-cache
+    assert env["SAFESTAB_COMPILATION_CACHE"] == str(tmp_path / "jax")
+    assert env["SAFESTAB_FIT_CACHE"] == "off"
+    assert environ == {"SAFESTAB_COMPILATION_CACHE": "/elsewhere", "PATH": "/bin"}
 
 
 def _fake_lane(monkeypatch, script):
@@ -390,13 +417,13 @@ def _fake_lane(monkeypatch, script):
 
     from safestab import cli
 
-    seen, real = [], cli._lane_command
+    seen, real = [], cli.lane_command
 
     def command(names, options):
         seen.append(real(names, options))
         return [sys.executable, "-c", script, *seen[-1]]
 
-    monkeypatch.setattr(cli, "_lane_command", command)
+    monkeypatch.setattr(cli, "lane_command", command)
     return seen
 
 
@@ -428,6 +455,12 @@ def test_jobs_run_other_kinds_in_another_process_and_print_their_output(
 
     assert f"cache {compilation_cache_dir()} off" in res.stdout
     assert "a warning" in res.stderr
+    # --debug and --set go along; a bad --set is refused here, before any process starts
+    res = CliRunner().invoke(app, [*args[:-2], "--debug", "--set", "x.y=1", "--jobs", "2"])
+    assert res.exit_code == 2 and len(seen) == 1
+    res = CliRunner().invoke(app, [*args[:-2], "--debug", "--jobs", "2"])
+    assert res.exit_code == 0, res.output
+    assert seen[-1][-1] == "--debug"
 
 
 def test_a_failure_in_another_process_fails_the_command_after_this_ones_studies(
@@ -466,6 +499,38 @@ def test_a_failure_in_another_process_fails_the_command_after_this_ones_studies(
     assert "the process running swarm ended by signal 9" in res.stderr
 
 
+def test_a_process_that_cannot_start_stops_those_already_started(study, tmp_path, monkeypatch):
+    import sys
+
+    from safestab import cli
+    from safestab.cli import app
+
+    def command(names, options):
+        if names == ["swarm"]:
+            return [sys.executable, "-c", "import time; time.sleep(60)"]
+        return [str(tmp_path / "no-such-program")]  # the second process cannot start
+
+    started, real_start = [], cli.start_lane
+
+    def start(names, options):
+        started.append(real_start(names, options))
+        return started[-1]
+
+    monkeypatch.setattr(cli, "lane_command", command)
+    monkeypatch.setattr(cli, "start_lane", start)
+    monkeypatch.setattr(cli.Lane, "STOP_SECONDS", 5.0)
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "swarm", "--scenario", "obstacle",
+         "--jobs", "3", "--out", str(tmp_path / "o")],
+    )  # fmt: skip
+    assert isinstance(res.exception, FileNotFoundError)
+    assert study.calls == []  # no study started here
+    # the first process was started, then stopped and waited for (not left running)
+    (lane,) = started
+    assert lane.process.returncode is not None and lane.stdout.closed
+
+
 def test_another_process_computes_what_this_one_does(study, tmp_path):
     """A real second process (a small swarm) writes the metrics that a run here writes."""
     from importlib.resources import files
@@ -491,7 +556,7 @@ def test_another_process_computes_what_this_one_does(study, tmp_path):
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "running " + str(small) + " in another process" in res.stdout
-    assert "Swarm" in res.stdout or "swarm" in res.stdout
+    assert "swarm 'small' (4 robots, 6 pair barriers)" in res.stdout  # the other's summary
 
     def metrics(folder):
         doc = json.loads((folder / "swarm_small_metrics.json").read_text())

@@ -112,7 +112,9 @@ def install_atomic_writes() -> bool:
     """Make JAX write each stored program whole: to a temporary file, then renamed.
 
     Applies to JAX's file cache without a size limit on a local folder (as safestab sets it);
-    otherwise JAX's own write runs. Idempotent.
+    otherwise JAX's own write runs. Idempotent. The temporary file is not synced to disk
+    before the rename: after a crash of the machine a program may be cut short, which JAX
+    reports with a warning and compiles again.
 
     Returns
     -------
@@ -133,14 +135,16 @@ def install_atomic_writes() -> bool:
 
     def put(self: object, key: str, value: bytes) -> None:
         path = getattr(self, "path", None)
-        if getattr(self, "eviction_enabled", True) or path is None or not local(str(path)):
+        plain = path is not None and local(str(path)) and "://" not in str(path)
+        if getattr(self, "eviction_enabled", True) or not plain:
             return original(self, key, value)
         if not key:
             raise ValueError("key cannot be empty")
         final = Path(str(path)) / f"{key}{_PROGRAM}"
         if final.exists():  # as JAX: an entry, once written, is kept
             return None
-        temporary = final.with_name(f".{key}.{os.getpid()}.{uuid.uuid4().hex}{_WRITING}")
+        # a short name (JAX's key is long already): unique per writer, any process
+        temporary = final.with_name(f".{uuid.uuid4().hex[:20]}{_WRITING}")
         try:
             temporary.write_bytes(value)
             os.replace(temporary, final)

@@ -201,8 +201,8 @@ def run(
     scenario: list[str] = typer.Option(
         ...,
         help="A preset ('paper', 'stress', 'stress-ood', 'obstacle', 'swarm') or a TOML file "
-        "(its kind key); repeatable: the studies run one after another in one process, "
-        "which compiles the programs they share once.",
+        "(its kind key); repeatable: the studies of one kind run one after another in one "
+        "process, which compiles the programs they share once (other kinds: --jobs).",
     ),
     out: Path = typer.Option(Path("results"), help="Output folder (created if needed)."),
     seed: int | None = typer.Option(
@@ -233,11 +233,12 @@ def run(
     --n-samples is refused for it, and --seed seeds its start jitter. With several
     --scenario, every scenario and override is checked before any work and the options apply
     to each. The studies of one kind run in one process, in the order given (they share
-    compiled programs; a failed one stops those after it, whose outputs are not written; the
-    outputs of those before it are kept). Studies of different kinds run in up to --jobs
-    processes at once: this one shows its progress, the others print their summaries when
-    they end; the command exits non-zero if any study failed. The results do not depend on
-    --jobs (each study computes alone, whichever process runs it).
+    compiled programs). Studies of different kinds run in up to --jobs processes at once:
+    this one shows its progress, the others' output is printed after this one's studies, in
+    order. In each process a failed study stops those after it there (their outputs are not
+    written; those before it are kept); the command exits non-zero if any study failed,
+    after every process has finished. The results do not depend on --jobs (each study
+    computes alone, whichever process runs it).
     """
     import matplotlib
 
@@ -256,39 +257,43 @@ def run(
         return scenarios, ensure_writable_dir(out, name="--out")
 
     scenarios, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
-    lanes = _lanes(scenario, [kinds.study_of(sc).kind for sc in scenarios], jobs)
-    options = _run_options(out_dir, seed, n_samples, t_final, set_, debug)
-    children: list[_Lane] = []
+    lanes = plan_lanes(scenario, [kinds.study_of(sc).kind for sc in scenarios], jobs)
+    options = lane_options(out_dir, seed, n_samples, t_final, set_, debug)
+    children: list[Lane] = []
     first_failure = None
     try:
-        children += [_start_lane(names, options) for names in lanes[1:]]
+        for names in lanes[1:]:  # one by one: a failed start still stops those started
+            children.append(start_lane(names, options))
         try:
             for name, sc in zip(scenario, scenarios, strict=True):
                 if name in lanes[0]:
                     _study_outputs(sc, out_dir, debug)
         except typer.Exit as exc:  # the other processes still finish their studies
             first_failure = exc.exit_code
-        codes = [_finish_lane(child) for child in children]
-    except BaseException:  # interrupted: stop the other processes too
+        codes = [finish_lane(child) for child in children]
+    except BaseException:  # interrupted, or a process could not start: stop the others
         for child in children:
-            child.process.kill()
-            child.process.wait()
+            child.stop()
         raise
     failed = [code for code in [first_failure, *codes] if code]
     if failed:
         raise typer.Exit(code=failed[0])
 
 
-def _lanes(names: list[str], kinds: list[str], jobs: int | None) -> list[list[str]]:
-    """The scenarios of each process, this one's first, each in the order given.
+def plan_lanes(
+    names: list[str], kinds: list[str], jobs: int | None, cpus: int | None = None
+) -> list[list[str]]:
+    """The scenarios of each process of ``safestab run``, this one's first, each in order.
 
     The kinds, in order of first appearance, are dealt round-robin to ``min(kinds, jobs)``
-    processes (``jobs`` default: the CPUs).
+    processes (``jobs`` default: ``cpus``, default the CPUs this process may use).
     """
-    from ._batching import cpu_count
+    if jobs is None:
+        from ._batching import cpu_count
 
+        jobs = cpus if cpus is not None else cpu_count()
     order = list(dict.fromkeys(kinds))
-    n = max(1, min(len(order), jobs if jobs is not None else cpu_count()))
+    n = max(1, min(len(order), jobs))
     lane_of = {kind: i % n for i, kind in enumerate(order)}
     return [
         [name for name, kind in zip(names, kinds, strict=True) if lane_of[kind] == i]
@@ -296,7 +301,7 @@ def _lanes(names: list[str], kinds: list[str], jobs: int | None) -> list[list[st
     ]
 
 
-def _run_options(out_dir, seed, n_samples, t_final, set_, debug) -> list[str]:
+def lane_options(out_dir, seed, n_samples, t_final, set_, debug) -> list[str]:
     """The options of ``safestab run`` that a process running some of its scenarios takes."""
     options = ["--out", str(out_dir), "--jobs", "1"]
     for flag, value in (("--seed", seed), ("--n-samples", n_samples), ("--t-final", t_final)):
@@ -307,14 +312,35 @@ def _run_options(out_dir, seed, n_samples, t_final, set_, debug) -> list[str]:
     return options + (["--debug"] if debug else [])
 
 
-class _Lane:
+class Lane:
     """A process running some scenarios (``safestab run ... --jobs 1``), its output in files."""
+
+    #: Seconds a stopped process has to finish writing (its outputs all or none) before it
+    #: is killed.
+    STOP_SECONDS = 10.0
 
     def __init__(self, names: list[str], process: Any, stdout: Any, stderr: Any) -> None:
         self.names, self.process, self.stdout, self.stderr = names, process, stdout, stderr
 
+    def stop(self) -> None:
+        """Interrupt the process (as Ctrl-C would), kill it if it lingers; close its files."""
+        import signal
+        import subprocess
 
-def _lane_command(names: list[str], options: list[str]) -> list[str]:
+        try:
+            if self.process.poll() is None:
+                self.process.send_signal(signal.SIGINT)
+                try:
+                    self.process.wait(timeout=self.STOP_SECONDS)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait()
+        finally:
+            self.stdout.close()
+            self.stderr.close()
+
+
+def lane_command(names: list[str], options: list[str]) -> list[str]:
     """The command line of a process that runs ``names`` (a separate function: tests swap it)."""
     import sys
 
@@ -322,31 +348,55 @@ def _lane_command(names: list[str], options: list[str]) -> list[str]:
     return [sys.executable, "-m", "safestab.cli", "run", *scenarios, *options]
 
 
-def _start_lane(names: list[str], options: list[str]) -> _Lane:
+def lane_environment(
+    environ: dict[str, str], compilation_cache: Path | None, fit_cache: Path | None
+) -> dict[str, str]:
+    """``environ`` with the cache variables set to the folders this process uses (None: off).
+
+    A process started by ``safestab run`` then uses this one's caches whatever set them
+    (``--no-compilation-cache``, ``--no-fit-cache``, the environment, or Python).
+    """
+    from ._cache import ENV_VAR
+    from .learning._fit_cache import FIT_ENV_VAR
+
+    env = dict(environ)
+    for var, folder in ((ENV_VAR, compilation_cache), (FIT_ENV_VAR, fit_cache)):
+        env[var] = "off" if folder is None else str(folder)
+    return env
+
+
+def start_lane(names: list[str], options: list[str]) -> Lane:
     """Start a process for ``names``, with this process's caches (or none) and environment."""
     import os
     import subprocess
     import tempfile
 
-    from ._cache import ENV_VAR, compilation_cache_dir
-    from .learning._fit_cache import FIT_ENV_VAR, fit_cache_dir
+    from ._cache import compilation_cache_dir
+    from .learning._fit_cache import fit_cache_dir
 
-    env = dict(os.environ)
-    for var, folder in ((ENV_VAR, compilation_cache_dir()), (FIT_ENV_VAR, fit_cache_dir())):
-        env[var] = "off" if folder is None else str(folder)
-    typer.echo(f"running {', '.join(names)} in another process: its output follows when it ends")
+    env = lane_environment(dict(os.environ), compilation_cache_dir(), fit_cache_dir())
     stdout, stderr = tempfile.TemporaryFile(), tempfile.TemporaryFile()
-    process = subprocess.Popen(_lane_command(names, options), stdout=stdout, stderr=stderr, env=env)
-    return _Lane(names, process, stdout, stderr)
+    try:
+        process = subprocess.Popen(
+            lane_command(names, options), stdout=stdout, stderr=stderr, env=env
+        )
+    except BaseException:
+        stdout.close()
+        stderr.close()
+        raise
+    typer.echo(
+        f"running {', '.join(names)} in another process: its output follows this one's studies"
+    )
+    return Lane(names, process, stdout, stderr)
 
 
-def _finish_lane(lane: _Lane) -> int:
+def finish_lane(lane: Lane) -> int:
     """Wait for a lane's process, print its output; its exit code."""
     code = lane.process.wait()
     for fh, err in ((lane.stdout, False), (lane.stderr, True)):
         fh.seek(0)
         text = fh.read().decode(errors="replace")
-        fh.close()
+        fh.close()  # stop() closes it again: a no-op
         if text:
             typer.echo(text, nl=not text.endswith("\n"), err=err)
     if code < 0:  # ended by a signal: no line of its own says so

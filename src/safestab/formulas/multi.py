@@ -178,15 +178,6 @@ def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter, batched=Tr
     return sol, u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
 
 
-def _phase_no_clf(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
-    """Phase 2: hard CLFs dropped (safety first)."""
-    p, m = b.shape
-    use = jnp.arange(pr.r.shape[0]) >= p
-    sol = solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0), batched)
-    u = _input(pr, sol.w, m, lo, hi)
-    return sol, u, sol.certified & _conditions_hold(pr, b, d, u, jnp.zeros(p), False)
-
-
 def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
     """Phase 3: limits kept, CBF rows relaxed by slacks, CLF rows dropped.
 

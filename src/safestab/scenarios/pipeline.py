@@ -416,7 +416,7 @@ def other_runs(out_dir: Path, record: Path) -> str | None:
     ours = set(json.loads(record.read_text())["files"])
     others, recorded = [], set(ours)
     for path in sorted(out_dir.glob("*_run.json")):
-        if path == record:
+        if path == record or path.name.startswith("."):
             continue
         prefix = path.name[: -len("_run.json")]
         try:
@@ -425,7 +425,12 @@ def other_runs(out_dir: Path, record: Path) -> str | None:
             others.append(f"{prefix} ({doc.get('finished_utc')})")
         except (OSError, ValueError, KeyError, TypeError):
             others.append(f"{prefix} (unreadable record)")
-    loose = [p.name for p in out_dir.glob("*_*.*") if p.is_file() and p.name not in recorded]
+    # hidden names are a writer's temporaries (another process writing its outputs now)
+    loose = [
+        p.name
+        for p in out_dir.glob("*_*.*")
+        if p.is_file() and not p.name.startswith(".") and p.name not in recorded
+    ]
     parts = []
     if others:
         parts.append(

@@ -133,6 +133,8 @@ def install_atomic_writes() -> bool:
         return True
     original = cls.put
 
+    # not _io.write_all: it fsyncs each file and its folder (hundreds of programs on a first
+    # run) and names its temporary after the target (JAX's key is already long)
     def put(self: object, key: str, value: bytes) -> None:
         path = getattr(self, "path", None)
         plain = path is not None and local(str(path)) and "://" not in str(path)

@@ -11,7 +11,7 @@ non-zero (2 for bad input, 1 for a failure during the run); ``--debug`` adds the
 from __future__ import annotations
 
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -349,7 +349,7 @@ def lane_command(names: list[str], options: list[str]) -> list[str]:
 
 
 def lane_environment(
-    environ: dict[str, str], compilation_cache: Path | None, fit_cache: Path | None
+    environ: Mapping[str, str], compilation_cache: Path | None, fit_cache: Path | None
 ) -> dict[str, str]:
     """``environ`` with the cache variables set to the folders this process uses (None: off).
 
@@ -374,7 +374,7 @@ def start_lane(names: list[str], options: list[str]) -> Lane:
     from ._cache import compilation_cache_dir
     from .learning._fit_cache import fit_cache_dir
 
-    env = lane_environment(dict(os.environ), compilation_cache_dir(), fit_cache_dir())
+    env = lane_environment(os.environ, compilation_cache_dir(), fit_cache_dir())
     stdout, stderr = tempfile.TemporaryFile(), tempfile.TemporaryFile()
     try:
         process = subprocess.Popen(

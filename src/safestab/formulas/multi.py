@@ -171,11 +171,16 @@ def _conditions_hold(pr: _Problem, b, d, u, chi, with_clf: bool) -> Any:
 
 def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter, batched=True):
     """Phase 1: the whole problem. Returns (solution, u, chi, certified)."""
-    p, m = b.shape
     sol = solve_dual(pr.Gw, pr.r, pr.w0, jnp.ones(pr.r.shape[0], bool), max_iter, batched)
+    return (sol, *_full_outputs(pr, b, d, sol, inv_sqrt_slack, lo, hi))
+
+
+def _full_outputs(pr: _Problem, b, d, sol, inv_sqrt_slack, lo, hi):
+    """Phase 1's ``(u, chi, certified)`` from its solution."""
+    p, m = b.shape
     u = _input(pr, sol.w, m, lo, hi)
     chi = sol.w[m:] * inv_sqrt_slack if inv_sqrt_slack is not None else jnp.zeros(p)
-    return sol, u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
+    return u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
 
 
 def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
@@ -245,18 +250,17 @@ def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
     ran2 = jnp.any(full.status == INFEASIBLE)
 
     def finish(pr, b, d, lo, hi, full, safe):
-        u1 = _input(pr, full.w, m, lo, hi)
-        ok1 = full.certified & _conditions_hold(pr, b, d, u1, jnp.zeros(p), True)
+        u1, chi1, ok1 = _full_outputs(pr, b, d, full, None, lo, hi)
         u2 = _input(pr, safe.w, m, lo, hi)
         ok2 = safe.certified & _conditions_hold(pr, b, d, u2, jnp.zeros(p), False)
-        return u1, ok1, u2, ok2
+        return u1, chi1, ok1, u2, ok2
 
-    u1, ok1, u2, ok2 = _map(finish, flat)(pr, b, d, lo, hi, full, safe)
+    u1, chi1, ok1, u2, ok2 = _map(finish, flat)(pr, b, d, lo, hi, full, safe)
     # as the separate phases: without a second pass, its results are phase 1's
     safe = jax.tree_util.tree_map(lambda x, y: jnp.where(ran2, x, y), safe, full)
     u2 = jnp.where(ran2, u2, u1)
     ok2 = jnp.where(ran2, ok2, False)
-    return full, u1, jnp.zeros((flat, p)), ok1, safe, u2, ok2
+    return full, u1, chi1, ok1, safe, u2, ok2
 
 
 #: Problems of a batch solved together by the last-resort phase, at most. Its coordinates

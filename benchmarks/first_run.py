@@ -30,9 +30,12 @@ from _page import machine, measured, save_results
 BEGIN, END = "<!-- first-run:begin -->", "<!-- first-run:end -->"
 ROOT = Path(__file__).resolve().parents[1]
 SAFESTAB = [sys.executable, "-m", "safestab.cli"]
+MAIN = "main job (scripts/run-acc.sh's first command: paper, stress, obstacle)"
+#: the same command with XLA's default fusion emitters (safestab/_xla_flags.py), for comparison
+MAIN_XLA = "the same, SAFESTAB_XLA_FLAGS=off (no target: the comparison)"
 #: issue 22's targets in seconds, per row name: (first run, second run)
 TARGETS = {
-    "main job (scripts/run-acc.sh's first command: paper, stress, obstacle)": (60.0, 20.0),
+    MAIN: (60.0, 20.0),
     "safestab mc --scenario stress --trials 10000 --datasets 1": (45.0, 45.0),
     "default test run (bash scripts/run-tests.sh)": (360.0, 360.0),
 }
@@ -40,24 +43,13 @@ TARGETS = {
 
 def _commands(out: Path, tests: bool) -> list[tuple[str, list[list[str]]]]:
     """Rows: a name and the commands whose wall times add up to it."""
+    main = [  # as scripts/run-acc.sh runs them: one command (its default --jobs)
+        *SAFESTAB, "run", "--scenario", "paper", "--scenario", "stress", "--scenario",
+        "obstacle", "--out", str(out / "main"),
+    ]  # fmt: skip
     rows = [
-        (
-            "main job (scripts/run-acc.sh's first command: paper, stress, obstacle)",
-            [  # as scripts/run-acc.sh runs them: one command (its default --jobs)
-                [
-                    *SAFESTAB,
-                    "run",
-                    "--scenario",
-                    "paper",
-                    "--scenario",
-                    "stress",
-                    "--scenario",
-                    "obstacle",
-                    "--out",
-                    str(out / "main"),
-                ]
-            ],
-        ),  # fmt: skip
+        (MAIN, [main]),
+        (MAIN_XLA, [[*main[:-1], str(out / "main-xla")]]),
         (
             "safestab mc --scenario stress --trials 10000 --datasets 1",
             [
@@ -85,10 +77,12 @@ def _commands(out: Path, tests: bool) -> list[tuple[str, list[list[str]]]]:
     return rows
 
 
-def _timed(cmd: list[str], cache: Path) -> float:
+def _timed(cmd: list[str], cache: Path, xla_flags: bool = True) -> float:
     # the GP fit cache beside the compilation cache; the test run fits afresh (conftest.py)
     fits = "off" if cmd[0] == "bash" else str(cache.with_name(cache.name + "-fits"))
     env = dict(os.environ, SAFESTAB_COMPILATION_CACHE=str(cache), SAFESTAB_FIT_CACHE=fits)
+    if not xla_flags:
+        env["SAFESTAB_XLA_FLAGS"] = "off"
     t0 = time.perf_counter()
     done = subprocess.run(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
     seconds = time.perf_counter() - t0
@@ -104,12 +98,12 @@ def bench(tests: bool) -> dict:
             cache = Path(tmp) / f"cache-{len(results['rows'])}"  # empty for the first run
             runs = []
             for attempt in ("first", "second"):
-                parts = [_timed(cmd, cache) for cmd in cmds]
+                parts = [_timed(cmd, cache, name != MAIN_XLA) for cmd in cmds]
                 runs.append(parts)
                 print(f"{name}, {attempt} run: {sum(parts):.1f} s {[round(p, 1) for p in parts]}")
             results["rows"].append(
                 {"name": name, "first_s": runs[0], "second_s": runs[1],
-                 "target_s": TARGETS[name], "date": results["date"]}
+                 "target_s": TARGETS.get(name), "date": results["date"]}
             )  # fmt: skip
     results["load_average_at_end"] = os.getloadavg()[0]
     return results
@@ -123,7 +117,7 @@ def keep_rows(results: dict, previous: Path) -> dict:
     have = {row["name"] for row in results["rows"]}
     for row in old.get("rows", []):
         # marked: it measured the code of an earlier commit (a row renamed since is dropped)
-        if row["name"] not in have and row["name"] in TARGETS:
+        if row["name"] not in have and row["name"] in (*TARGETS, MAIN_XLA):
             results["rows"].append({**row, "date": row.get("date", old["date"]), "carried": True})
     return results
 
@@ -144,22 +138,22 @@ def markdown(r: dict) -> str:
     ]
     for row in r["rows"]:
         first, second = sum(row["first_s"]), sum(row["second_s"])
-        t1, t2 = row["target_s"]
+        t1, t2 = row["target_s"] or (None, None)
         parts = (
             f" ({' + '.join(f'{p:.0f}' for p in row['first_s'])};"
             f" {' + '.join(f'{p:.0f}' for p in row['second_s'])})"
             if len(row["first_s"]) > 1
             else ""
         )
-        met = "yes" if first <= t1 and second <= t2 else "no"
+        met = "-" if t1 is None else "yes" if first <= t1 and second <= t2 else "no"
+        target = "-" if t1 is None else f"{t1:.0f} / {t2:.0f}"
         when = (
             f" (an earlier run's row, measured {row['date']})"
             if row.get("carried") or row.get("date", r["date"]) != r["date"]
             else ""
         )
         lines.append(
-            f"| {row['name']}{parts}{when} | {first:.0f} | {second:.0f} | {t1:.0f} / {t2:.0f} "
-            f"| {met} |"
+            f"| {row['name']}{parts}{when} | {first:.0f} | {second:.0f} | {target} | {met} |"
         )
     return "\n".join([*lines, "", END])
 

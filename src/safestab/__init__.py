@@ -4,12 +4,19 @@ Importing safestab switches JAX to 64-bit floats (``jax_enable_x64``): every num
 here is written for float64. It also turns on JAX's persistent compilation cache in a user
 cache folder (``SAFESTAB_COMPILATION_CACHE=off`` before the import keeps it off; see
 :mod:`safestab._cache`), and a cache of GP fits (``SAFESTAB_FIT_CACHE=off`` keeps it off; see
-:mod:`safestab.learning._fit_cache`).
+:mod:`safestab.learning._fit_cache`). Unless JAX has compiled something already, it adds
+``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS``, which halves the compilation of
+safestab's programs on the CPU (``SAFESTAB_XLA_FLAGS=off`` keeps it out; see
+:mod:`safestab._xla_flags`).
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+from ._xla_flags import configure_from_environment as _configure_xla_flags  # noqa: E402
+
+_configure_xla_flags()  # before JAX first compiles: XLA reads XLA_FLAGS once (_xla_flags.py)
 
 from ._cache import (  # noqa: E402
     compilation_cache_dir,

@@ -1,0 +1,103 @@
+"""The one XLA flag safestab sets at import: XLA's older fusion emitters on CPU.
+
+Most of a first run's time, and of a cold test run's, is XLA compiling programs on the CPU.
+Since jaxlib 0.5.3 XLA's CPU compiler lowers each fusion through its newer emitters, which
+take about twice as long to compile safestab's solver and closed loops as the older ones
+(``--xla_cpu_use_fusion_emitters=false``), for programs that run as fast (measured on 2 CPUs,
+2026-11-28, jaxlib 0.10.2, the compilation cache off):
+
+* the filter's solver (``multi_kernel``), four shapes: 7.2 s of compilation against 11.7 s;
+  10,000 problems at once, k = 4 and k = 8 CBFs: 3.8 and 2.6 s against 6.9 and 5.5 s, and
+  236 and 417 ms a run against 244 and 516 ms;
+* every output of the filter bit for bit the same; the two emitters differ in the last bits
+  of a few operations (``arctan``; a multiply-add that one fuses and the other does not),
+  which moves the studies' results by rounding (``docs/performance.md``).
+
+So the import adds ``--xla_cpu_use_fusion_emitters=false`` to the ``XLA_FLAGS`` environment
+variable, which XLA reads once, when JAX first compiles. It does nothing when:
+
+* ``SAFESTAB_XLA_FLAGS`` is ``off`` (``0``, ``no``, ``false``, ``none``) before the import;
+* ``XLA_FLAGS`` already names the flag (the user's choice is kept);
+* JAX has already compiled or run something in this process: XLA has read its flags, so the
+  flag would reach only child processes (Ray workers, ``safestab run``'s other processes),
+  whose results would then differ by rounding from this process's;
+* the installed jaxlib is outside :data:`KNOWN_JAXLIB`: XLA aborts the process on a flag it
+  does not know (jaxlib 0.5.0 has none of this name), so a version not checked is left alone.
+
+Child processes inherit the variable, so all of a run's processes compile alike. The
+persistent compilation cache and the GP fit cache key their entries on ``XLA_FLAGS``, so
+entries made with and without the flag never mix.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import MutableMapping
+
+__all__ = ["ENV_VAR", "FLAG", "KNOWN_JAXLIB", "configure_from_environment", "flags_with_ours"]
+
+#: The environment variable read at import: ``off`` leaves ``XLA_FLAGS`` as it is.
+ENV_VAR = "SAFESTAB_XLA_FLAGS"
+#: The flag added to ``XLA_FLAGS``.
+FLAG = "--xla_cpu_use_fusion_emitters=false"
+_NAME = "xla_cpu_use_fusion_emitters"
+#: jaxlib versions known to have the flag: from 0.5.3 (0.5.0 has not) to the 0.10 series
+#: (checked in 0.5.3, 0.6.0, 0.7.0 and 0.10.2); half-open, as (major, minor, patch).
+KNOWN_JAXLIB = ((0, 5, 3), (0, 11, 0))
+_OFF = frozenset({"0", "off", "no", "false", "none"})
+
+
+def _version_tuple(text: str) -> tuple[int, ...] | None:
+    match = re.match(r"(\d+)\.(\d+)\.(\d+)", text)
+    return tuple(int(g) for g in match.groups()) if match else None
+
+
+def flags_with_ours(
+    environ: MutableMapping[str, str] | dict[str, str], jaxlib_version: str, started: bool
+) -> str | None:
+    """The ``XLA_FLAGS`` value to set, or None to leave it as it is (see the module's notes).
+
+    Parameters
+    ----------
+    environ : mapping
+        The environment (``SAFESTAB_XLA_FLAGS``, ``XLA_FLAGS``); only read.
+    jaxlib_version : str
+        The installed jaxlib's version, e.g. ``"0.10.2"``.
+    started : bool
+        Whether JAX has already compiled or run something in this process.
+    """
+    if environ.get(ENV_VAR, "").strip().lower() in _OFF:
+        return None
+    current = environ.get("XLA_FLAGS", "")
+    if _NAME in current or started:
+        return None
+    version = _version_tuple(jaxlib_version)
+    if version is None or not KNOWN_JAXLIB[0] <= version < KNOWN_JAXLIB[1]:
+        return None
+    return f"{current} {FLAG}".strip()
+
+
+def _jax_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+    except ImportError:  # pragma: no cover - another JAX layout: assume the worst
+        return True
+    check = getattr(xla_bridge, "backends_are_initialized", None)
+    return True if check is None else bool(check())
+
+
+def configure_from_environment() -> str | None:
+    """What the import does: add :data:`FLAG` to ``XLA_FLAGS`` unless told otherwise.
+
+    Returns
+    -------
+    str or None
+        The new ``XLA_FLAGS``, or None where it was left alone.
+    """
+    import jaxlib
+
+    value = flags_with_ours(os.environ, getattr(jaxlib, "__version__", ""), _jax_started())
+    if value is not None:
+        os.environ["XLA_FLAGS"] = value
+    return value

@@ -665,8 +665,8 @@ def write_page(results, out):
 
     The Monte Carlo, several-CBF, filter and first-run blocks come from their own runs
     (performance_mc.json, performance_multi.json, performance_filter.json,
-    performance_first_run.json, performance_sparse.json, performance_gp_step.json) and are
-    put back, so a partial rerun loses none.
+    performance_first_run.json, performance_sparse.json, performance_gp_step.json,
+    performance_xla_flags.json) and are put back, so a partial rerun loses none.
     """
     import filter as filter_rows
     import first_run
@@ -674,6 +674,7 @@ def write_page(results, out):
     import mc_rows
     import multi
     import sparse_gp
+    import xla_flags
     from _page import update_block
 
     write_markdown(results, out / "performance.md")
@@ -691,6 +692,10 @@ def write_page(results, out):
     update_block(
         out / "performance.md", out / "performance_gp_step.json", gp_step.markdown,
         gp_step.BEGIN, gp_step.END,
+    )  # fmt: skip
+    update_block(
+        out / "performance.md", out / "performance_xla_flags.json", xla_flags.markdown,
+        xla_flags.BEGIN, xla_flags.END,
     )  # fmt: skip
 
 

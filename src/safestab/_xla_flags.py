@@ -1,17 +1,13 @@
 """The one XLA flag safestab sets at import: XLA's older fusion emitters on CPU.
 
 Most of a first run's time, and of a cold test run's, is XLA compiling programs on the CPU.
-Since jaxlib 0.5.3 XLA's CPU compiler lowers each fusion through its newer emitters, which
-take about twice as long to compile safestab's solver and closed loops as the older ones
-(``--xla_cpu_use_fusion_emitters=false``), for programs that run as fast (measured on 2 CPUs,
-2026-11-28, jaxlib 0.10.2, the compilation cache off):
-
-* the filter's solver (``multi_kernel``), four shapes: 7.2 s of compilation against 11.7 s;
-  10,000 problems at once, k = 4 and k = 8 CBFs: 3.8 and 2.6 s against 6.9 and 5.5 s, and
-  236 and 417 ms a run against 244 and 516 ms;
-* every output of the filter bit for bit the same; the two emitters differ in the last bits
-  of a few operations (``arctan``; a multiply-add that one fuses and the other does not),
-  which moves the studies' results by rounding (``docs/performance.md``).
+XLA's CPU compiler now generates each fusion's code with its newer emitters (the default of
+jaxlib 0.10), which take 1.5 to 2.3 times as long to compile safestab's solver as the older
+ones (``--xla_cpu_use_fusion_emitters=false``), for code that runs about as fast and gives
+every output of the solver bit for bit the same (``python benchmarks/xla_flags.py``, the
+"XLA's fusion emitters" table in ``docs/performance.md``). The two emitters differ in the
+last bits of a few operations (``arctan``; a multiply-add that one fuses and the other does
+not), which moves the studies' results by rounding.
 
 So the import adds ``--xla_cpu_use_fusion_emitters=false`` to the ``XLA_FLAGS`` environment
 variable, which XLA reads once, when JAX first compiles. It does nothing when:

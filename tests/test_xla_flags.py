@@ -13,25 +13,24 @@ import pytest
 from safestab._xla_flags import ENV_VAR, FLAG, KNOWN_JAXLIB, flags_with_ours
 
 KNOWN = ".".join(map(str, KNOWN_JAXLIB[0]))
-THIS_JAXLIB_KNOWN = flags_with_ours({}, jaxlib.__version__, False) is not None
+THIS_JAXLIB_KNOWN = flags_with_ours({}, jaxlib.__version__) is not None
 
 
 def test_added_to_what_the_user_set():
-    assert flags_with_ours({}, KNOWN, False) == FLAG
-    assert flags_with_ours({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}, KNOWN,
-                           False) == f"--xla_force_host_platform_device_count=2 {FLAG}"  # fmt: skip
-    assert flags_with_ours({ENV_VAR: "on"}, KNOWN, False) == FLAG  # only off values turn it off
+    assert flags_with_ours({}, KNOWN) == FLAG
+    user = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert flags_with_ours(user, KNOWN) == f"--xla_force_host_platform_device_count=2 {FLAG}"
+    assert flags_with_ours({ENV_VAR: "on"}, KNOWN) == FLAG  # only off values turn it off
 
 
 @pytest.mark.parametrize("off", ["off", "0", "no", "false", "None", " OFF "])
 def test_left_alone_when_turned_off(off):
-    assert flags_with_ours({ENV_VAR: off}, KNOWN, False) is None
+    assert flags_with_ours({ENV_VAR: off}, KNOWN) is None
 
 
-def test_left_alone_when_the_user_chose_or_xla_has_read_its_flags():
+def test_left_alone_when_the_user_chose():
     user = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
-    assert flags_with_ours(user, KNOWN, False) is None
-    assert flags_with_ours({}, KNOWN, True) is None  # too late for this process
+    assert flags_with_ours(user, KNOWN) is None
 
 
 @pytest.mark.parametrize(
@@ -41,7 +40,7 @@ def test_left_alone_when_the_user_chose_or_xla_has_read_its_flags():
 )  # fmt: skip
 def test_only_on_a_jaxlib_known_to_have_the_flag(version, added):
     # XLA aborts the whole process on a flag it does not know
-    assert (flags_with_ours({}, version, False) is not None) is added
+    assert (flags_with_ours({}, version) is not None) is added
 
 
 # arctan is one of the operations whose last bits differ between XLA's two CPU emitters (16
@@ -50,32 +49,36 @@ PROBE = (
     "import os, sys; import safestab, jax.numpy as jnp, numpy as np; "
     "x = np.random.default_rng(0).normal(size=100_000) * 5; "
     "sys.stdout.write(os.environ.get('XLA_FLAGS', '') + '|' + "
+    "os.environ.get('SAFESTAB_XLA_FLAGS', '') + '|' + "
     "np.asarray(jnp.arctan(jnp.asarray(x))).tobytes().hex())"
 )
 
 
-def _probe(code: str = PROBE, **env: str) -> tuple[str, str]:
+def _probe(code: str = PROBE, **env: str) -> tuple[str, str, str]:
     full = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", ENV_VAR)}
     full.update(env, SAFESTAB_COMPILATION_CACHE="off")
     proc = subprocess.run(
         [sys.executable, "-c", code], env=full, capture_output=True, text=True, check=True
     )
-    flags, _, bits = proc.stdout.rpartition("|")
-    return flags, bits
+    flags, ours, bits = proc.stdout.split("|")
+    return flags, ours, bits
 
 
 @pytest.mark.skipif(not THIS_JAXLIB_KNOWN, reason="this jaxlib is left alone")
 def test_the_import_sets_the_flag_and_xla_uses_it():
-    flags, ours = _probe()
+    flags, _, ours = _probe()
     assert flags == FLAG
-    _, explicit = _probe(XLA_FLAGS=FLAG)  # the user's own setting, the same compilation
+    _, _, explicit = _probe(XLA_FLAGS=FLAG)  # the user's own setting, the same compilation
     assert ours == explicit
-    off_flags, off = _probe(**{ENV_VAR: "off"})
+    off_flags, _, off = _probe(**{ENV_VAR: "off"})
     assert off_flags == ""
     assert off != ours  # the setting reaches XLA: another emitter, other last bits
 
 
-def test_not_set_after_jax_has_run_something():
+@pytest.mark.skipif(not THIS_JAXLIB_KNOWN, reason="this jaxlib is left alone")
+def test_after_jax_has_run_something_the_children_are_told_to_leave_it_out():
     code = "import jax.numpy as jnp; jnp.zeros(3).block_until_ready(); " + PROBE
-    flags, _ = _probe(code)
-    assert flags == ""  # children would compile otherwise than this process
+    flags, told, bits = _probe(code)
+    assert flags == "" and told == "off"  # children compile as this process does
+    _, _, off = _probe(**{ENV_VAR: "off"})
+    assert bits == off

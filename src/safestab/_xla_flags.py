@@ -16,7 +16,8 @@ variable, which XLA reads once, when JAX first compiles. It does nothing when:
 * ``XLA_FLAGS`` already names the flag (the user's choice is kept);
 * JAX has already compiled or run something in this process: XLA has read its flags, so the
   flag would reach only child processes (Ray workers, ``safestab run``'s other processes),
-  whose results would then differ by rounding from this process's;
+  whose results would then differ by rounding from this process's. The import sets
+  ``SAFESTAB_XLA_FLAGS=off`` instead, so that the children compile as this process does;
 * the installed jaxlib is outside :data:`KNOWN_JAXLIB`: XLA aborts the process on a flag it
   does not know (jaxlib 0.5.0 has none of this name), so a version not checked is left alone.
 
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import MutableMapping
+from collections.abc import Mapping
 
 __all__ = ["ENV_VAR", "FLAG", "KNOWN_JAXLIB", "configure_from_environment", "flags_with_ours"]
 
@@ -49,10 +50,8 @@ def _version_tuple(text: str) -> tuple[int, ...] | None:
     return tuple(int(g) for g in match.groups()) if match else None
 
 
-def flags_with_ours(
-    environ: MutableMapping[str, str] | dict[str, str], jaxlib_version: str, started: bool
-) -> str | None:
-    """The ``XLA_FLAGS`` value to set, or None to leave it as it is (see the module's notes).
+def flags_with_ours(environ: Mapping[str, str], jaxlib_version: str) -> str | None:
+    """The ``XLA_FLAGS`` value a fresh process sets, or None to leave it as it is.
 
     Parameters
     ----------
@@ -60,13 +59,11 @@ def flags_with_ours(
         The environment (``SAFESTAB_XLA_FLAGS``, ``XLA_FLAGS``); only read.
     jaxlib_version : str
         The installed jaxlib's version, e.g. ``"0.10.2"``.
-    started : bool
-        Whether JAX has already compiled or run something in this process.
     """
     if environ.get(ENV_VAR, "").strip().lower() in _OFF:
         return None
     current = environ.get("XLA_FLAGS", "")
-    if _NAME in current or started:
+    if _NAME in current:
         return None
     version = _version_tuple(jaxlib_version)
     if version is None or not KNOWN_JAXLIB[0] <= version < KNOWN_JAXLIB[1]:
@@ -86,6 +83,10 @@ def _jax_started() -> bool:
 def configure_from_environment() -> str | None:
     """What the import does: add :data:`FLAG` to ``XLA_FLAGS`` unless told otherwise.
 
+    Where JAX has already run something, the flag would reach only child processes, which
+    would then round otherwise than this one: ``SAFESTAB_XLA_FLAGS=off`` is set instead, so
+    that the children leave ``XLA_FLAGS`` as this process has it.
+
     Returns
     -------
     str or None
@@ -93,7 +94,11 @@ def configure_from_environment() -> str | None:
     """
     import jaxlib
 
-    value = flags_with_ours(os.environ, getattr(jaxlib, "__version__", ""), _jax_started())
-    if value is not None:
-        os.environ["XLA_FLAGS"] = value
+    value = flags_with_ours(os.environ, getattr(jaxlib, "__version__", ""))
+    if value is None:
+        return None
+    if _jax_started():
+        os.environ[ENV_VAR] = "off"  # too late here: the children compile as this process
+        return None
+    os.environ["XLA_FLAGS"] = value
     return value

@@ -2,7 +2,10 @@
 compilation cache, then a second run that reuses it (issue 22's targets).
 
     python benchmarks/first_run.py            # main job (paper, stress, obstacle) and mc
-    python benchmarks/first_run.py --tests    # also the default test run, twice (~35 min)
+    python benchmarks/first_run.py --tests    # also the default test run, twice (~30 min)
+
+The main job is also timed with ``SAFESTAB_XLA_FLAGS=off`` (XLA's default fusion emitters,
+safestab/_xla_flags.py), a row for comparison without a target (about 90 s more).
 
 Without ``--tests`` the test run's row of the previous results is kept, with its own date.
 
@@ -81,6 +84,10 @@ def _timed(cmd: list[str], cache: Path, xla_flags: bool = True) -> float:
     # the GP fit cache beside the compilation cache; the test run fits afresh (conftest.py)
     fits = "off" if cmd[0] == "bash" else str(cache.with_name(cache.name + "-fits"))
     env = dict(os.environ, SAFESTAB_COMPILATION_CACHE=str(cache), SAFESTAB_FIT_CACHE=fits)
+    # safestab's own XLA flag, or none (an inherited setting would make both rows alike)
+    env.pop("SAFESTAB_XLA_FLAGS", None)
+    if "xla_cpu_use_fusion_emitters" in env.get("XLA_FLAGS", ""):
+        raise SystemExit("XLA_FLAGS names xla_cpu_use_fusion_emitters: unset it to measure")
     if not xla_flags:
         env["SAFESTAB_XLA_FLAGS"] = "off"
     t0 = time.perf_counter()

@@ -92,6 +92,8 @@ def bench() -> dict:
                 check=True, cwd=ROOT,
             )  # fmt: skip
             run = json.loads(done.stdout.strip().splitlines()[-1])
+            if ("--xla_cpu_use_fusion_emitters=false" in run["XLA_FLAGS"]) != (not extra):
+                raise SystemExit(f"{setting}: XLA_FLAGS={run['XLA_FLAGS']!r} (this jaxlib?)")
             results["runs"].setdefault(setting, []).append(run)
             total = sum(s["compile_s"] for s in run["shapes"])
             print(f"{setting}: compilation {total:.1f} s (XLA_FLAGS={run['XLA_FLAGS']!r})")

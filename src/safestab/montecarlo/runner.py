@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .._batching import in_threads
+from .._xla_flags import xla_flag_environment
 from ..errors import InducingPointsWarning, ParameterError
 from ..learning.batched import one_blas_thread
 from ..scenarios import MonteCarloSpec
@@ -299,6 +300,8 @@ def start_ray(
     ``OMP_NUM_THREADS`` (default: the CPU count, BLAS's own default), which makes their
     results identical to the local backend's on the same machine. On a cluster of other
     machines, give the workers the same thread settings (and hardware) for identical bits.
+    Where this process compiles without safestab's XLA flag (``safestab/_xla_flags.py``),
+    the workers get ``SAFESTAB_XLA_FLAGS=off`` so that they compile as it does.
     """
     try:
         import ray
@@ -311,6 +314,7 @@ def start_ray(
     env = dict(runtime_env or {})
     env["env_vars"] = {
         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
+        **xla_flag_environment(os.environ),
         **env.get("env_vars", {}),
     }
     runtime_env = env

@@ -31,6 +31,7 @@ def test_left_alone_when_turned_off(off):
 def test_left_alone_when_the_user_chose():
     user = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
     assert flags_with_ours(user, KNOWN) is None
+    assert flags_with_ours({"XLA_FLAGS": "--flagfile=/etc/xla.flags"}, KNOWN) is None
 
 
 @pytest.mark.parametrize(

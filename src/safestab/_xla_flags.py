@@ -13,7 +13,8 @@ So the import adds ``--xla_cpu_use_fusion_emitters=false`` to the ``XLA_FLAGS`` 
 variable, which XLA reads once, when JAX first compiles. It does nothing when:
 
 * ``SAFESTAB_XLA_FLAGS`` is ``off`` (``0``, ``no``, ``false``, ``none``) before the import;
-* ``XLA_FLAGS`` already names the flag (the user's choice is kept);
+* ``XLA_FLAGS`` already names the flag, or gives a ``--flagfile`` (the user's choice is
+  kept);
 * JAX has already started in this process (compiled, run or listed devices): XLA has read
   its flags, so the flag would reach only child processes (Ray workers, ``safestab run``'s
   other processes), whose results would then differ by rounding from this process's. The
@@ -79,7 +80,7 @@ def flags_with_ours(environ: Mapping[str, str], jaxlib_version: str) -> str | No
     if environ.get(ENV_VAR, "").strip().lower() in OFF_VALUES:
         return None
     current = environ.get("XLA_FLAGS", "")
-    if _NAME in current:
+    if _NAME in current or "--flagfile" in current:  # a flag file may name it: not read here
         return None
     version = _version_tuple(jaxlib_version)
     if version is None or not KNOWN_JAXLIB[0] <= version < KNOWN_JAXLIB[1]:

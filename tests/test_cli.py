@@ -383,9 +383,8 @@ def test_lanes_keep_each_kind_in_one_process_in_order():
     ]
     assert cli.plan_lanes(names, kinds, 3) == [["paper", "stress", "stress-ood"], ["obstacle"],
                                            ["swarm"]]  # fmt: skip
-    assert cli.plan_lanes(names, kinds, 8) == cli.plan_lanes(
-        names, kinds, 3
-    )  # one per kind at most
+    # one process per kind at most
+    assert cli.plan_lanes(names, kinds, 8) == cli.plan_lanes(names, kinds, 3)
     assert cli.plan_lanes(["paper", "stress"], ["acc", "acc"], None) == [["paper", "stress"]]
 
 

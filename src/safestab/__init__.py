@@ -4,10 +4,10 @@ Importing safestab switches JAX to 64-bit floats (``jax_enable_x64``): every num
 here is written for float64. It also turns on JAX's persistent compilation cache in a user
 cache folder (``SAFESTAB_COMPILATION_CACHE=off`` before the import keeps it off; see
 :mod:`safestab._cache`), and a cache of GP fits (``SAFESTAB_FIT_CACHE=off`` keeps it off; see
-:mod:`safestab.learning._fit_cache`). Unless JAX has compiled something already, it adds
+:mod:`safestab.learning._fit_cache`). Unless JAX has started already, it adds
 ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS``, which halves the compilation of
-safestab's programs on the CPU (``SAFESTAB_XLA_FLAGS=off`` keeps it out; see
-:mod:`safestab._xla_flags`).
+the filter's solver on the CPU (``SAFESTAB_XLA_FLAGS=off`` keeps it out; see
+:mod:`safestab._xla_flags` for when else it is left out).
 """
 
 import jax

@@ -28,7 +28,6 @@ solve and QR (one call instead of a loop of small steps).
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -38,7 +37,10 @@ from jax.scipy.linalg import solve_triangular
 
 from ._kernels import scaled_norm
 
-__all__ = ["DualSolution", "solve_dual", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT", "ADD_RTOL"]
+__all__ = [
+    "DualSolution", "solve_dual", "placeholder", "tied", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT",
+    "ADD_RTOL",
+]  # fmt: skip
 
 OPTIMAL, INFEASIBLE, ITERATION_LIMIT = 0, 1, 2
 
@@ -74,6 +76,28 @@ class DualSolution(NamedTuple):
     iterations: Any
     cond: Any
     certified: Any
+
+
+def tied(tree: Any, tie: Any) -> Any:
+    """``tree``'s values, made to depend on the scalar ``tie`` (``tie == tie`` selects them).
+
+    The values are unchanged (both sides of the selection are the value, whatever ``tie``
+    is, NaN included); what changes is that under ``vmap`` they are batched wherever ``tie``
+    is, so that a loop whose state starts from them is batched from its first pass.
+    """
+    return jax.tree_util.tree_map(lambda z: jnp.where(tie == tie, z, z), tree)
+
+
+def placeholder(lead: tuple[int, ...], n_rows: int, dim: int, dtype: Any) -> DualSolution:
+    """Zeros of the shapes and dtypes of :func:`solve_dual`'s answer, with leading axes ``lead``.
+
+    Written out instead of ``jax.eval_shape`` of the solver, which would trace it once more.
+    """
+    z = lambda tail, dt=dtype: jnp.zeros(lead + tail, dt)  # noqa: E731
+    i32 = jnp.int32
+    return DualSolution(
+        z((dim,)), z((n_rows,)), z((n_rows,), bool), z((), i32), z((), i32), z(()), z((), bool)
+    )
 
 
 def default_max_iter(n_rows: int, dim: int) -> int:
@@ -141,17 +165,29 @@ def solve_dual(
             jnp.asarray(w0, G.dtype), jnp.zeros(0, G.dtype), jnp.zeros(0, bool),
             jnp.int32(OPTIMAL), jnp.int32(0), jnp.asarray(1.0, G.dtype), jnp.asarray(True),
         )  # fmt: skip
-    return _solve_dual_diff(batched, G, r, jnp.asarray(w0, G.dtype), use, max_iter)
+    w0 = jnp.asarray(w0, G.dtype)
+    # the loop is not differentiated: it runs on the values, and the derivative of its optimum
+    # is attached afterwards (:func:`_on_active_set`). The loop is traced once, differentiated
+    # or not (a custom derivative of the whole solver traced it twice under differentiation:
+    # once as the function, once inside its derivative rule)
+    stop = jax.lax.stop_gradient
+    sol = _solve_dual(stop(G), stop(r), stop(w0), use, max_iter, batched)
+    w, mult = _on_active_set(G, r, w0, sol.w, sol.multipliers, sol.active, sol.status)
+    return sol._replace(w=w, multipliers=mult)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _solve_dual_diff(batched, G, r, w0, use, max_iter):
-    """:func:`solve_dual` with the derivative of its optimum (see :func:`_solve_dual_jvp`)."""
-    return _solve_dual(G, r, w0, use, max_iter, batched)
+@jax.custom_jvp
+def _on_active_set(G, r, w0, w, mult, active, status):
+    """The solver's point and multipliers ``(w, mult)``, with their derivative in ``G, r, w0``.
+
+    The value is ``(w, mult)`` as given (the solver's answer for ``G, r, w0``); the derivative
+    is :func:`_on_active_set_jvp`'s, on the answer's active set.
+    """
+    return w, mult
 
 
-@_solve_dual_diff.defjvp
-def _solve_dual_jvp(batched, primals, tangents):
+@_on_active_set.defjvp
+def _on_active_set_jvp(primals, tangents):
     """Derivative of the optimum on its active set (the loop itself is not differentiated).
 
     At an optimum with active rows ``G_A`` (linearly independent: the solver adds only rows
@@ -165,29 +201,22 @@ def _solve_dual_jvp(batched, primals, tangents):
     an SVD of the active rows normalised to unit length, keeping exactly as many singular
     values as there are active rows.
     """
-    G, r, w0, use, max_iter = primals
+    G, r, w0, w, mult, act, status = primals
     dG, dr, dw0 = tangents[:3]
-    sol = _solve_dual(G, r, w0, use, max_iter, batched)
-    act = sol.active
     norms = scaled_norm(G)
     safe = jnp.where(act & (norms > 0), norms, 1.0)
     Gn = jnp.where(act[:, None], G / safe[:, None], 0.0)
-    g = dw0 - dG.T @ sol.multipliers
-    en = jnp.where(act, (dr - dG @ sol.w) / safe, 0.0)
+    g = dw0 - dG.T @ mult
+    en = jnp.where(act, (dr - dG @ w) / safe, 0.0)
     U, S, Vt = jnp.linalg.svd(Gn, full_matrices=False)
     keep = jnp.arange(S.shape[0]) < jnp.sum(act)
     s_inv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
     resid = en - Gn @ g
     coeff = s_inv * (U.T @ resid)
-    optimal = sol.status == OPTIMAL
+    optimal = status == OPTIMAL
     dw = jnp.where(optimal, g + Vt.T @ coeff, 0.0)
     dmu = jnp.where(optimal & act, -(U @ (s_inv * coeff)) / safe, 0.0)
-    zero_of = lambda x: np.zeros(np.shape(x), dtype=jax.dtypes.float0)  # noqa: E731
-    tangent = DualSolution(
-        dw, dmu, zero_of(sol.active), zero_of(sol.status), zero_of(sol.iterations),
-        jnp.zeros_like(sol.cond), zero_of(sol.certified),
-    )  # fmt: skip
-    return sol, tangent
+    return (w, mult), (dw, dmu)
 
 
 def _solve_dual(G, r, w0, use, max_iter, batched):
@@ -332,20 +361,28 @@ def _solve_dual(G, r, w0, use, max_iter, batched):
         it, status = state[9], state[10]
         return (status < 0) & (it < max_iter)
 
-    init = (
-        jnp.asarray(w0, dtype=G.dtype),
-        jnp.eye(dim, dtype=G.dtype),
-        jnp.eye(dim, dtype=G.dtype),
-        jnp.full((dim,), -1, dtype=jnp.int32),
-        jnp.zeros(dim, dtype=G.dtype),
-        jnp.zeros(n_rows, dtype=bool),
-        jnp.int32(0),
-        jnp.int32(-1),
-        jnp.asarray(0.0, dtype=G.dtype),
-        jnp.int32(0),
-        jnp.where(infeasible0, INFEASIBLE, -1).astype(jnp.int32),
-        jnp.zeros((dim, dim), dtype=G.dtype),
-        jnp.zeros(dim, dtype=G.dtype),
+    # the loop's state starts from constants made to depend on the problem's data (``tie``
+    # selects them, whatever its value): under vmap the state is then batched from the
+    # start, as the loop makes it, and the while loop's batching rule passes over the body
+    # once instead of two or three times (each pass costs about as much as tracing it)
+    tie = jnp.sum(Gn[0]) + rn[0] + jnp.sum(w0[:1])
+    init = tied(
+        (
+            jnp.asarray(w0, dtype=G.dtype),
+            jnp.eye(dim, dtype=G.dtype),
+            jnp.eye(dim, dtype=G.dtype),
+            jnp.full((dim,), -1, dtype=jnp.int32),
+            jnp.zeros(dim, dtype=G.dtype),
+            jnp.zeros(n_rows, dtype=bool),
+            jnp.int32(0),
+            jnp.int32(-1),
+            jnp.asarray(0.0, dtype=G.dtype),
+            jnp.int32(0),
+            jnp.where(infeasible0, INFEASIBLE, -1).astype(jnp.int32),
+            jnp.zeros((dim, dim), dtype=G.dtype),
+            jnp.zeros(dim, dtype=G.dtype),
+        ),
+        tie,
     )
     w, Q, R, act, lam, in_set, q, p, lam_p, it, status, A, ra = jax.lax.while_loop(cond, body, init)
     # the bound reached just as the last step finished: the point may still be optimal

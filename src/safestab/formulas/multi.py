@@ -32,7 +32,14 @@ from .._numerics import inv_sqrt
 from .._validation import check_finite, check_real, is_concrete
 from ..errors import DimensionError, ParameterError
 from ._checks import as_float, check_box, check_max_iter, check_output_finite, check_params
-from ._dual_active_set import INFEASIBLE, ITERATION_LIMIT, default_max_iter, solve_dual
+from ._dual_active_set import (
+    INFEASIBLE,
+    ITERATION_LIMIT,
+    default_max_iter,
+    placeholder,
+    solve_dual,
+    tied,
+)
 from ._kernels import SATISFIED_RTOL, margins, scaled_norm, solve_two
 
 __all__ = ["MultiStatus", "MultiResult", "clf_cbf_multi"]
@@ -243,8 +250,12 @@ def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
         needed = (phase == 0) | jnp.any(carry[0].status == INFEASIBLE)
         return jax.lax.cond(needed, solve_pass, lambda _, carry: carry, phase, carry)
 
-    empty = jax.eval_shape(solve_all, pr, jnp.ones((flat, n_rows), bool), jnp.ones(flat, bool))
-    zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), empty)
+    # placeholders of the answers' shapes (never read: pass 1 replaces the first, and the
+    # second is replaced by the first where pass 2 did not run), made to depend on the data:
+    # inside a user's vmap they are then batched like the answers, and the loop's batching
+    # rule passes over the solver once instead of twice
+    tie = sum(jnp.sum(leaf[:1]) for leaf in jax.tree_util.tree_leaves(pr))
+    zeros = tied(placeholder((flat,), n_rows, pr.w0.shape[-1], pr.w0.dtype), tie)
     # a loop of a fixed count: reverse-mode differentiable (a while loop is not)
     full, safe = jax.lax.fori_loop(0, 2, body, (zeros, zeros))
     ran2 = jnp.any(full.status == INFEASIBLE)

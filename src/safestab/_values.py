@@ -30,14 +30,16 @@ def static_key(value: Any) -> Any:
     """A hashable stand-in for a static (non-leaf) constructor argument.
 
     Numbers, strings, ``None`` and frozen dataclasses (the formula objects) by value,
-    sequences element by element, anything else (a system, a certificate, a GP, a callable)
+    sequences (lists and tuples alike) element by element, anything else (a system, a certificate, a GP, a callable)
     by identity: the :class:`Template` that holds the key also holds the object, so the
     identity cannot be reused while the key exists.
     """
     if value is None or isinstance(value, bool | int | float | str):
         return (type(value).__name__, value)
     if isinstance(value, tuple | list):
-        return (type(value).__name__, tuple(static_key(v) for v in value))
+        # a list and a tuple of the same elements alike: ``SafetyFilter(cbfs=[...])`` keeps
+        # them as a tuple, which ``replace`` passes on (they were two tree structures)
+        return ("sequence", tuple(static_key(v) for v in value))
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         if value.__dataclass_params__.frozen:  # type: ignore[attr-defined]
             try:

@@ -137,21 +137,6 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
     return ok
 
 
-@jax.jit
-def _checked_call(ctrl: Any, x: jax.Array, p: Any) -> Any:
-    """``ctrl.step_fn`` with the controller as an argument: what :meth:`Controller.step` runs.
-
-    One program serves every controller of one tree structure (:meth:`Controller.replace`
-    with new numbers, controllers built alike): their numeric parameters are arguments of
-    the program, not constants in it. (``ctrl.step_fn`` on its own holds them as constants,
-    so each new value of a parameter traced and compiled the whole step again: 13 of the 17
-    compilations of one test that steps a filter at parameters ``+-1e-6`` apart.) Not used
-    for a controller with an uncertainty model or of a class defined outside safestab (see
-    :meth:`Controller.step`).
-    """
-    return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
-
-
 class Controller(ControllerValue):
     """A controller: a system, certificates, a formula object, limits and an uncertainty model.
 
@@ -253,13 +238,7 @@ class Controller(ControllerValue):
         check_real("x", x)
         x = self.system.check_state(x)
         p = resolve(self.params_spec, params, f"the {self._owner}")
-        # one program per tree structure; not for a controller with an uncertainty model or
-        # of a class defined outside safestab (its structure is the object itself): the
-        # shared program's cache would keep the object, and a GP's data, alive
-        if self.uncertainty is None and self._template.key is not None:
-            out = _checked_call(self, x, p)
-        else:
-            out = self.step_fn(x) if p is None else self.step_fn(x, p)
+        out = self.step_fn(x) if p is None else self.step_fn(x, p)
         self._check_step(x, out, strict, p)
         return out
 

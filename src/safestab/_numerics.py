@@ -10,7 +10,7 @@ import numpy as np
 
 from ._validation import is_concrete
 
-__all__ = ["safe_sqrt", "as_scalar", "inv_sqrt"]
+__all__ = ["safe_sqrt", "as_scalar", "inv_sqrt", "tied"]
 
 
 @jax.custom_jvp
@@ -43,3 +43,15 @@ def inv_sqrt(value: Any) -> Any:
     if is_concrete(value):
         return np.asarray(1.0 / np.sqrt(np.asarray(value, dtype=float)))
     return 1.0 / jnp.sqrt(jnp.asarray(value, dtype=float))
+
+
+def tied(tree: Any, tie: Any) -> Any:
+    """``tree``'s values, made to depend on the scalar ``tie`` (``tie == tie`` selects them).
+
+    The values are unchanged (both sides of the selection are the value, whatever ``tie``
+    is, NaN included); what changes is that under ``vmap`` they are batched wherever ``tie``
+    is, so that a loop whose state starts from them (a scan's placeholders, a while loop's
+    initial state) is batched from its first pass, and the loop's batching rule passes over
+    its body once instead of two or three times.
+    """
+    return jax.tree_util.tree_map(lambda z: jnp.where(tie == tie, z, z), tree)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._numerics import tied
 from ._params import ParamSpec, merge_specs, resolve
 from ._validation import check_real, check_scalar_range, traced_results
 from .controllers import Controller, StepStatus
@@ -186,11 +187,6 @@ def _zeros_of(shapes: Any) -> Any:
     return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
-def _tied(tree: Any, tie: jax.Array) -> Any:
-    """``tree``'s values, made to depend on the scalar ``tie`` (``tie == tie`` selects them)."""
-    return jax.tree_util.tree_map(lambda z: jnp.where(tie == tie, z, z), tree)
-
-
 def closed_loop(
     step: Callable[[jax.Array, jax.Array, Any], Any],
     rhs: Callable[[jax.Array, jax.Array, Any, Any], jax.Array],
@@ -253,8 +249,8 @@ def closed_loop(
         # tied to x0: under vmap they are then batched like the values that replace them,
         # and the scan's batching rule passes over the body once instead of twice
         tie = x0.reshape(-1)[0]
-        out0 = _tied(_zeros_of(jax.eval_shape(step_once, t0, x0, data)), tie)
-        y0 = _tied(_zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1]), tie)
+        out0 = tied(_zeros_of(jax.eval_shape(step_once, t0, x0, data)), tie)
+        y0 = tied(_zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1]), tie)
 
         def body(carry, k):
             x, _, state = carry

@@ -35,10 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import solve_triangular
 
+from .._numerics import tied
 from ._kernels import scaled_norm
 
 __all__ = [
-    "DualSolution", "solve_dual", "placeholder", "tied", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT",
+    "DualSolution", "solve_dual", "placeholder", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT",
     "ADD_RTOL",
 ]  # fmt: skip
 
@@ -76,16 +77,6 @@ class DualSolution(NamedTuple):
     iterations: Any
     cond: Any
     certified: Any
-
-
-def tied(tree: Any, tie: Any) -> Any:
-    """``tree``'s values, made to depend on the scalar ``tie`` (``tie == tie`` selects them).
-
-    The values are unchanged (both sides of the selection are the value, whatever ``tie``
-    is, NaN included); what changes is that under ``vmap`` they are batched wherever ``tie``
-    is, so that a loop whose state starts from them is batched from its first pass.
-    """
-    return jax.tree_util.tree_map(lambda z: jnp.where(tie == tie, z, z), tree)
 
 
 def placeholder(lead: tuple[int, ...], n_rows: int, dim: int, dtype: Any) -> DualSolution:

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numerics import inv_sqrt
+from .._numerics import inv_sqrt, tied
 from .._validation import check_finite, check_real, is_concrete
 from ..errors import DimensionError, ParameterError
 from ._checks import as_float, check_box, check_max_iter, check_output_finite, check_params
@@ -38,7 +38,6 @@ from ._dual_active_set import (
     default_max_iter,
     placeholder,
     solve_dual,
-    tied,
 )
 from ._kernels import SATISFIED_RTOL, margins, scaled_norm, solve_two
 

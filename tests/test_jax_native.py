@@ -480,6 +480,61 @@ def test_a_filter_built_with_lists_and_its_replace_share_one_tree_structure():
     assert len(traces) == 2
 
 
+def _traces_while(fn):
+    """The functions JAX traces while ``fn()`` runs (names from the monitoring events)."""
+    traces = []
+
+    def listen(event, duration, **kw):
+        if event.endswith("jaxpr_trace_duration"):
+            traces.append(kw.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        fn()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return traces
+
+
+def test_the_eager_step_of_a_replaced_controller_is_not_traced_again():
+    """An eager ``step`` runs one program per tree structure: new numbers (``replace``)
+    reuse it, and its answer is the one of the controller passed to a user's jit."""
+    system, clf, cbf = _plant()
+    filt = ss.SafetyFilter(system, [cbf], clfs=[clf], **K, u_min=-4.0, u_max=4.0)
+    ctrl = ss.UniversalController(system, clf, cbf, **K, u_min=-5.0, u_max=5.0)
+    x = jnp.array([1.2, 0.7])
+    for base, others in (
+        (filt, [filt.replace(rho=0.31), filt.replace(kappa=0.7, u_max=3.0)]),
+        (ctrl, [ctrl.replace(rho=0.31), ctrl.replace(kappa=0.7, u_max=3.0)]),
+    ):
+        u_of = jax.jit(lambda c, x: c.step_fn(x).u)
+        base.step(x), u_of(base, x)
+        outs = []
+        assert _traces_while(lambda others=others: outs.extend(o.step(x).u for o in others)) == []
+        for other, u in zip(others, outs, strict=True):
+            np.testing.assert_array_equal(np.asarray(u), np.asarray(u_of(other, x)))
+        # the numbers did reach the program (the test can fail)
+        assert not np.array_equal(np.asarray(outs[1]), np.asarray(base.step(x).u))
+    # another structure (a slack weight) is a program of its own
+    assert _traces_while(lambda: filt.replace(slack_weight=2.0).step(x)) != []
+
+
+def test_a_traced_step_is_the_controllers_own_step_fn():
+    """Inside a trace (a user's jit, a study's loop) ``step`` and ``__call__`` run
+    ``step_fn``, whose program holds the parameters as constants, as before the eager step
+    was shared: what a traced program computes does not change with that."""
+    system, clf, cbf = _plant()
+    filt = ss.SafetyFilter(system, [cbf], clfs=[clf], **K, u_min=-4.0, u_max=4.0)
+    x = jnp.array([1.2, 0.7])
+    text = str(jax.make_jaxpr(lambda x: filt(x))(x))
+    assert "_checked_call" not in text and "_step" in text
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(lambda x: filt(x))(x)), np.asarray(filt.step_fn(x).u)
+    )
+    # eagerly, the shared program (the test can fail: it is named in the eager trace)
+    assert "_checked_call" in _traces_while(lambda: filt.replace(rho=0.29).step(x))
+
+
 def test_state_gradient_through_f_g_v_h_matches_high_precision_differences():
     """du/dx of the controller (through f, g, V, h and their autodiff gradients) against
     central differences of the same controller written out by hand in 80 digits."""

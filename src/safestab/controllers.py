@@ -139,8 +139,7 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
 
 @jax.jit
 def _checked_call(ctrl: Any, x: jax.Array, p: Any) -> Any:
-    """``ctrl.step_fn`` with the controller as an argument: what an eager
-    :meth:`Controller.step` runs.
+    """``ctrl.step_fn`` with the controller as an argument: an eager :meth:`Controller.step`.
 
     One program serves every controller of one tree structure (:meth:`Controller.replace`
     with new numbers, controllers built alike): their numeric parameters are arguments of
@@ -152,9 +151,7 @@ def _checked_call(ctrl: Any, x: jax.Array, p: Any) -> Any:
 
 
 def _any_tracer(*trees: Any) -> bool:
-    return any(
-        isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees)
-    )
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
 
 
 class Controller(ControllerValue):

@@ -523,6 +523,23 @@ def test_the_eager_step_of_a_replaced_controller_is_not_traced_again():
     assert _traces_while(lambda: filt.replace(slack_weight=2.0).step(x)) != []
 
 
+def test_a_copy_with_other_numbers_does_not_reuse_the_eager_arguments_of_its_template():
+    """JAX rebuilds a controller by copying the first of its structure: the copy carries
+    that one's kept device arguments, and must step with its own numbers."""
+    system, clf, cbf = _plant()
+    filt = ss.SafetyFilter(system, [cbf], clfs=[clf], **K, u_min=-4.0, u_max=4.0)
+    x = jnp.array([1.2, 0.7])
+    u = np.asarray(filt.step(x).u)  # keeps its device arguments
+    other = jax.tree_util.tree_map(lambda v: np.asarray(v) * 0.5, filt)
+    got = np.asarray(other.step(x).u)
+    # the numbers as arguments, as a user's jit passes them: the same program, the same bits
+    np.testing.assert_array_equal(got, np.asarray(jax.jit(lambda c, x: c.step_fn(x).u)(other, x)))
+    # step_fn holds them as constants, which XLA may fold in another order: the last bit
+    np.testing.assert_allclose(got, np.asarray(other.step_fn(x).u), rtol=1e-14, atol=0)
+    assert not np.allclose(got, u)
+    np.testing.assert_array_equal(np.asarray(filt.step(x).u), u)
+
+
 def test_a_traced_step_is_the_controllers_own_step_fn():
     """Inside a trace (a user's jit, a study's loop) ``step`` and ``__call__`` run
     ``step_fn``, whose program holds the parameters as constants, as before the eager step

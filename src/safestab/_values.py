@@ -61,14 +61,16 @@ class Template:
     Controllers are values: an attribute set after construction is not part of the key.
     """
 
-    __slots__ = ("obj", "key")
+    __slots__ = ("obj", "key", "_hash")
 
     def __init__(self, obj: Any, key: Any = None) -> None:
         self.obj = obj
         self.key = key
+        # computed once: jit hashes the tree structure, and so this, at every call
+        self._hash = id(obj) if key is None else hash(key)
 
     def __hash__(self) -> int:
-        return id(self.obj) if self.key is None else hash(self.key)
+        return self._hash
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Template):

@@ -170,7 +170,7 @@ def _eager_arguments(ctrl: Controller) -> tuple[Any, tuple[Any, ...]] | None:
     if kept is not None and len(kept[0]) == len(leaves):
         if all(a is b for a, b in zip(kept[0], leaves, strict=True)):
             return kept[1]
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+    if _any_tracer(leaves):
         return None
     args = (treedef, tuple(jax.device_put(leaf) for leaf in leaves))
     ctrl.__dict__["_eager_args"] = (tuple(leaves), args)

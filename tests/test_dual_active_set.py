@@ -16,6 +16,7 @@ import pytest
 from safestab import MultiStatus, ParameterError, clf_cbf_multi
 
 from . import filter_cases as fc
+from .jax_events import traces_while
 
 EPS = np.finfo(float).eps
 
@@ -158,8 +159,12 @@ def test_the_iteration_bound_is_reported_and_keeps_the_limits():
     rng = np.random.default_rng(3)
     c, d, u_nom = _point_robot(rng, 50, 32)
     kw = dict(kappa=0.0, rho=0.0, phi=0.0, varphi=0.0, u_min=-1.0, u_max=1.0, u_nom=u_nom)
-    full = clf_cbf_multi(np.zeros((50, 0)), np.zeros((50, 0, 2)), c, d, **kw)
-    cut = clf_cbf_multi(np.zeros((50, 0)), np.zeros((50, 0, 2)), c, d, max_iter=1, **kw)
+    no_clf = (np.zeros((50, 0)), np.zeros((50, 0, 2)))
+    full = clf_cbf_multi(*no_clf, c, d, **kw)
+    out = []
+    # the bound is an argument of the solver's program, not a new program per value
+    assert traces_while(lambda: out.append(clf_cbf_multi(*no_clf, c, d, max_iter=1, **kw))) == []
+    cut = out[0]
     status = np.asarray(cut.status)
     # one iteration adds one row: states that need two or more active rows stop at the bound
     needs_more = np.asarray(full.active).sum(-1) >= 2

@@ -19,6 +19,7 @@ import safestab as ss
 from safestab.errors import ParameterError
 
 from . import mpref
+from .jax_events import traces_while
 
 K = dict(kappa=0.5, rho=0.2, phi=1.0, varphi=0.5)
 B_ = jnp.array([1.0, 0.5])
@@ -484,22 +485,6 @@ def test_a_filter_built_with_lists_and_its_replace_share_one_tree_structure():
     assert len(traces) == 2
 
 
-def _traces_while(fn):
-    """The functions JAX traces while ``fn()`` runs (names from the monitoring events)."""
-    traces = []
-
-    def listen(event, duration, **kw):
-        if event.endswith("jaxpr_trace_duration"):
-            traces.append(kw.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
-        fn()
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
-    return traces
-
-
 def test_the_eager_step_of_a_replaced_controller_is_not_traced_again():
     """An eager ``step`` runs one program per tree structure: new numbers (``replace``)
     reuse it, and its answer is the one of the controller passed to a user's jit."""
@@ -514,13 +499,13 @@ def test_the_eager_step_of_a_replaced_controller_is_not_traced_again():
         u_of = jax.jit(lambda c, x: c.step_fn(x).u)
         base.step(x), u_of(base, x)
         outs = []
-        assert _traces_while(lambda others=others: outs.extend(o.step(x).u for o in others)) == []
+        assert traces_while(lambda others=others: outs.extend(o.step(x).u for o in others)) == []
         for other, u in zip(others, outs, strict=True):
             np.testing.assert_array_equal(np.asarray(u), np.asarray(u_of(other, x)))
         # the numbers did reach the program (the test can fail)
         assert not np.array_equal(np.asarray(outs[1]), np.asarray(base.step(x).u))
     # another structure (a slack weight) is a program of its own
-    assert _traces_while(lambda: filt.replace(slack_weight=2.0).step(x)) != []
+    assert traces_while(lambda: filt.replace(slack_weight=2.0).step(x)) != []
 
 
 def test_a_copy_with_other_numbers_does_not_reuse_the_eager_arguments_of_its_template():
@@ -553,7 +538,7 @@ def test_a_traced_step_is_the_controllers_own_step_fn():
         np.asarray(jax.jit(lambda x: filt(x))(x)), np.asarray(filt.step_fn(x).u)
     )
     # eagerly, the shared program (the test can fail: it is named in the eager trace)
-    assert "_checked_call" in _traces_while(lambda: filt.replace(rho=0.29).step(x))
+    assert "_checked_call" in traces_while(lambda: filt.replace(rho=0.29).step(x))
 
 
 def test_state_gradient_through_f_g_v_h_matches_high_precision_differences():

@@ -342,6 +342,13 @@ def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     )
 
 
+def _default_bound(p: int, m: int, k: int, limits: bool, soft: bool) -> int:
+    """The default iteration bound of ``p`` CLF, ``k`` CBF rows over ``m`` inputs."""
+    n_rows = p + k + (2 * m if limits else 0)
+    dim = m + (p if soft else 0)
+    return default_max_iter(n_rows, dim + k)
+
+
 def multi_kernel(
     a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None
 ):
@@ -352,10 +359,8 @@ def multi_kernel(
     ``lax.cond``: inside a user's ``vmap`` both branches run, with the same results).
     """
     batch, (p, m), k = b.shape[:-2], b.shape[-2:], d.shape[-2]
-    n_rows = p + k + (2 * m if lo is not None else 0)
-    dim = m + (p if inv_sqrt_slack is not None else 0)
     if max_iter is None:
-        max_iter = default_max_iter(n_rows, dim + k)
+        max_iter = _default_bound(p, m, k, lo is not None, inv_sqrt_slack is not None)
     flat = int(np.prod(batch, dtype=int))
 
     def bc(v, tail):
@@ -517,7 +522,8 @@ def clf_cbf_multi(
         Iteration bound of the active-set solver per phase (default ``3 (rows + dim) + 10``,
         ``dim`` the inputs, CLF slacks and, for the last-resort phase, CBF slacks); where it
         is reached the status is ``ITERATION_LIMIT``. Unused where the closed form applies
-        (one CLF, one CBF, no limits).
+        (one CLF, one CBF, no limits). An argument of the compiled solver: another bound
+        does not compile it again.
 
     Returns
     -------
@@ -588,17 +594,24 @@ def clf_cbf_multi(
                 raise ParameterError("H must be positive definite (all eigenvalues > 0)")
         H = jnp.broadcast_to(jnp.asarray(H, float), batch + (m, m))
     a, b, c, d = as_float(a, b, c, d)
+    if max_iter is None:
+        max_iter = _default_bound(p, m, k, lo is not None, inv_s is not None)
     if p == 1 and k == 1 and lo is None:
         res = _single_jit(a, b, c, d, kappa, rho, phi, varphi, inv_s, u_nom, H)
     else:
         res = _multi_jit(
-            a, b, c, d, kappa, rho, phi, varphi, inv_s, lo, hi, u_nom, H, max_iter=max_iter
-        )
+            a, b, c, d, kappa, rho, phi, varphi, inv_s, lo, hi, u_nom, H,
+            max_iter=jnp.int32(min(max_iter, _INT32_MAX)),
+        )  # fmt: skip
     check_output_finite("clf_cbf_multi", u=res.u, slack=res.slack, multipliers=res.multipliers)
     return res
 
 
-_multi_jit = jax.jit(multi_kernel, static_argnames="max_iter")
+# the bound is an argument, not a static value: it is only compared with the iteration count,
+# so every bound runs one program (a static bound compiled the whole solver once per value)
+_multi_jit = jax.jit(multi_kernel)
+#: The iteration count is an int32: a larger bound is the same bound as this one.
+_INT32_MAX = int(np.iinfo(np.int32).max)
 
 
 @jax.jit

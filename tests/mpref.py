@@ -215,7 +215,98 @@ def solve_rows(G, r):
         return [mp.mpf(0)] * dim, False
 
 
-def solve_qp(Q, z0, G, r, hint=None, dps=60):
+def proves_inconsistent(G, r, dps=60) -> bool:
+    """Whether the rows ``G z <= r`` are proven inconsistent by a Farkas certificate.
+
+    A ``y >= 0`` with ``G'y = 0`` and ``r'y < 0`` proves that no ``z`` satisfies the rows
+    (``0 = y'G z <= y'r < 0``). A float64 linear program only proposes ``y``; the proof is
+    checked in the working precision, with ``r'y`` negative beyond ``tiny`` times its own
+    terms, in one of two ways:
+
+    * the rows that bound one coordinate (``z_j <= hi``, ``-z_j <= -lo``: the input limits)
+      cancel ``G'y`` of the other rows exactly (their multipliers are its entries), so the
+      proposed multipliers of the other rows need not be exact: this is the statement that
+      ``min`` over the box of ``(y'G) z`` exceeds ``y'r``;
+    * otherwise ``y`` is solved on the rows the program used (at most ``dim + 1``) and
+      ``G'y`` must vanish beyond ``tiny`` times its terms (a feasible point could then only
+      lie beyond about ``1 / tiny`` times the data's scale).
+
+    False when neither proves it (the caller then enumerates every active set, as it did
+    without this test): a float64 proposal can miss on rows inconsistent by less than its
+    rounding. ``G``, ``r``: floats or mp numbers, exact.
+    """
+    with mp.workdps(dps):
+        Gm = [[_mp(x) for x in row] for row in G]
+        rm = [_mp(x) for x in r]
+        return _certified(Gm, rm, mp.mpf(10) ** (25 - dps))
+
+
+def _certified(Gm, rm, tiny) -> bool:
+    """:func:`proves_inconsistent` on mp rows, in the caller's precision."""
+    from scipy.optimize import linprog
+
+    n, dim = len(Gm), len(Gm[0]) if Gm else 0
+    if n == 0 or dim == 0:
+        return False
+    Gf = np.array([[float(x) for x in row] for row in Gm])
+    rf = np.array([float(x) for x in rm])
+    norm = np.maximum(np.abs(Gf).sum(1), np.abs(rf))
+    keep = np.flatnonzero(norm > 0)  # a zero row with r = 0 holds everywhere
+    Gn, rn = Gf[keep] / norm[keep, None], rf[keep] / norm[keep]
+    A_eq = np.vstack([Gn.T, np.ones((1, len(keep)))])
+    b_eq = np.concatenate([np.zeros(dim), [1.0]])
+    lp = linprog(rn, A_eq=A_eq, b_eq=b_eq, bounds=(0, None), method="highs")
+    if lp.status != 0 or not lp.fun < 0:
+        return False
+
+    def negative(terms):
+        return mp.fsum(terms) < -tiny * mp.fsum(abs(x) for x in terms)
+
+    # 1. the limit rows cancel what the other rows leave of G'y
+    bound = {}  # (coordinate, +1 or -1) -> a row that is exactly that unit vector
+    for i in range(n):
+        nz = [j for j in range(dim) if Gm[i][j] != 0]
+        if len(nz) == 1 and abs(Gm[i][nz[0]]) == 1:
+            bound.setdefault((nz[0], int(mp.sign(Gm[i][nz[0]]))), i)
+    box = set(bound.values())
+    y = {int(i): mp.mpf(float(v / norm[i])) for i, v in zip(keep, lp.x, strict=True) if v > 0}
+    y = {i: v for i, v in y.items() if i not in box}
+    c = [mp.fsum(Gm[i][j] * v for i, v in y.items()) for j in range(dim)]
+    terms = [rm[i] * v for i, v in y.items()]
+    for j in range(dim):
+        if c[j] != 0:
+            row = bound.get((j, -int(mp.sign(c[j]))))
+            if row is None:
+                break
+            terms.append(rm[row] * abs(c[j]))
+    else:
+        if y and negative(terms):
+            return True
+
+    # 2. y solved on the program's rows: G_S' y = 0 and sum_i norm_i y_i = 1
+    support = keep[lp.x > 1e-9 * np.max(lp.x)]
+    if len(support) > dim + 1:
+        return False
+    M = mp.matrix(dim + 1, len(support))
+    for t, i in enumerate(support):
+        for j in range(dim):
+            M[j, t] = Gm[i][j]
+        M[dim, t] = mp.mpf(float(norm[i]))
+    try:
+        ys = mp.qr_solve(M, mp.matrix([0] * dim + [1]))[0]
+    except ZeroDivisionError:  # dependent rows on the support: no unique y to check
+        return False
+    ymax = max(abs(ys[t]) for t in range(len(support)))
+    if any(ys[t] <= tiny * ymax for t in range(len(support))):
+        return False
+    for j in range(dim):
+        col = [Gm[i][j] * ys[t] for t, i in enumerate(support)]
+        if abs(mp.fsum(col)) > tiny * mp.fsum(abs(x) for x in col):
+            return False
+    return negative([rm[i] * ys[t] for t, i in enumerate(support)])
+
+
+def solve_qp(Q, z0, G, r, hint=None, dps=60, certificate=True):
     """Exact minimiser of ``1/2 (z - z0)' Q (z - z0)`` s.t. ``G z <= r`` (Q positive definite).
 
     Every argument is exact (floats converted exactly, or mp numbers). The active set ``hint``
@@ -223,7 +314,9 @@ def solve_qp(Q, z0, G, r, hint=None, dps=60):
     ``dps`` digits, candidates ordered by a float64 score so that the optimum is found early.
     Returns ``(z, lam, S, cond)`` with the multipliers of the rows in ``S`` and the condition
     number of the active rows (see ``_condition``), or None if no subset is
-    a KKT point (the rows are inconsistent). The KKT point of a strictly convex QP is unique,
+    a KKT point (the rows are inconsistent: proven by a Farkas certificate where one is
+    found, see :func:`proves_inconsistent`, otherwise by trying every subset;
+    ``certificate=False`` always tries every subset). The KKT point of a strictly convex QP is unique,
     so the result does not depend on the order in which subsets are tried.
     """
     import itertools
@@ -299,6 +392,8 @@ def solve_qp(Q, z0, G, r, hint=None, dps=60):
             found = attempt(tuple(hint))
             if found is not None:
                 return found
+        if certificate and proves_inconsistent(Gm, rm, dps):  # no KKT point: none to look for
+            return None
         Gf = np.array([[float(x) for x in row] for row in Gm]).reshape(n, dim)
         rf = np.array([float(x) for x in rm])
         Qf = np.array([[float(Qm[i, j]) for j in range(dim)] for i in range(dim)])

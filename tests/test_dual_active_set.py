@@ -16,6 +16,7 @@ import pytest
 from safestab import MultiStatus, ParameterError, clf_cbf_multi
 
 from . import filter_cases as fc
+from . import mpref
 from .jax_events import traces_while
 
 EPS = np.finfo(float).eps
@@ -311,3 +312,29 @@ def test_a_bound_reached_on_the_last_step_is_still_optimal_and_no_rows_is_no_pro
     )  # fmt: skip
     assert int(res.status) == MultiStatus.SOLVED
     assert np.array_equal(np.asarray(res.u), [1.0, -2.0])
+
+
+def test_the_references_proof_of_inconsistent_rows_agrees_with_trying_every_active_set():
+    """The 50-digit reference proves rows inconsistent by a Farkas certificate instead of
+    trying every active set: never on rows that have a solution, and on most that have none
+    (otherwise it tries them all, as before)."""
+    rng = np.random.default_rng(7)
+    outcome: collections.Counter = collections.Counter()
+    for t in range(120):
+        dim, k = int(rng.integers(1, 4)), int(rng.integers(1, 4))
+        G = rng.normal(size=(k, dim)) * 10.0 ** rng.integers(-3, 4, size=(k, 1))
+        r = rng.normal(size=k)
+        if t % 2:  # a row against an earlier one, almost antiparallel (the conflict geometry)
+            i = int(rng.integers(k))
+            G = np.vstack([G, -2.5 * G[i] * (1 + 1e-12 * rng.normal(size=dim))])
+            r = np.append(r, -2.5 * r[i] - abs(rng.normal()) * 10.0 ** rng.integers(-9, 1))
+        if t % 3:  # input limits
+            lim = rng.uniform(0.1, 3.0, dim)
+            G, r = np.vstack([G, np.eye(dim), -np.eye(dim)]), np.concatenate([r, lim, lim])
+        proof = mpref.proves_inconsistent(G.tolist(), r.tolist())
+        kkt = mpref.solve_qp(np.eye(dim), rng.normal(size=dim), G.tolist(), r.tolist(),
+                             certificate=False)  # fmt: skip
+        outcome[(proof, kkt is None)] += 1
+    assert outcome[(True, False)] == 0, outcome  # a proof on rows that have a solution
+    assert outcome[(True, True)] >= 0.9 * (outcome[(True, True)] + outcome[(False, True)]), outcome
+    assert outcome[(True, True)] >= 20 and outcome[(False, False)] >= 20, outcome

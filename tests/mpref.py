@@ -316,8 +316,8 @@ def solve_qp(Q, z0, G, r, hint=None, dps=60, certificate=True):
     number of the active rows (see ``_condition``), or None if no subset is
     a KKT point (the rows are inconsistent: proven by a Farkas certificate where one is
     found, see :func:`proves_inconsistent`, otherwise by trying every subset;
-    ``certificate=False`` always tries every subset). The KKT point of a strictly convex QP is unique,
-    so the result does not depend on the order in which subsets are tried.
+    ``certificate=False`` always tries every subset). The KKT point of a strictly convex QP is
+    unique, so the result does not depend on the order in which subsets are tried.
     """
     import itertools
 

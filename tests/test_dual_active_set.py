@@ -67,7 +67,7 @@ def test_no_wrong_solved_and_no_broken_limit_against_the_50_digit_reference():
 
 @pytest.mark.slow
 def test_twenty_thousand_cases_against_the_50_digit_reference():
-    """The acceptance run of the filter issue: 20,160 cases (about 40 minutes)."""
+    """The acceptance run of the filter issue: 20,160 cases (6 min 22 s alone, 2026-11-28)."""
     total: collections.Counter = collections.Counter()
     for seed in range(1, 29):
         counts, faults = _review(720, seed=seed)

@@ -9,6 +9,8 @@ with the documented one-sided choice.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mpmath as mp
@@ -156,7 +158,12 @@ def _mp_jacobian(theta, m, relaxed):
         return np.array([[float(v) for v in col] for col in cols]).T, region
 
 
-def _jax_jacobian(theta, m, relaxed):
+@functools.partial(jax.jit, static_argnames=("m", "relaxed"))
+def _jax_derivatives(th, m, relaxed):
+    """Forward- and reverse-mode Jacobians of ``u`` and the region, in one program per
+    shape: eager transformations traced the formula again at every call (about half of
+    this test's time); the eager ones are tested in test_every_public_function_composes."""
+
     def u_of(th):
         a, b, c, d, prm = _unflat(th, m)
         kw = dict(zip(_NAMES, prm[:4], strict=True))
@@ -164,12 +171,16 @@ def _jax_jacobian(theta, m, relaxed):
             return ss.clf_cbf_relaxed(a, b, c, d, slack_weight=prm[4], **kw)
         return ss.clf_cbf(a, b, c, d, **kw)
 
-    th = jnp.asarray(theta)
     return (
-        np.asarray(jax.jacfwd(lambda t: u_of(t).u)(th)),
-        np.asarray(jax.jacrev(lambda t: u_of(t).u)(th)),
-        int(u_of(th).region),
+        jax.jacfwd(lambda t: u_of(t).u)(th),
+        jax.jacrev(lambda t: u_of(t).u)(th),
+        u_of(th).region,
     )
+
+
+def _jax_jacobian(theta, m, relaxed):
+    fwd, rev, region = _jax_derivatives(jnp.asarray(theta), m, relaxed)
+    return np.asarray(fwd), np.asarray(rev), int(region)
 
 
 @pytest.mark.parametrize("relaxed", [False, True])
@@ -298,6 +309,26 @@ def _mp_filter_u(clf, c, d, u_nom, rho, lo, hi, phase, hint):
     return out[0][:m]
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _filter_jacobian(theta, k, p, kappa, rho, phi, lo, hi):
+    """``d u / d theta`` (reverse mode: the pullback of each output direction) and the
+    filter's answer at ``theta = (a, b, c, d, u_nom)``, in one program per shape (eager
+    transformations compiled two and traced the solver again at every call)."""
+    m = lo.shape[0]
+    split = np.cumsum([p, p * m, k, k * m])
+
+    def u_of(th):
+        a, b, c, d, un = (th[i:j] for i, j in zip([0, *split], [*split, len(th)], strict=True))
+        res = ss.clf_cbf_multi(
+            a, b.reshape(p, m), c, d.reshape(k, m), kappa=kappa, rho=rho, phi=phi, varphi=0.0,
+            u_min=lo, u_max=hi, u_nom=un,
+        )  # fmt: skip
+        return res.u, res
+
+    _, pullback, res = jax.vjp(u_of, theta, has_aux=True)
+    return jax.vmap(lambda e: pullback(e)[0])(jnp.eye(m)), res
+
+
 def test_filter_gradients_match_high_precision_differences_on_its_active_sets():
     """Every phase of the filter's solver (SOLVED with and without a hard CLF, CLF_DROPPED,
     CBF_RELAXED): d u / d (a, b, c, d, u_nom) against 80-digit differences."""
@@ -314,29 +345,13 @@ def test_filter_gradients_match_high_precision_differences_on_its_active_sets():
              rng.normal(size=k * m), rng.normal(size=m)]
         )  # fmt: skip
         split = np.cumsum([p, p * m, k, k * m])
-
-        def parts(th, k=k, p=p, split=split):
-            a, b, c, d, un = (th[i:j] for i, j in zip([0, *split], [*split, len(th)], strict=True))
-            return a, b.reshape(p, m), c, d.reshape(k, m), un
-
-        def u_of(th, parts=parts):
-            a, b, c, d, un = parts(th)
-            res = ss.clf_cbf_multi(
-                a, b, c, d, kappa=kappa, rho=rho, phi=phi, varphi=0.0, u_min=lo, u_max=hi,
-                u_nom=un,
-            )  # fmt: skip
-            return res.u, res
-
-        # the value and its pullback from one linearisation (the reverse-mode Jacobian is
-        # the pullback of each output direction): two programs per shape, where a plain
-        # call and then jax.jacrev compiled three
-        _, pullback, res = jax.vjp(u_of, jnp.asarray(theta), has_aux=True)
+        J, res = _filter_jacobian(jnp.asarray(theta), k, p, kappa, rho, phi, lo, hi)
+        J = np.asarray(J)
         phase = int(res.status)
         if seen.get((phase, p), 2) >= 2:
             continue
         shift = p if phase > 0 else 0  # the CLF row is not in the fallback problems
         hint = [int(i) - shift for i in np.flatnonzero(np.asarray(res.active))]
-        J = np.asarray(jax.vmap(lambda e, pullback=pullback: pullback(e)[0])(jnp.eye(m)))
         h = mp.mpf("1e-20")
         with mp.workdps(60):
             th = [mp.mpf(float(v)) for v in theta]
@@ -610,16 +625,22 @@ def test_filter_is_a_value_and_differentiates():
     np.testing.assert_array_equal(
         np.asarray(jax.jit(lambda f, x: f.step_fn(x).u)(filt, x)), np.asarray(filt.step(x).u)
     )
+    # every derivative from one reverse-mode program, with the filter as an argument: its
+    # gradient is a filter of Jacobians (eager jacrev per parameter compiled two programs of
+    # the whole step for each, half of this test's time)
+    dfilt, J = jax.jit(jax.jacrev(lambda f, x: f.step_fn(x).u, argnums=(0, 1)))(filt, x)
+    assert isinstance(dfilt, ss.SafetyFilter)
+    grads = dfilt.tunables()
     for name in ("rho", "kappa"):
         v = float(filt.tunables()[name])
-        g = np.asarray(jax.jacrev(lambda p, n=name: filt.replace(**{n: p}).step_fn(x).u)(v))
+        g = np.asarray(grads[name])
         fd = (
             np.asarray(filt.replace(**{name: v + 1e-6}).step(x).u)
             - np.asarray(filt.replace(**{name: v - 1e-6}).step(x).u)
         ) / 2e-6
         np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
     H0 = filt.tunables()["H"]
-    gH = np.asarray(jax.jacrev(lambda H: filt.replace(H=H).step_fn(x).u)(H0))
+    gH = np.asarray(grads["H"])
     for i, j in ((0, 0), (1, 1)):
         E = np.zeros((2, 2))
         E[i, j] = 1e-6
@@ -628,7 +649,7 @@ def test_filter_is_a_value_and_differentiates():
             - np.asarray(filt.replace(H=H0 - E).step(x).u)
         ) / 2e-6
         np.testing.assert_allclose(gH[:, i, j], fdH, rtol=1e-6, atol=1e-8)
-    J = np.asarray(jax.jacrev(lambda x: filt.step_fn(x).u)(x))
+    J = np.asarray(J)
     fd = np.stack(
         [(np.asarray(filt.step(x + 1e-6 * e).u) - np.asarray(filt.step(x - 1e-6 * e).u)) / 2e-6
          for e in np.eye(2)], -1,

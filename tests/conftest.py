@@ -1,5 +1,15 @@
 import os
 
+# Each xdist worker is one of several processes that fill the CPUs: BLAS (OpenBLAS, NumPy's,
+# SciPy's and JAX's CPU LAPACK) gets one thread there, as Ray's workers and the studies give
+# it (safestab.learning.batched.one_blas_thread). OpenBLAS's threads spin while they wait for
+# each other on cores that another worker holds: a GP fit (test_fast's std_tol test) took 50 s
+# against 6 s with one thread, both cores busy (2 CPUs, 2026-11-28). Subprocesses inherit it;
+# a test that needs more threads raises the limit itself (threadpoolctl).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -12,6 +22,11 @@ import jax  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 import safestab  # noqa: E402,F401  (enables float64 before any test builds arrays)
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # in case a plugin loaded BLAS before the above
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
 
 # The library stores every compiled program (safestab/_cache.py, MIN_COMPILE_SECONDS = 0: a
 # study's second run reads its ~140 small programs back), and so does the suite (about 12,000

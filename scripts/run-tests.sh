@@ -2,7 +2,8 @@
 # Set up .venv (if needed) and run the test suite: tests marked slow are left out unless
 # asked for (pyproject.toml's addopts; `-m slow` runs them, see the README).
 # The test files run in parallel worker processes (pytest-xdist, one file per worker at a
-# time so that a file's fixtures are built once): one worker per CPU, at most 4.
+# time so that a file's fixtures are built once): one worker per CPU, at most 4. Each worker
+# gives BLAS one thread, since the workers already fill the CPUs (tests/conftest.py).
 # SAFESTAB_TEST_WORKERS=N sets the count; 1 runs everything in this process, as `-n 0` among
 # the arguments (passed to pytest) does: use it for --pdb or -s.
 source "$(dirname "$0")/_venv.sh" test,docs  # docs: tests of the docs tooling, and the CI site build

@@ -342,6 +342,10 @@ def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
     )
 
 
+#: The iteration count is an int32: a larger bound is the same bound as this one.
+_INT32_MAX = int(np.iinfo(np.int32).max)
+
+
 def _default_bound(p: int, m: int, k: int, limits: bool, soft: bool) -> int:
     """The default iteration bound of ``p`` CLF, ``k`` CBF rows over ``m`` inputs."""
     n_rows = p + k + (2 * m if limits else 0)
@@ -610,8 +614,6 @@ def clf_cbf_multi(
 # the bound is an argument, not a static value: it is only compared with the iteration count,
 # so every bound runs one program (a static bound compiled the whole solver once per value)
 _multi_jit = jax.jit(multi_kernel)
-#: The iteration count is an int32: a larger bound is the same bound as this one.
-_INT32_MAX = int(np.iinfo(np.int32).max)
 
 
 @jax.jit

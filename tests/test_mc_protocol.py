@@ -4,6 +4,7 @@ scenario written in this file against the protocol alone."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import Any
 
 import jax
@@ -24,6 +25,7 @@ from safestab.montecarlo import (
     trial_function,
 )
 from safestab.montecarlo.protocol import TrialStudy
+from safestab.montecarlo.report import study_settings
 from safestab.scenarios import MonteCarloSpec, load
 
 # a 4 x 1 start grid (all outside the obstacle), 1 s at 50 Hz, a small GP
@@ -105,6 +107,12 @@ def test_obstacle_trials_with_the_filter_reproduce_the_simulator():
         clf, cbf = study.certificates()
         ctrl = study.build_controller(true_sys, clf, cbf, **study.controller_options())
         assert type(ctrl) is kind
+        # the documents record how the limits were kept, with the box and the gains
+        recorded = study_settings(study)["controller"]
+        assert recorded["limit_method"] == method
+        assert recorded["u_max"] == [OBSTACLE.input_limit] * 2
+        assert recorded["kappa"] == OBSTACLE.kappa
+        json.dumps(recorded, allow_nan=False)
     assert OBSTACLE.limit_method == "filter"  # the preset
     starts = OBSTACLE.start_states()
     x0, params = study.draw_trials(0, np.arange(3))
@@ -245,6 +253,9 @@ def test_a_third_scenario_plugs_in_through_the_protocol():
     assert run.records["min_h"].shape == (8, 3)
     doc = metrics_document(run)  # the outputs read the study, not the scenario
     assert doc["scenario"] == "scalar" and doc["settings"]["n_samples"] == 40
+    # a study without the optional controller_settings member records its GP settings only
+    assert doc["settings"]["learning"] == run.study.gp_settings()
+    assert doc["settings"]["controller"] is None
     assert doc["summary"]["h_unit"] == "m^2"
     plt.close(plot_montecarlo(run))
     # independent check of one trial: the true-model controller by ss.simulate

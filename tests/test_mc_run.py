@@ -177,7 +177,17 @@ def test_summary_and_strict_json(local_run):
     assert "lemma2_every_state" in s["controllers"]["GP-robust"]
     assert "lemma2_every_state" not in s["controllers"]["mismatched model"]
     text = json.dumps(metrics_document(local_run), allow_nan=False)
-    assert json.loads(text)["settings"]["trials"] == N
+    settings = json.loads(text)["settings"]
+    assert settings["trials"] == N
+    # what the study learned with and how its controllers were set, from the scenario
+    sc = local_run.study.scenario
+    assert settings["learning"] == {
+        "n_samples": sc.n_samples, "kernel": sc.kernel, "hyper_subset": sc.hyper_subset,
+        "gp_beta": sc.gp_beta, "input_gain": "nominal",
+    }  # fmt: skip
+    limited = sc.input_limit is not None
+    assert settings["controller"]["limit_method"] == ("projection" if limited else None)
+    assert settings["controller"]["slack_weight"] == sc.slack_weight
 
 
 @pytest.mark.parametrize(

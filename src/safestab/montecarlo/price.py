@@ -32,6 +32,7 @@ import numpy as np
 from .._io import with_finite_status
 from ..errors import ParameterError
 from ..scenarios import MonteCarloSpec
+from .report import study_settings
 from .runner import MonteCarloRun, run_montecarlo
 from .stats import summarize
 
@@ -173,7 +174,7 @@ def price_study(
     base = getattr(scenario, "montecarlo", None) or MonteCarloSpec()  # as run_montecarlo
     spec = base.replace(controllers=tuple(controllers), price_metrics=True)
     points = []
-    h_unit = None
+    h_unit = recorded = None
     for i, (q, sc) in enumerate(zip(qs, scenarios, strict=True)):
         if progress is not None:
             progress(i, len(qs), q)
@@ -182,6 +183,8 @@ def price_study(
             spec=spec,
         )  # fmt: skip
         h_unit = run.study.h_unit
+        recorded = study_settings(run.study)  # the same at every size but n_samples
+        recorded["learning"].pop("n_samples", None)
         points.append({"n_samples": q, "timings_s": run.timings,
                        "controllers": price_point(run)})  # fmt: skip
     doc = {
@@ -198,6 +201,7 @@ def price_study(
             "hyperparameters": spec.hyperparameters,
             "delta": spec.delta,
             "rkhs_norm": spec.rkhs_norm,
+            **(recorded or {}),
         },  # fmt: skip
         "h_unit": h_unit,
         "points": points,

@@ -59,6 +59,10 @@ class TrialStudy(Protocol):
         """
         ...
 
+    # optional: ``controller_settings() -> dict``, the compared controllers' settings as JSON
+    # data (numbers, lists, strings; ``limit_method`` among them), recorded in the Monte Carlo
+    # and price documents (:meth:`safestab.scenarios.trials.ScenarioTrials.controller_settings`)
+
     def omega(self, x: Any) -> Any:
         """The true model error, shape (..., n)."""
         ...

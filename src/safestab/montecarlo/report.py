@@ -11,7 +11,34 @@ from .._io import with_finite_status
 from .runner import MonteCarloRun
 from .stats import summarize
 
-__all__ = ["markdown_table", "metrics_document", "plot_montecarlo", "trials_npz_bytes"]
+__all__ = [
+    "markdown_table", "metrics_document", "plot_montecarlo", "study_settings", "trials_npz_bytes",
+]  # fmt: skip
+
+
+def study_settings(study: Any) -> dict[str, Any]:
+    """What a study's documents record of its learning and its controllers.
+
+    ``learning``: the study's ``gp_settings()`` (``n_samples``, ``kernel``, ``hyper_subset``,
+    ``gp_beta``, ``input_gain``); ``controller``: its ``controller_settings()`` (the gains,
+    the input limits and how they are kept, ``limit_method``), or None for a study without
+    that optional member.
+    """
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {str(k): plain(v) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [plain(v) for v in value]
+        if isinstance(value, np.generic | np.ndarray):
+            return np.asarray(value).tolist()
+        return value
+
+    describe = getattr(study, "controller_settings", None)
+    return {
+        "learning": plain(dict(study.gp_settings())),
+        "controller": None if describe is None else plain(describe()),
+    }
 
 
 def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
@@ -39,6 +66,7 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
             "t_final_s": study.t_final,
             "dt_s": study.dt,
             "n_samples": study.gp_settings()["n_samples"],
+            **study_settings(study),
         },
         "summary": summarize(run),
         "datasets": [

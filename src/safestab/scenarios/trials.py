@@ -119,6 +119,29 @@ class ScenarioTrials:
             slack_weight=sc.slack_weight, u_min=u_min, u_max=u_max,
         )  # fmt: skip
 
+    def controller_settings(self) -> dict[str, Any]:
+        """The compared controllers' settings, as the study's JSON documents record them.
+
+        :meth:`controller_options` as numbers and lists, how the input limits are kept
+        (``limit_method``: ``"projection"`` onto the box, eq. (26), or ``"filter"``, a
+        :class:`~safestab.SafetyFilter` with the box as rows; None without limits) and the
+        GP-robust controllers' :meth:`robust_options`.
+        """
+        options = {
+            k: None if v is None else np.asarray(v, float).tolist()
+            for k, v in self.controller_options().items()
+        }
+        limited = options.get("u_min") is not None
+        return {
+            **options,
+            "limit_method": self.limit_method() if limited else None,
+            "robust": self.robust_options(),
+        }
+
+    def limit_method(self) -> str:
+        """How the compared controllers keep the input limits: projection onto the box."""
+        return "projection"
+
     def robust_options(self) -> dict[str, Any]:
         """Extra keyword arguments of the GP-robust controllers.
 
@@ -285,6 +308,10 @@ class ObstacleTrials(ScenarioTrials):
     def input_gain(self) -> str:
         """``learning.input_gain`` of the scenario file."""
         return self.scenario.input_gain
+
+    def limit_method(self) -> str:
+        """``controller.limit_method`` of the scenario file (``"projection"`` or ``"filter"``)."""
+        return self.scenario.limit_method
 
     def build_controller(self, system: Any, clf: Any, cbf: Any, **options: Any) -> Any:
         """One compared controller, as ``controller.limit_method`` says.

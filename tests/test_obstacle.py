@@ -708,3 +708,48 @@ def test_cli_run_dispatches_acc_presets(tmp_path, monkeypatch):
         "acc_stress_metrics.json",
         "acc_stress_run.json",
     ]
+
+
+def test_an_error_of_the_model_based_thread_is_named_on_the_studys_error(monkeypatch):
+    """The model-based runs' thread failed first, then the GP-robust part: the error raised
+    names both (the thread's error was dropped before)."""
+    import types
+    from concurrent.futures import Future
+
+    from safestab.scenarios import obstacle_study as study_module
+
+    class InThisThread:  # the "background" runs at submit: its error is set before the rest
+        def __init__(self, max_workers):
+            pass
+
+        def submit(self, fn, *args):
+            future: Future = Future()
+            try:
+                future.set_result(fn(*args))
+            except Exception as exc:  # noqa: BLE001  (the future holds it)
+                future.set_exception(exc)
+            return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
+
+    def fit(sc, timings, report):  # held-out data, GP, uncertainty model, input gain
+        return types.SimpleNamespace(x=None), None, None, None
+
+    def failing_verdict(*args, **kwargs):
+        raise FloatingPointError("model-based verdicts failed")
+
+    def failing_coverage(*args, **kwargs):
+        raise ValueError("coverage failed")
+
+    monkeypatch.setattr(study_module, "ThreadPoolExecutor", InThisThread)
+    monkeypatch.setattr(study_module, "fit_obstacle_gp", fit)
+    monkeypatch.setattr(study_module, "verdict", failing_verdict)
+    monkeypatch.setattr(study_module, "_coverage", failing_coverage)
+    sc = load_obstacle_scenario("obstacle").replace(beta_method="chosen")
+    with pytest.raises(ValueError, match="coverage failed") as info:
+        study_module.run_obstacle_study(sc)
+    assert any(
+        "FloatingPointError: model-based verdicts failed" in note
+        for note in getattr(info.value, "__notes__", [])
+    )

@@ -811,9 +811,19 @@ def run_obstacle_study(
         )  # fmt: skip
         report("finishing the true-model and mismatched-model runs", 0.9)
         model_verdicts, model_levels, done = models_job.result()
+    except BaseException as exc:
+        # on an error above, raise at once (not after the model-based part): that thread
+        # finishes on its own and its result is dropped. An error it already raised is
+        # named on this one, not lost
+        if models_job.done() and not models_job.cancelled():
+            other = models_job.exception()
+            if other is not None and other is not exc:
+                exc.add_note(
+                    "the true-model and mismatched-model runs (in another thread) failed "
+                    f"too: {type(other).__name__}: {other}"
+                )
+        raise
     finally:
-        # on an error above, return at once (not after the model-based part): that thread
-        # finishes on its own, and its result or error is dropped for the one raised here
         background.shutdown(wait=False, cancel_futures=True)
     done.update({("GP-robust", lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
     # in the order of CONTROLLERS: the model-based ones (MODEL_BASED), then GP-robust

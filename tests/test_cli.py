@@ -530,6 +530,49 @@ def test_a_process_that_cannot_start_stops_those_already_started(study, tmp_path
     assert lane.process.returncode is not None and lane.stdout.closed
 
 
+def test_sigterm_stops_the_other_processes_before_this_one_exits(study, tmp_path, monkeypatch):
+    """A job scheduler's (or ``kill``'s) SIGTERM: the other processes are stopped and waited
+    for, and the command exits 143, instead of ending at once and leaving them running."""
+    import os
+    import signal
+    import sys
+    import time
+
+    from safestab import cli
+    from safestab.cli import app
+
+    started, real_start = [], cli.start_lane
+
+    def start(names, options):
+        started.append(real_start(names, options))
+        return started[-1]
+
+    def terminated_during_the_study(scenario, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)  # the handler raises here
+        raise AssertionError("SIGTERM did not stop the study")
+
+    monkeypatch.setattr(
+        cli, "lane_command", lambda names, options: [sys.executable, "-c", "import time; "
+                                                     "time.sleep(60)"]
+    )  # fmt: skip
+    monkeypatch.setattr(cli, "start_lane", start)
+    monkeypatch.setattr(cli.Lane, "STOP_SECONDS", 5.0)
+    monkeypatch.setattr(acc_study, "run_study", terminated_during_the_study)
+    before = signal.getsignal(signal.SIGTERM)
+    t0 = time.perf_counter()
+    res = CliRunner().invoke(
+        app,
+        ["run", "--scenario", "stress", "--scenario", "swarm", "--jobs", "2", "--out",
+         str(tmp_path / "o")],
+    )  # fmt: skip
+    assert res.exit_code == 128 + signal.SIGTERM, res.output
+    assert time.perf_counter() - t0 < 20
+    (lane,) = started
+    assert lane.process.returncode is not None and lane.stdout.closed
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler is this command's only
+
+
 def test_another_process_computes_what_this_one_does(study, tmp_path):
     """A real second process (a small swarm) writes the metrics that a run here writes."""
     from importlib.resources import files

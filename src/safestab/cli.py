@@ -10,6 +10,7 @@ non-zero (2 for bad input, 1 for a failure during the run); ``--debug`` adds the
 
 from __future__ import annotations
 
+import contextlib
 import traceback
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -237,8 +238,9 @@ def run(
     this one shows its progress, the others' output is printed after this one's studies, in
     order. In each process a failed study stops those after it there (their outputs are not
     written; those before it are kept); the command exits non-zero if any study failed,
-    after every process has finished. The results do not depend on --jobs (each study
-    computes alone, whichever process runs it).
+    after every process has finished. Ctrl-C or SIGTERM stops every process (each finishes
+    its writes, all or none, or is killed after 10 s). The results do not depend on --jobs
+    (each study computes alone, whichever process runs it).
     """
     import matplotlib
 
@@ -258,10 +260,13 @@ def run(
 
     scenarios, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
     lanes = plan_lanes(scenario, [kinds.study_of(sc).kind for sc in scenarios], jobs)
+    stack = contextlib.ExitStack()
     options = lane_options(out_dir, seed, n_samples, t_final, set_, debug)
     children: list[Lane] = []
     first_failure = None
     try:
+        if len(lanes) > 1:
+            stack.enter_context(terminate_as_exit())
         for names in lanes[1:]:  # one by one: a failed start still stops those started
             children.append(start_lane(names, options))
         try:
@@ -275,9 +280,37 @@ def run(
         for child in children:
             child.stop()
         raise
+    finally:
+        stack.close()
     failed = [code for code in [first_failure, *codes] if code]
     if failed:
         raise typer.Exit(code=failed[0])
+
+
+@contextlib.contextmanager
+def terminate_as_exit():
+    """While inside, SIGTERM raises ``SystemExit(143)`` in the main thread, as Ctrl-C does.
+
+    Python's default for SIGTERM ends the process at once, with no ``except`` or ``finally``
+    run: ``safestab run`` would leave its other processes running (and writing outputs)
+    after it was stopped by a job scheduler or ``kill``. Raised as an exception, it stops
+    them first. Outside the main thread (where no handler can be set), nothing changes.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def plan_lanes(

@@ -32,17 +32,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # Ray 
 
 
 @pytest.fixture(scope="module")
-def jax_cache(tmp_path_factory):
-    """A persistent compilation cache shared with the Ray workers (they skip compiling)."""
-    folder = str(tmp_path_factory.mktemp("jax_cache"))
-    old = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", folder)
-    yield folder
-    jax.config.update("jax_compilation_cache_dir", old)
-
-
-@pytest.fixture(scope="module")
-def local_run(jax_cache):
+def local_run():
     return run_montecarlo(SC, spec=SPEC, trials=N, datasets=K, seed=3)
 
 
@@ -73,7 +63,7 @@ def test_identical_for_any_chunk_size(local_run):
 
 
 @pytest.fixture(scope="module")
-def local_run_3n(jax_cache):
+def local_run_3n():
     """3N trials: six chunks of 5 (the compiled shape of local_run), three per data set."""
     return run_montecarlo(SC, spec=SPEC, trials=3 * N, datasets=K, seed=3, workers=2)
 
@@ -207,11 +197,30 @@ def test_bad_arguments_raise_before_work(kwargs, match):
 
 
 @pytest.fixture(scope="module")
-def ray_session(jax_cache):
+def ray_session():
+    # the workers share this process's compilation cache (start_ray passes it on): they load
+    # the chunk loops local_run_3n compiled (a cache folder set here after JAX's first
+    # compilation would not be used: JAX reads it once)
     ray = pytest.importorskip("ray")
-    start_ray(num_cpus=2, runtime_env={"env_vars": {"JAX_COMPILATION_CACHE_DIR": jax_cache}})
+    start_ray(num_cpus=2)
     yield ray
     ray.shutdown()
+
+
+def test_local_ray_workers_use_this_processs_compilation_cache(ray_session):
+    @ray_session.remote
+    def cache_of_a_worker():
+        import os
+
+        import safestab
+
+        folder = safestab.compilation_cache_dir()
+        return os.environ.get("SAFESTAB_COMPILATION_CACHE"), folder and str(folder)
+
+    here = ss.compilation_cache_dir()
+    env, folder = ray_session.get(cache_of_a_worker.remote())
+    assert env == ("off" if here is None else str(here))
+    assert folder == (here and str(here))
 
 
 def test_ray_backend_is_identical_to_local(local_run_3n, ray_session):

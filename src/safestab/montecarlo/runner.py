@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from .._batching import in_threads
+from .._cache import ENV_VAR as CACHE_ENV_VAR
+from .._cache import compilation_cache_dir
 from .._xla_flags import xla_flag_environment
 from ..errors import InducingPointsWarning, ParameterError
 from ..learning.batched import one_blas_thread
@@ -283,6 +285,12 @@ def _chunk_group(study, seed, pad, workers, group, sets, *models):
     return _run_chunks(study, seed, group, by_set, pad, workers, lambda d, t: None)
 
 
+def _cache_environment() -> dict[str, str]:
+    """``SAFESTAB_COMPILATION_CACHE`` naming this process's cache folder, or ``off``."""
+    folder = compilation_cache_dir()
+    return {CACHE_ENV_VAR: "off" if folder is None else str(folder)}
+
+
 def start_ray(
     address: str | None = None, num_cpus: int | None = None, runtime_env: dict | None = None
 ) -> Any:
@@ -302,6 +310,11 @@ def start_ray(
     machines, give the workers the same thread settings (and hardware) for identical bits.
     Where this process compiles without safestab's XLA flag (``safestab/_xla_flags.py``),
     the workers get ``SAFESTAB_XLA_FLAGS=off`` so that they compile as it does.
+
+    The workers of a local cluster get this process's persistent compilation cache
+    (``SAFESTAB_COMPILATION_CACHE``: its folder, or ``off``), whatever set it: they load the
+    programs this process compiled (the chunk loops) instead of compiling them again.
+    ``runtime_env``'s own ``env_vars`` take precedence.
     """
     try:
         import ray
@@ -311,14 +324,15 @@ def start_ray(
         ) from None
     if ray.is_initialized():
         return ray
+    address = address or os.environ.get("RAY_ADDRESS")
     env = dict(runtime_env or {})
     env["env_vars"] = {
         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
         **xla_flag_environment(os.environ),
+        **({} if address else _cache_environment()),  # a folder of this machine
         **env.get("env_vars", {}),
     }
     runtime_env = env
-    address = address or os.environ.get("RAY_ADDRESS")
     if address:
         ray.init(address=address, runtime_env=runtime_env)
     else:

@@ -297,8 +297,9 @@ def start_ray(
     """Connect to a Ray cluster (``address``, else ``RAY_ADDRESS``) or start a local one.
 
     A local cluster listens on the loopback interface only, with no dashboard. ``runtime_env``
-    is passed to ``ray.init`` (for example ``{"env_vars": {"JAX_COMPILATION_CACHE_DIR": d}}``
-    so that workers load compiled loops from a shared cache instead of compiling them).
+    is passed to ``ray.init`` (for example ``{"env_vars": {"SAFESTAB_COMPILATION_CACHE": d}}``
+    with ``d`` a folder every machine of a cluster shares, so that their workers load compiled
+    loops instead of compiling them).
 
     Notes
     -----

@@ -7,6 +7,14 @@
 # SAFESTAB_TEST_WORKERS=N sets the count; 1 runs everything in this process, as `-n 0` among
 # the arguments (passed to pytest) does: use it for --pdb or -s.
 source "$(dirname "$0")/_venv.sh" test,docs  # docs: tests of the docs tooling, and the CI site build
+# The embedded tests' ARM toolchain (arm-none-eabi-gcc, newlib, qemu-system-arm) is set up here,
+# with the rest of the installation, not while the tests run (about 100 s of apt-get on a fresh
+# machine): installed where this process may (root, apt-get); elsewhere those tests skip,
+# naming what is missing.
+if ! command -v arm-none-eabi-gcc >/dev/null 2>&1 || ! command -v qemu-system-arm >/dev/null 2>&1; then
+  .venv/bin/python -c 'from safestab.export import embedded; embedded.find_toolchain(install=True)' \
+    >/dev/null 2>&1 || echo "note: no ARM toolchain; the embedded tests will be skipped" >&2
+fi
 cpus='import os; print(min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))'
 workers="${SAFESTAB_TEST_WORKERS:-$(.venv/bin/python -c "$cpus")}"
 case "$workers" in

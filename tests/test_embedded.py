@@ -1,8 +1,10 @@
 """The exported step cross-compiled for Cortex-M and run under QEMU (safestab.export.embedded).
 
-Needs arm-none-eabi-gcc, newlib and qemu-system-arm: installed with apt-get where the test
-process may (CI runs as root), skipped with the reason otherwise. The model controllers keep
-this quick; the GP rows run in ``python benchmarks/embedded.py`` (docs/export.md).
+Needs arm-none-eabi-gcc, newlib and qemu-system-arm: ``scripts/run-tests.sh`` installs them
+with apt-get before the tests where it may (CI runs as root); the fixture tries the same when
+they are still missing (pytest run directly), and skips with the reason otherwise. The model
+controllers keep this quick; the GP rows run in ``python benchmarks/embedded.py``
+(docs/export.md).
 """
 
 from __future__ import annotations

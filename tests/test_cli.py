@@ -304,6 +304,15 @@ def test_run_time_error_is_one_line_without_debug(tmp_path, study):
     line = _one_error_line(res, "error: NumericalError: ")
     assert line == "error: NumericalError: Cholesky failed try more noise"
     assert list(tmp_path.iterdir()) == []
+    # an error's notes (another error met on the way) follow on the same line
+    error = NumericalError("Cholesky failed")
+    error.add_note("the runs in another thread failed too: ValueError: nan")
+    study.state["error"] = error
+    line = _one_error_line(_invoke("--out", tmp_path), "error: NumericalError: ")
+    assert line == (
+        "error: NumericalError: Cholesky failed "
+        "[the runs in another thread failed too: ValueError: nan]"
+    )
 
 
 def test_debug_shows_the_traceback(tmp_path, study):
@@ -548,6 +557,8 @@ def test_sigterm_stops_the_other_processes_before_this_one_exits(study, tmp_path
         return started[-1]
 
     def terminated_during_the_study(scenario, **kwargs):
+        # without the handler the signal would end pytest itself: fail this test instead
+        assert signal.getsignal(signal.SIGTERM) is not before, "no SIGTERM handler"
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(30)  # the handler raises here
         raise AssertionError("SIGTERM did not stop the study")

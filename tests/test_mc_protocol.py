@@ -108,7 +108,7 @@ def test_obstacle_trials_with_the_filter_reproduce_the_simulator():
         ctrl = study.build_controller(true_sys, clf, cbf, **study.controller_options())
         assert type(ctrl) is kind
         # the documents record how the limits were kept, with the box and the gains
-        recorded = study_settings(study)["controller"]
+        recorded = study_settings(study)["controller_settings"]
         assert recorded["limit_method"] == method
         assert recorded["u_max"] == [OBSTACLE.input_limit] * 2
         assert recorded["kappa"] == OBSTACLE.kappa
@@ -254,8 +254,8 @@ def test_a_third_scenario_plugs_in_through_the_protocol():
     doc = metrics_document(run)  # the outputs read the study, not the scenario
     assert doc["scenario"] == "scalar" and doc["settings"]["n_samples"] == 40
     # a study without the optional controller_settings member records its GP settings only
-    assert doc["settings"]["learning"] == run.study.gp_settings()
-    assert doc["settings"]["controller"] is None
+    assert doc["settings"]["gp_settings"] == run.study.gp_settings()
+    assert doc["settings"]["controller_settings"] is None
     assert doc["summary"]["h_unit"] == "m^2"
     plt.close(plot_montecarlo(run))
     # independent check of one trial: the true-model controller by ss.simulate

@@ -17,6 +17,7 @@ from safestab.montecarlo import (
     summarize,
     trial_function,
 )
+from safestab.montecarlo.report import study_settings
 from safestab.montecarlo.trials import calibration_draw, dataset_draw, fit_dataset, run_chunk
 from safestab.scenarios import load_scenario
 from safestab.scenarios.trials import lead_acceleration
@@ -171,13 +172,16 @@ def test_summary_and_strict_json(local_run):
     assert settings["trials"] == N
     # what the study learned with and how its controllers were set, from the scenario
     sc = local_run.study.scenario
-    assert settings["learning"] == {
+    assert settings["gp_settings"] == {
         "n_samples": sc.n_samples, "kernel": sc.kernel, "hyper_subset": sc.hyper_subset,
         "gp_beta": sc.gp_beta, "input_gain": "nominal",
     }  # fmt: skip
-    limited = sc.input_limit is not None
-    assert settings["controller"]["limit_method"] == ("projection" if limited else None)
-    assert settings["controller"]["slack_weight"] == sc.slack_weight
+    assert sc.input_limit is None and settings["controller_settings"]["limit_method"] is None
+    # with limits, the ACC's controllers project onto them (eq. (26)), in input units (M g)
+    limited = study_settings(SC.replace(input_limit=0.3).trial_study(SPEC))["controller_settings"]
+    assert limited["limit_method"] == "projection"
+    assert limited["u_min"] == [-0.3] and limited["u_max"] == [0.3]
+    assert settings["controller_settings"]["slack_weight"] == sc.slack_weight
 
 
 @pytest.mark.parametrize(
@@ -207,20 +211,34 @@ def ray_session():
     ray.shutdown()
 
 
-def test_local_ray_workers_use_this_processs_compilation_cache(ray_session):
-    @ray_session.remote
-    def cache_of_a_worker():
-        import os
+def test_a_local_cluster_gets_this_processs_compilation_cache(monkeypatch, tmp_path):
+    """What start_ray gives ray.init (a stand-in Ray records it): the cache folder for a
+    local cluster, ``off`` when this process has none, nothing for a cluster at an address
+    or when the caller names a cache."""
+    import sys
+    import types
 
-        import safestab
+    from safestab.montecarlo import runner
 
-        folder = safestab.compilation_cache_dir()
-        return os.environ.get("SAFESTAB_COMPILATION_CACHE"), folder and str(folder)
+    calls = []
+    fake = types.SimpleNamespace(is_initialized=lambda: False,
+                                 init=lambda **kwargs: calls.append(kwargs))  # fmt: skip
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
 
-    here = ss.compilation_cache_dir()
-    env, folder = ray_session.get(cache_of_a_worker.remote())
-    assert env == ("off" if here is None else str(here))
-    assert folder == (here and str(here))
+    def env_vars(folder, **kwargs):
+        monkeypatch.setattr(runner, "compilation_cache_dir", lambda: folder)
+        start_ray(**kwargs)
+        return calls[-1]["runtime_env"]["env_vars"]
+
+    assert env_vars(tmp_path)["SAFESTAB_COMPILATION_CACHE"] == str(tmp_path)
+    assert env_vars(None)["SAFESTAB_COMPILATION_CACHE"] == "off"
+    assert "SAFESTAB_COMPILATION_CACHE" not in env_vars(tmp_path, address="ray://h:10001")
+    given = {"env_vars": {"JAX_COMPILATION_CACHE_DIR": "/shared"}}
+    env = env_vars(tmp_path, runtime_env=given)
+    assert "SAFESTAB_COMPILATION_CACHE" not in env and env["JAX_COMPILATION_CACHE_DIR"] == "/shared"
+    given = {"env_vars": {"SAFESTAB_COMPILATION_CACHE": "/shared"}}
+    assert env_vars(tmp_path, runtime_env=given)["SAFESTAB_COMPILATION_CACHE"] == "/shared"
 
 
 def test_ray_backend_is_identical_to_local(local_run_3n, ray_session):

@@ -739,16 +739,16 @@ def test_an_error_of_the_model_based_thread_is_named_on_the_studys_error(monkeyp
     def failing_verdict(*args, **kwargs):
         raise FloatingPointError("model-based verdicts failed")
 
-    def failing_coverage(*args, **kwargs):
-        raise ValueError("coverage failed")
+    def progress(message, fraction):  # the GP-robust part fails at its first step
+        if message.startswith("calibrating"):
+            raise ValueError("calibration failed")
 
     monkeypatch.setattr(study_module, "ThreadPoolExecutor", InThisThread)
     monkeypatch.setattr(study_module, "fit_obstacle_gp", fit)
     monkeypatch.setattr(study_module, "verdict", failing_verdict)
-    monkeypatch.setattr(study_module, "_coverage", failing_coverage)
-    sc = load_obstacle_scenario("obstacle").replace(beta_method="chosen")
-    with pytest.raises(ValueError, match="coverage failed") as info:
-        study_module.run_obstacle_study(sc)
+    sc = load_obstacle_scenario("obstacle").replace(beta_method="conformal")
+    with pytest.raises(ValueError, match="calibration failed") as info:
+        study_module.run_obstacle_study(sc, progress=progress)
     assert any(
         "FloatingPointError: model-based verdicts failed" in note
         for note in getattr(info.value, "__notes__", [])

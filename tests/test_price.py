@@ -94,9 +94,9 @@ def test_price_study_matches_a_direct_monte_carlo_run(tmp_path):
     doc = price_study(sc, [30, 60], datasets=2, trials_per_dataset=2, seed=3,
                       controllers=PRICE_CONTROLLERS[:3])  # fmt: skip
     json.dumps(doc, allow_nan=False)  # strict JSON
-    assert doc["settings"]["learning"]["kernel"] == sc.kernel
-    assert "n_samples" not in doc["settings"]["learning"]  # it is each point's
-    assert doc["settings"]["controller"]["kappa"] == sc.kappa
+    assert doc["settings"]["gp_settings"]["kernel"] == sc.kernel
+    assert "n_samples" not in doc["settings"]["gp_settings"]  # it is each point's
+    assert doc["settings"]["controller_settings"]["kappa"] == sc.kappa
     assert [p["n_samples"] for p in doc["points"]] == [30, 60]
     spec = sc.montecarlo.replace(controllers=PRICE_CONTROLLERS[:3], price_metrics=True)
     run = run_montecarlo(sc.replace(n_samples=60), trials=4, datasets=2, seed=3, spec=spec)

@@ -79,8 +79,13 @@ def _format_warning(
 
 
 def _one_line(exc: BaseException) -> str:
-    """``<class>: <message>`` on one line (whitespace collapsed, long messages cut)."""
-    message = " ".join(str(exc).split())
+    """``<class>: <message>`` on one line (whitespace collapsed, long messages cut).
+
+    The exception's notes (``add_note``: another error met on the way, say) follow the
+    message in brackets.
+    """
+    notes = [str(n) for n in getattr(exc, "__notes__", ()) or ()]
+    message = " ".join(" ".join([str(exc), *(f"[{n}]" for n in notes)]).split())
     if len(message) > _MAX_MESSAGE:
         message = message[: _MAX_MESSAGE - 40] + " ... (cut; --debug shows all)"
     return f"error: {type(exc).__name__}: {message}" if message else f"error: {type(exc).__name__}"
@@ -304,13 +309,17 @@ def terminate_as_exit():
         return
 
     def handler(signum: int, frame: Any) -> None:
+        # once: a second SIGTERM while the other processes are being stopped (up to 10 s
+        # each) must not interrupt that and leave the rest running
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         raise SystemExit(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        # None: a handler set from C, which Python cannot put back (then the default)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def plan_lanes(

@@ -184,7 +184,7 @@ def price_study(
         )  # fmt: skip
         h_unit = run.study.h_unit
         recorded = study_settings(run.study)  # the same at every size but n_samples
-        recorded["learning"].pop("n_samples", None)
+        recorded["gp_settings"].pop("n_samples", None)
         points.append({"n_samples": q, "timings_s": run.timings,
                        "controllers": price_point(run)})  # fmt: skip
     doc = {

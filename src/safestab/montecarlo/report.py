@@ -19,10 +19,10 @@ __all__ = [
 def study_settings(study: Any) -> dict[str, Any]:
     """What a study's documents record of its learning and its controllers.
 
-    ``learning``: the study's ``gp_settings()`` (``n_samples``, ``kernel``, ``hyper_subset``,
-    ``gp_beta``, ``input_gain``); ``controller``: its ``controller_settings()`` (the gains,
-    the input limits and how they are kept, ``limit_method``), or None for a study without
-    that optional member.
+    ``gp_settings``: the study's ``gp_settings()`` (``n_samples``, ``kernel``,
+    ``hyper_subset``, ``gp_beta``, ``input_gain``); ``controller_settings``: its
+    ``controller_settings()`` (the gains, the input limits and how they are kept,
+    ``limit_method``), or None for a study without that optional member.
     """
 
     def plain(value: Any) -> Any:
@@ -30,14 +30,14 @@ def study_settings(study: Any) -> dict[str, Any]:
             return {str(k): plain(v) for k, v in value.items()}
         if isinstance(value, list | tuple):
             return [plain(v) for v in value]
-        if isinstance(value, np.generic | np.ndarray):
-            return np.asarray(value).tolist()
+        if isinstance(value, np.generic) or hasattr(value, "__array__"):
+            return np.asarray(value).tolist()  # NumPy and JAX arrays and scalars
         return value
 
     describe = getattr(study, "controller_settings", None)
     return {
-        "learning": plain(dict(study.gp_settings())),
-        "controller": None if describe is None else plain(describe()),
+        "gp_settings": plain(dict(study.gp_settings())),
+        "controller_settings": None if describe is None else plain(describe()),
     }
 
 

@@ -312,10 +312,13 @@ def start_ray(
     Where this process compiles without safestab's XLA flag (``safestab/_xla_flags.py``),
     the workers get ``SAFESTAB_XLA_FLAGS=off`` so that they compile as it does.
 
-    The workers of a local cluster get this process's persistent compilation cache
-    (``SAFESTAB_COMPILATION_CACHE``: its folder, or ``off``), whatever set it: they load the
-    programs this process compiled (the chunk loops) instead of compiling them again.
-    ``runtime_env``'s own ``env_vars`` take precedence.
+    The workers of a local cluster that this call starts get this process's persistent
+    compilation cache (``SAFESTAB_COMPILATION_CACHE``: its folder, or ``off``), whatever set
+    it: they load the programs this process compiled (the chunk loops) instead of compiling
+    them again. Not where ``runtime_env``'s ``env_vars`` name a cache themselves
+    (``SAFESTAB_COMPILATION_CACHE`` or ``JAX_COMPILATION_CACHE_DIR``), nor for a cluster at
+    an address (its machines have their own folders), nor when Ray was already started
+    (nothing is passed then).
     """
     try:
         import ray
@@ -327,11 +330,14 @@ def start_ray(
         return ray
     address = address or os.environ.get("RAY_ADDRESS")
     env = dict(runtime_env or {})
+    given = env.get("env_vars", {})
+    # a folder of this machine, for a local cluster whose workers are not told another
+    own_cache = not address and not {CACHE_ENV_VAR, "JAX_COMPILATION_CACHE_DIR"} & set(given)
     env["env_vars"] = {
         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
         **xla_flag_environment(os.environ),
-        **({} if address else _cache_environment()),  # a folder of this machine
-        **env.get("env_vars", {}),
+        **(_cache_environment() if own_cache else {}),
+        **given,
     }
     runtime_env = env
     if address:

@@ -122,16 +122,17 @@ class ScenarioTrials:
     def controller_settings(self) -> dict[str, Any]:
         """The compared controllers' settings, as the study's JSON documents record them.
 
-        :meth:`controller_options` as numbers and lists, how the input limits are kept
+        :meth:`controller_options` as numbers and lists (the limits in the scenario's input
+        units), how the input limits are kept
         (``limit_method``: ``"projection"`` onto the box, eq. (26), or ``"filter"``, a
         :class:`~safestab.SafetyFilter` with the box as rows; None without limits) and the
         GP-robust controllers' :meth:`robust_options`.
         """
         options = {
-            k: None if v is None else np.asarray(v, float).tolist()
+            k: v if v is None or isinstance(v, bool | str) else np.asarray(v).tolist()
             for k, v in self.controller_options().items()
         }
-        limited = options.get("u_min") is not None
+        limited = options.get("u_min") is not None or options.get("u_max") is not None
         return {
             **options,
             "limit_method": self.limit_method() if limited else None,

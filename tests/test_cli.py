@@ -507,6 +507,21 @@ def test_a_failure_in_another_process_fails_the_command_after_this_ones_studies(
     assert "the process running swarm ended by signal 9" in res.stderr
 
 
+def _record_started_lanes(monkeypatch):
+    """The other processes started (their ``Lane``), in order; 5 s to stop instead of 10."""
+    from safestab import cli
+
+    started, real_start = [], cli.start_lane
+
+    def start(names, options):
+        started.append(real_start(names, options))
+        return started[-1]
+
+    monkeypatch.setattr(cli, "start_lane", start)
+    monkeypatch.setattr(cli.Lane, "STOP_SECONDS", 5.0)
+    return started
+
+
 def test_a_process_that_cannot_start_stops_those_already_started(study, tmp_path, monkeypatch):
     import sys
 
@@ -518,15 +533,8 @@ def test_a_process_that_cannot_start_stops_those_already_started(study, tmp_path
             return [sys.executable, "-c", "import time; time.sleep(60)"]
         return [str(tmp_path / "no-such-program")]  # the second process cannot start
 
-    started, real_start = [], cli.start_lane
-
-    def start(names, options):
-        started.append(real_start(names, options))
-        return started[-1]
-
     monkeypatch.setattr(cli, "lane_command", command)
-    monkeypatch.setattr(cli, "start_lane", start)
-    monkeypatch.setattr(cli.Lane, "STOP_SECONDS", 5.0)
+    started = _record_started_lanes(monkeypatch)
     res = CliRunner().invoke(
         app,
         ["run", "--scenario", "stress", "--scenario", "swarm", "--scenario", "obstacle",
@@ -550,12 +558,6 @@ def test_sigterm_stops_the_other_processes_before_this_one_exits(study, tmp_path
     from safestab import cli
     from safestab.cli import app
 
-    started, real_start = [], cli.start_lane
-
-    def start(names, options):
-        started.append(real_start(names, options))
-        return started[-1]
-
     def terminated_during_the_study(scenario, **kwargs):
         # without the handler the signal would end pytest itself: fail this test instead
         assert signal.getsignal(signal.SIGTERM) is not before, "no SIGTERM handler"
@@ -567,8 +569,7 @@ def test_sigterm_stops_the_other_processes_before_this_one_exits(study, tmp_path
         cli, "lane_command", lambda names, options: [sys.executable, "-c", "import time; "
                                                      "time.sleep(60)"]
     )  # fmt: skip
-    monkeypatch.setattr(cli, "start_lane", start)
-    monkeypatch.setattr(cli.Lane, "STOP_SECONDS", 5.0)
+    started = _record_started_lanes(monkeypatch)
     monkeypatch.setattr(acc_study, "run_study", terminated_during_the_study)
     before = signal.getsignal(signal.SIGTERM)
     t0 = time.perf_counter()

@@ -211,8 +211,8 @@ def ray_session():
     ray.shutdown()
 
 
-def test_a_local_cluster_gets_this_processs_compilation_cache(monkeypatch, tmp_path):
-    """What start_ray gives ray.init (a stand-in Ray records it): the cache folder for a
+def test_a_local_cluster_gets_this_processs_caches(monkeypatch, tmp_path):
+    """What start_ray gives ray.init (a stand-in Ray records it): the cache folders for a
     local cluster, ``off`` when this process has none, nothing for a cluster at an address
     or when the caller names a cache."""
     import sys
@@ -231,9 +231,13 @@ def test_a_local_cluster_gets_this_processs_compilation_cache(monkeypatch, tmp_p
         start_ray(**kwargs)
         return calls[-1]["runtime_env"]["env_vars"]
 
-    assert env_vars(tmp_path)["SAFESTAB_COMPILATION_CACHE"] == str(tmp_path)
+    monkeypatch.setattr(runner, "fit_cache_dir", lambda: tmp_path / "fits")
+    env = env_vars(tmp_path)
+    assert env["SAFESTAB_COMPILATION_CACHE"] == str(tmp_path)
+    assert env["SAFESTAB_FIT_CACHE"] == str(tmp_path / "fits")  # as `safestab run` does
     assert env_vars(None)["SAFESTAB_COMPILATION_CACHE"] == "off"
-    assert "SAFESTAB_COMPILATION_CACHE" not in env_vars(tmp_path, address="ray://h:10001")
+    env = env_vars(tmp_path, address="ray://h:10001")
+    assert "SAFESTAB_COMPILATION_CACHE" not in env and "SAFESTAB_FIT_CACHE" not in env
     given = {"env_vars": {"JAX_COMPILATION_CACHE_DIR": "/shared"}}
     env = env_vars(tmp_path, runtime_env=given)
     assert "SAFESTAB_COMPILATION_CACHE" not in env and env["JAX_COMPILATION_CACHE_DIR"] == "/shared"

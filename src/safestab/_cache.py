@@ -44,6 +44,7 @@ __all__ = [
     "ENV_VAR",
     "OFF_VALUES",
     "cache_root",
+    "child_cache_environment",
     "compilation_cache_dir",
     "default_cache_dir",
     "disable_compilation_cache",
@@ -230,6 +231,25 @@ def compilation_cache_dir() -> Path | None:
     if not folder or not jax.config.jax_enable_compilation_cache:
         return None
     return Path(folder)
+
+
+def child_cache_environment(
+    compilation_cache: Path | None, fit_cache: Path | None
+) -> dict[str, str]:
+    """The variables that give another process these caches (None: off).
+
+    ``SAFESTAB_COMPILATION_CACHE`` and ``SAFESTAB_FIT_CACHE``, each a folder or ``off``. With
+    this process's folders (:func:`compilation_cache_dir`,
+    :func:`~safestab.learning._fit_cache.fit_cache_dir`) the other process uses its caches
+    whatever set them (an option, the environment or Python): ``safestab run``'s other
+    processes and a local Ray cluster's workers.
+    """
+    from .learning._fit_cache import FIT_ENV_VAR
+
+    return {
+        var: "off" if folder is None else str(folder)
+        for var, folder in ((ENV_VAR, compilation_cache), (FIT_ENV_VAR, fit_cache))
+    }
 
 
 def configure_from_environment() -> Path | None:

@@ -265,28 +265,25 @@ def run(
 
     scenarios, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
     lanes = plan_lanes(scenario, [kinds.study_of(sc).kind for sc in scenarios], jobs)
-    stack = contextlib.ExitStack()
     options = lane_options(out_dir, seed, n_samples, t_final, set_, debug)
     children: list[Lane] = []
     first_failure = None
-    try:
-        if len(lanes) > 1:
-            stack.enter_context(terminate_as_exit())
-        for names in lanes[1:]:  # one by one: a failed start still stops those started
-            children.append(start_lane(names, options))
+    # with other processes, SIGTERM too stops them before this one exits
+    with terminate_as_exit() if len(lanes) > 1 else contextlib.nullcontext():
         try:
-            for name, sc in zip(scenario, scenarios, strict=True):
-                if name in lanes[0]:
-                    _study_outputs(sc, out_dir, debug)
-        except typer.Exit as exc:  # the other processes still finish their studies
-            first_failure = exc.exit_code
-        codes = [finish_lane(child) for child in children]
-    except BaseException:  # interrupted, or a process could not start: stop the others
-        for child in children:
-            child.stop()
-        raise
-    finally:
-        stack.close()
+            for names in lanes[1:]:  # one by one: a failed start still stops those started
+                children.append(start_lane(names, options))
+            try:
+                for name, sc in zip(scenario, scenarios, strict=True):
+                    if name in lanes[0]:
+                        _study_outputs(sc, out_dir, debug)
+            except typer.Exit as exc:  # the other processes still finish their studies
+                first_failure = exc.exit_code
+            codes = [finish_lane(child) for child in children]
+        except BaseException:  # interrupted, or a process could not start: stop the others
+            for child in children:
+                child.stop()
+            raise
     failed = [code for code in [first_failure, *codes] if code]
     if failed:
         raise typer.Exit(code=failed[0])
@@ -398,13 +395,9 @@ def lane_environment(
     A process started by ``safestab run`` then uses this one's caches whatever set them
     (``--no-compilation-cache``, ``--no-fit-cache``, the environment, or Python).
     """
-    from ._cache import ENV_VAR
-    from .learning._fit_cache import FIT_ENV_VAR
+    from ._cache import child_cache_environment
 
-    env = dict(environ)
-    for var, folder in ((ENV_VAR, compilation_cache), (FIT_ENV_VAR, fit_cache)):
-        env[var] = "off" if folder is None else str(folder)
-    return env
+    return {**environ, **child_cache_environment(compilation_cache, fit_cache)}
 
 
 def start_lane(names: list[str], options: list[str]) -> Lane:

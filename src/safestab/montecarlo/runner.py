@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from .._batching import in_threads
-from .._cache import ENV_VAR as CACHE_ENV_VAR
-from .._cache import compilation_cache_dir
+from .._cache import child_cache_environment, compilation_cache_dir
 from .._xla_flags import xla_flag_environment
 from ..errors import InducingPointsWarning, ParameterError
+from ..learning._fit_cache import fit_cache_dir
 from ..learning.batched import one_blas_thread
 from ..scenarios import MonteCarloSpec
 from .loop import RECORD_FIELDS
@@ -285,12 +285,6 @@ def _chunk_group(study, seed, pad, workers, group, sets, *models):
     return _run_chunks(study, seed, group, by_set, pad, workers, lambda d, t: None)
 
 
-def _cache_environment() -> dict[str, str]:
-    """``SAFESTAB_COMPILATION_CACHE`` naming this process's cache folder, or ``off``."""
-    folder = compilation_cache_dir()
-    return {CACHE_ENV_VAR: "off" if folder is None else str(folder)}
-
-
 def start_ray(
     address: str | None = None, num_cpus: int | None = None, runtime_env: dict | None = None
 ) -> Any:
@@ -312,13 +306,13 @@ def start_ray(
     Where this process compiles without safestab's XLA flag (``safestab/_xla_flags.py``),
     the workers get ``SAFESTAB_XLA_FLAGS=off`` so that they compile as it does.
 
-    The workers of a local cluster that this call starts get this process's persistent
-    compilation cache (``SAFESTAB_COMPILATION_CACHE``: its folder, or ``off``), whatever set
-    it: they load the programs this process compiled (the chunk loops) instead of compiling
-    them again. Not where ``runtime_env``'s ``env_vars`` name a cache themselves
-    (``SAFESTAB_COMPILATION_CACHE`` or ``JAX_COMPILATION_CACHE_DIR``), nor for a cluster at
-    an address (its machines have their own folders), nor when Ray was already started
-    (nothing is passed then).
+    The workers of a local cluster that this call starts get this process's caches, whatever
+    set them (``SAFESTAB_COMPILATION_CACHE`` and ``SAFESTAB_FIT_CACHE``: a folder, or
+    ``off``): they load the programs this process compiled (the chunk loops) instead of
+    compiling them again, as ``safestab run``'s other processes do. ``runtime_env``'s own
+    ``env_vars`` take precedence (a ``JAX_COMPILATION_CACHE_DIR`` there leaves the compilation
+    cache to it); nothing is passed for a cluster at an address (its machines have their own
+    folders), nor when Ray was already started.
     """
     try:
         import ray
@@ -331,12 +325,14 @@ def start_ray(
     address = address or os.environ.get("RAY_ADDRESS")
     env = dict(runtime_env or {})
     given = env.get("env_vars", {})
-    # a folder of this machine, for a local cluster whose workers are not told another
-    own_cache = not address and not {CACHE_ENV_VAR, "JAX_COMPILATION_CACHE_DIR"} & set(given)
+    # folders of this machine: for a local cluster only
+    caches = {} if address else child_cache_environment(compilation_cache_dir(), fit_cache_dir())
+    if "JAX_COMPILATION_CACHE_DIR" in given:  # the caller's folder, which "off" would override
+        caches.pop("SAFESTAB_COMPILATION_CACHE")
     env["env_vars"] = {
         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(os.cpu_count() or 1)),
         **xla_flag_environment(os.environ),
-        **(_cache_environment() if own_cache else {}),
+        **caches,
         **given,
     }
     runtime_env = env

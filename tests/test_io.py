@@ -205,6 +205,11 @@ def test_replace_non_finite_reports_json_pointers():
     # RFC 6901: '/' is written '~1' and '~' is written '~0'
     assert found == {"/a~1b/1": "nan", "/a~1b/2/c~0d": "-inf", "/ok/1": "inf", "/n": "nan"}
     assert replace_non_finite(float("inf")) == (None, {"/": "inf"})
+    # JAX arrays and scalars become Python values too (a study's settings may hold them)
+    import jax.numpy as jnp
+
+    clean, found = replace_non_finite({"u": jnp.array([1.0, jnp.nan]), "k": jnp.int32(2)})
+    assert clean == {"u": [1.0, None], "k": 2} and found == {"/u/1": "nan"}
 
 
 def test_strict_json_refuses_non_finite():

@@ -295,7 +295,7 @@ def replace_non_finite(obj: Any) -> tuple[Any, dict[str, str]]:
     ----------
     obj : JSON-like
         Nested dicts (string keys), lists, tuples, numbers, strings, booleans, ``None``, and
-        NumPy scalars or arrays (converted to Python values).
+        NumPy or JAX scalars and arrays (converted to Python values).
 
     Returns
     -------
@@ -308,8 +308,8 @@ def replace_non_finite(obj: Any) -> tuple[Any, dict[str, str]]:
     found: dict[str, str] = {}
 
     def walk(value: Any, pointer: str) -> Any:
-        if isinstance(value, np.ndarray | np.generic):
-            value = value.tolist()
+        if isinstance(value, np.ndarray | np.generic) or hasattr(value, "__array__"):
+            value = np.asarray(value).tolist()  # JAX arrays too
         if isinstance(value, dict):
             return {k: walk(v, f"{pointer}/{_escape(str(k))}") for k, v in value.items()}
         if isinstance(value, list | tuple):

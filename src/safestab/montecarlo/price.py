@@ -174,7 +174,6 @@ def price_study(
     base = getattr(scenario, "montecarlo", None) or MonteCarloSpec()  # as run_montecarlo
     spec = base.replace(controllers=tuple(controllers), price_metrics=True)
     points = []
-    h_unit = recorded = None
     for i, (q, sc) in enumerate(zip(qs, scenarios, strict=True)):
         if progress is not None:
             progress(i, len(qs), q)
@@ -182,11 +181,11 @@ def price_study(
             sc, trials=datasets * trials_per_dataset, datasets=datasets, seed=seed,
             spec=spec,
         )  # fmt: skip
-        h_unit = run.study.h_unit
-        recorded = study_settings(run.study)  # the same at every size but n_samples
-        recorded["gp_settings"].pop("n_samples", None)
         points.append({"n_samples": q, "timings_s": run.timings,
                        "controllers": price_point(run)})  # fmt: skip
+    # the same at every size (qs is not empty) but n_samples, each point's
+    recorded = study_settings(run.study)
+    recorded["gp_settings"].pop("n_samples", None)
     doc = {
         "scenario": scenario.name,
         "settings": {
@@ -201,9 +200,9 @@ def price_study(
             "hyperparameters": spec.hyperparameters,
             "delta": spec.delta,
             "rkhs_norm": spec.rkhs_norm,
-            **(recorded or {}),
+            **recorded,
         },  # fmt: skip
-        "h_unit": h_unit,
+        "h_unit": run.study.h_unit,
         "points": points,
     }
     return with_finite_status(doc)

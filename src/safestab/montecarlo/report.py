@@ -22,22 +22,14 @@ def study_settings(study: Any) -> dict[str, Any]:
     ``gp_settings``: the study's ``gp_settings()`` (``n_samples``, ``kernel``,
     ``hyper_subset``, ``gp_beta``, ``input_gain``); ``controller_settings``: its
     ``controller_settings()`` (the gains, the input limits and how they are kept,
-    ``limit_method``), or None for a study without that optional member.
+    ``limit_method``), or None for a study without that optional member. As the study
+    returns them (a copy): the documents' :func:`~safestab._io.with_finite_status` makes them
+    JSON data.
     """
-
-    def plain(value: Any) -> Any:
-        if isinstance(value, dict):
-            return {str(k): plain(v) for k, v in value.items()}
-        if isinstance(value, list | tuple):
-            return [plain(v) for v in value]
-        if isinstance(value, np.generic) or hasattr(value, "__array__"):
-            return np.asarray(value).tolist()  # NumPy and JAX arrays and scalars
-        return value
-
     describe = getattr(study, "controller_settings", None)
     return {
-        "gp_settings": plain(dict(study.gp_settings())),
-        "controller_settings": None if describe is None else plain(describe()),
+        "gp_settings": dict(study.gp_settings()),
+        "controller_settings": None if describe is None else describe(),
     }
 
 

@@ -424,6 +424,52 @@ def test_primitive_table_matches_jax():
     assert "double c" in ex.source or "static const" in ex.source  # constants became tables
 
 
+_MOVES = {
+    "broadcast_in_dim": lambda x: lax.broadcast_in_dim(x[:, :1], (2, 4, 1, 3), (1, 2)),
+    "reshape": lambda x: x.reshape(6, 2),
+    "reshape, transposed first": lambda x: lax.reshape(x, (3, 4), dimensions=(1, 0)),
+    "squeeze": lambda x: lax.squeeze(x[:1, None], (0, 1)),
+    "squeeze to a scalar": lambda x: lax.squeeze(x[0, :1], (0,)),
+    "transpose": lambda x: x.T,
+    "rev": lambda x: lax.rev(x, (0, 1)),
+    "slice with strides": lambda x: lax.slice(x, (1, 0), (4, 3), (2, 2)),
+    "concatenate": lambda x: jnp.concatenate([x, 2 * x[:2]], axis=0),
+    "split": lambda x: jnp.split(x, [1, 2], axis=1),
+    "pad, cropped and interior": lambda x: lax.pad(x, -1.0, [(2, -1, 1), (-1, 3, 2)]),
+    "dynamic_slice, clamped": lambda x: lax.dynamic_slice(x, (3, -2), (2, 2)),
+    "dynamic_update_slice, clamped": (lambda x: lax.dynamic_update_slice(x, -x[:2, :2], (7, -1))),
+}
+
+
+@pytest.mark.parametrize("case", _MOVES)
+def test_data_movement_in_numpy_is_the_primitive(case):
+    """Export finds where each element comes from with NumPy versions of the movement
+    primitives (no XLA program per shape); each gives exactly what JAX's primitive gives."""
+    from safestab.export._primitives import move
+
+    x = np.arange(12.0).reshape(4, 3) + 0.5
+    closed = jax.make_jaxpr(_MOVES[case])(x)
+    env = {v: c for v, c in zip(closed.jaxpr.constvars, closed.consts, strict=True)}
+    env[closed.jaxpr.invars[0]] = x
+    read = lambda a: a.val if isinstance(a, jax.extend.core.Literal) else env[a]  # noqa: E731
+    moved = 0
+    for eqn in closed.jaxpr.eqns:
+        args = [np.asarray(read(a)) for a in eqn.invars]
+        want = eqn.primitive.bind(*args, **eqn.params)
+        want = want if eqn.primitive.multiple_results else [want]
+        got = move(eqn.primitive.name, args, eqn.params)
+        if got is not None:
+            moved += 1
+            assert len(got) == len(want)
+            for g, w in zip(got, want, strict=True):
+                assert g.shape == w.shape and g.dtype == w.dtype
+                np.testing.assert_array_equal(g, np.asarray(w))
+        for var, val in zip(eqn.outvars, want, strict=True):
+            env[var] = np.asarray(val)
+    assert moved >= 1  # the case reached the NumPy version
+    assert move("gather", [x], {}) is None  # others run through JAX
+
+
 def test_unsupported_primitive_names_it_and_the_source_line(acc):
     sc = acc["sc"]
     system = sc.system("nominal")

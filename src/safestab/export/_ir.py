@@ -135,6 +135,9 @@ class Program:
         self._prim = "?"
         self._where = "?"
         self.rules: dict[str, Callable] = {}
+        #: ``(primitive name, NumPy arguments, params) -> outputs`` for the primitives folded
+        #: exactly without XLA (data movement), None for the others (export_function)
+        self.exact_fold: Callable[..., list[np.ndarray] | None] = lambda name, args, params: None
         #: "host" or "embedded": how rules lay out loops and constants (export_function)
         self.layout = "host"
         # common subexpressions: key -> (outputs, inputs); holding the inputs keeps the ids
@@ -255,7 +258,14 @@ class Program:
             self._prim, self._where = prev
 
     def fold(self, eqn: Any, ins: list[Val]) -> list[Val]:
-        """Evaluate an equation whose inputs are all known, with JAX itself."""
+        """Evaluate an equation whose inputs are all known, with JAX itself.
+
+        Data movement (a copy of elements, exact in any arithmetic) is evaluated by
+        :attr:`exact_fold` without compiling an XLA program for it.
+        """
+        moved = self.exact_fold(eqn.primitive.name, [v.const for v in ins], eqn.params)
+        if moved is not None:
+            return [self.const(r) for r in moved]
         res = eqn.primitive.bind(*[jnp.asarray(v.const) for v in ins], **eqn.params)
         res = res if eqn.primitive.multiple_results else [res]
         return [self.const(np.asarray(jax.device_get(r))) for r in res]

@@ -284,6 +284,90 @@ _DATA_OPERANDS: dict[str, Callable[[int], list[int]]] = {
 }
 
 
+def _clamped_starts(x: np.ndarray, sizes: tuple[int, ...], starts: list[Any]) -> tuple[slice, ...]:
+    """The slices of a dynamic slice or update at ``starts``, clamped into range as in XLA."""
+    out = []
+    for dim, size, s in zip(x.shape, sizes, starts, strict=True):
+        lo = min(max(int(np.asarray(s)), 0), dim - size)
+        out.append(slice(lo, lo + size))
+    return tuple(out)
+
+
+def _pad(x: np.ndarray, fill: np.ndarray, config: Any) -> np.ndarray:
+    """``lax.pad``: ``(low, high, interior)`` per axis, negative low or high crops."""
+    shape = [
+        lo + hi + n + max(n - 1, 0) * inner
+        for n, (lo, hi, inner) in zip(x.shape, config, strict=True)
+    ]
+    out = np.full(shape, fill, dtype=x.dtype)
+    index, keep = [], []
+    for n, size, (lo, _, inner) in zip(x.shape, shape, config, strict=True):
+        pos = lo + np.arange(n) * (inner + 1)
+        inside = (pos >= 0) & (pos < size)
+        index.append(pos[inside])
+        keep.append(np.flatnonzero(inside))
+    out[np.ix_(*index)] = x[np.ix_(*keep)]
+    return out
+
+
+#: NumPy versions of the movement primitives: finding where each output element comes from
+#: needs no XLA program (``bind`` compiled one per primitive and shape: half the time of
+#: exporting a filter). Each is the primitive's documented semantics, checked against ``bind``
+#: in the tests; the others (gather, scatter) run through JAX.
+_NUMPY_MOVEMENT: dict[str, Callable[..., list[np.ndarray]]] = {
+    "broadcast_in_dim": lambda x, *, shape, broadcast_dimensions, **_: [
+        np.broadcast_to(
+            x.reshape(
+                [
+                    x.shape[broadcast_dimensions.index(d)] if d in broadcast_dimensions else 1
+                    for d in range(len(shape))
+                ]
+            ),
+            shape,
+        )
+    ],
+    "reshape": lambda x, *, new_sizes, dimensions, **_: [
+        (x if dimensions is None else np.transpose(x, dimensions)).reshape(new_sizes)
+    ],
+    "squeeze": lambda x, *, dimensions: [np.squeeze(x, axis=tuple(dimensions))],
+    "transpose": lambda x, *, permutation: [np.transpose(x, permutation)],
+    "rev": lambda x, *, dimensions: [np.flip(x, axis=tuple(dimensions))],
+    "slice": lambda x, *, start_indices, limit_indices, strides: [
+        x[
+            tuple(
+                slice(s, e, 1 if strides is None else st)
+                for s, e, st in zip(start_indices, limit_indices, strides or start_indices)
+            )
+        ]
+    ],
+    "concatenate": lambda *xs, dimension: [np.concatenate(xs, axis=dimension)],
+    "split": lambda x, *, sizes, axis: np.split(
+        x, np.cumsum([int(s) for s in sizes])[:-1], axis=axis
+    ),
+    "pad": lambda x, fill, *, padding_config: [_pad(x, fill, padding_config)],
+    "dynamic_slice": lambda x, *starts, slice_sizes: [
+        x[_clamped_starts(x, tuple(slice_sizes), list(starts))]
+    ],
+    "dynamic_update_slice": lambda x, upd, *starts: [
+        _updated(x, upd, _clamped_starts(x, upd.shape, list(starts)))
+    ],
+}
+
+
+def _updated(x: np.ndarray, upd: np.ndarray, where: tuple[slice, ...]) -> np.ndarray:
+    out = np.array(x)
+    out[where] = upd
+    return out
+
+
+def move(name: str, args: list[np.ndarray], params: dict[str, Any]) -> list[np.ndarray] | None:
+    """The movement primitive ``name`` on NumPy arrays (None: not one done in NumPy)."""
+    fn = _NUMPY_MOVEMENT.get(name)
+    if fn is None:
+        return None
+    return [np.array(r, order="C") for r in fn(*args, **params)]
+
+
 def _movement(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     """Copy elements: every output element is one input element or a fill value."""
     data = _DATA_OPERANDS[eqn.primitive.name](len(ins))
@@ -292,7 +376,7 @@ def _movement(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     for k, v in enumerate(ins):
         if k in data:
             labels = np.arange(base, base + v.size, dtype=np.float64).reshape(v.shape)
-            args.append(jnp.asarray(labels))
+            args.append(labels)
             starts.append(base)
             owners.append(v)
             base += v.size
@@ -302,9 +386,11 @@ def _movement(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
                 "are supported"
             )
         else:
-            args.append(jnp.asarray(v.const))
-    res = eqn.primitive.bind(*args, **eqn.params)
-    res = res if eqn.primitive.multiple_results else [res]
+            args.append(np.asarray(v.const))
+    res = move(eqn.primitive.name, args, eqn.params)
+    if res is None:
+        res = eqn.primitive.bind(*[jnp.asarray(a) for a in args], **eqn.params)
+        res = res if eqn.primitive.multiple_results else [res]
     return [
         _copy_from(p, var.aval, np.asarray(r).reshape(-1), np.array(starts), owners)
         for r, var in zip(res, eqn.outvars, strict=True)

@@ -627,34 +627,44 @@ def test_filter_is_a_value_and_differentiates():
     )
     # every derivative from one reverse-mode program, with the filter as an argument: its
     # gradient is a filter of Jacobians (eager jacrev per parameter compiled two programs of
-    # the whole step for each, half of this test's time)
-    dfilt, J = jax.jit(jax.jacrev(lambda f, x: f.step_fn(x).u, argnums=(0, 1)))(filt, x)
-    assert isinstance(dfilt, ss.SafetyFilter)
-    grads = dfilt.tunables()
-    for name in ("rho", "kappa"):
-        v = float(filt.tunables()[name])
-        g = np.asarray(grads[name])
-        fd = (
-            np.asarray(filt.replace(**{name: v + 1e-6}).step(x).u)
-            - np.asarray(filt.replace(**{name: v - 1e-6}).step(x).u)
-        ) / 2e-6
-        np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+    # the whole step for each, half of this test's time). At the first state only the CLF
+    # row is active (u depends on kappa and H, not on rho); at the second the CLF and the
+    # first CBF are (u is fixed by the two rows: rho and kappa, not H). Each derivative is
+    # compared where it is not zero, so that the comparison can fail.
+    jac = jax.jit(jax.jacrev(lambda f, x: f.step_fn(x).u, argnums=(0, 1)))
     H0 = filt.tunables()["H"]
-    gH = np.asarray(grads["H"])
-    for i, j in ((0, 0), (1, 1)):
-        E = np.zeros((2, 2))
-        E[i, j] = 1e-6
-        fdH = (
-            np.asarray(filt.replace(H=H0 + E).step(x).u)
-            - np.asarray(filt.replace(H=H0 - E).step(x).u)
-        ) / 2e-6
-        np.testing.assert_allclose(gH[:, i, j], fdH, rtol=1e-6, atol=1e-8)
-    J = np.asarray(J)
-    fd = np.stack(
-        [(np.asarray(filt.step(x + 1e-6 * e).u) - np.asarray(filt.step(x - 1e-6 * e).u)) / 2e-6
-         for e in np.eye(2)], -1,
-    )  # fmt: skip
-    np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-8)
+    for x, names in ((x, ("kappa", "H")), (jnp.array([0.3, 0.2]), ("rho", "kappa"))):
+        dfilt, J = jac(filt, x)
+        assert isinstance(dfilt, ss.SafetyFilter)
+        grads = dfilt.tunables()
+        for name in names:
+            if name == "H":
+                gH = np.asarray(grads["H"])
+                for i, j in ((0, 0), (1, 1)):
+                    E = np.zeros((2, 2))
+                    E[i, j] = 1e-6
+                    fdH = (
+                        np.asarray(filt.replace(H=H0 + E).step(x).u)
+                        - np.asarray(filt.replace(H=H0 - E).step(x).u)
+                    ) / 2e-6
+                    assert np.any(gH[:, i, j] != 0)
+                    np.testing.assert_allclose(gH[:, i, j], fdH, rtol=1e-6, atol=1e-8)
+                continue
+            v = float(filt.tunables()[name])
+            g = np.asarray(grads[name])
+            fd = (
+                np.asarray(filt.replace(**{name: v + 1e-6}).step(x).u)
+                - np.asarray(filt.replace(**{name: v - 1e-6}).step(x).u)
+            ) / 2e-6
+            assert np.any(g != 0), name
+            np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+        J = np.asarray(J)
+        fd = np.stack(
+            [(np.asarray(filt.step(x + 1e-6 * e).u) - np.asarray(filt.step(x - 1e-6 * e).u)) / 2e-6
+             for e in np.eye(2)], -1,
+        )  # fmt: skip
+        assert np.any(J != 0)
+        np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-8)
 
 
 def test_simulate_under_jit_vmap_and_grad():

@@ -667,6 +667,31 @@ def test_filter_is_a_value_and_differentiates():
         np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-8)
 
 
+def test_a_controller_keeps_its_numbers_when_arrays_change_in_place():
+    """A controller is a value: the caller's arrays changed after construction, or its own
+    written in place, do not change its numbers behind its back (an eager step kept the
+    device copies of the old ones and gave an input outside the limits it then reported)."""
+    system, clf, cbf = _plant()
+    lo, hi, H = np.full(2, -4.0), np.full(2, 4.0), np.diag([1.0, 2.0])
+    x = jnp.array([3.0, 3.0])
+    ctrls = [
+        ss.SafetyFilter(system, [cbf], clfs=[clf], **K, u_min=lo, u_max=hi, H=H),
+        ss.UniversalController(system, clf, cbf, **K, u_min=lo, u_max=hi),
+    ]
+    before = [np.asarray(c.step(x).u) for c in ctrls]
+    lo[:], hi[:], H[:] = -0.5, 0.5, np.diag([5.0, 0.1])  # the caller's arrays
+    for ctrl, u in zip(ctrls, before, strict=True):
+        np.testing.assert_array_equal(np.asarray(ctrl.step(x).u), u)
+        arrays = [v for v in ctrl.tunables().values() if isinstance(v, np.ndarray)]
+        assert len(arrays) >= 2
+        for value in arrays:
+            with pytest.raises(ValueError, match="read-only"):
+                value[...] = 0.0
+        # the new numbers, as a new controller, do move the input into the new limits
+        moved = np.asarray(ctrl.replace(u_min=lo, u_max=hi).step(x).u)
+        assert np.all(np.abs(moved) <= 0.5) and not np.all(np.abs(u) <= 0.5)
+
+
 def test_simulate_under_jit_vmap_and_grad():
     system, clf, cbf = _plant()
     ctrl = ss.UniversalController(system, clf, cbf, **K)

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 
 __all__ = ["PytreeValue", "ControllerValue", "Template", "register_model", "static_key"]
 
@@ -146,8 +147,21 @@ class ControllerValue(PytreeValue):
     _template: Template
 
     def _remember(self, init: type, kwargs: dict) -> None:
-        """Keep the constructor (``init``) and its arguments, for :meth:`replace`."""
+        """Keep the constructor (``init``) and its arguments, for :meth:`replace`.
+
+        The parameters held as NumPy arrays become read-only copies: a controller is a value.
+        (A caller's array kept as given, or an array of :meth:`tunables` written in place,
+        changed the controller's numbers without a new controller: an eager step, whose
+        device copies of the parameters are kept with the controller, still gave the input
+        for the old numbers, outside the limits the controller then reported.)
+        """
         self._init, self._kwargs = init, dict(kwargs)
+        for name in self._leaf_names():
+            value = self._get_leaf(name)
+            if isinstance(value, np.ndarray):
+                frozen = np.array(value)  # a copy: the caller's array may change later
+                frozen.flags.writeable = False
+                self._set_leaf(name, frozen)
         if not type(self).__module__.startswith("safestab."):
             # a user's subclass may keep state its constructor arguments do not show
             self._template = Template(self)

@@ -426,6 +426,10 @@ def test_primitive_table_matches_jax():
 
 _MOVES = {
     "broadcast_in_dim": lambda x: lax.broadcast_in_dim(x[:, :1], (2, 4, 1, 3), (1, 2)),
+    "broadcast of size-1 axes, int": (
+        lambda x: lax.broadcast_in_dim(x[:1].astype(jnp.int32), (2, 4, 3), (0, 2))
+    ),
+    "pad, bool": lambda x: lax.pad(x > 3.0, False, [(1, 1, 1), (0, -1, 0)]),
     "reshape": lambda x: x.reshape(6, 2),
     "reshape, transposed first": lambda x: lax.reshape(x, (3, 4), dimensions=(1, 0)),
     "squeeze": lambda x: lax.squeeze(x[:1, None], (0, 1)),

@@ -31,12 +31,17 @@ def static_key(value: Any) -> Any:
     """A hashable stand-in for a static (non-leaf) constructor argument.
 
     Numbers, strings, ``None`` and frozen dataclasses (the formula objects) by value,
-    sequences (lists and tuples alike) element by element, anything else (a system, a
+    sequences (lists and tuples alike) element by element, NumPy arrays by their values,
+    anything else (a system, a
     certificate, a GP, a callable) by identity: the :class:`Template` that holds the key also
     holds the object, so the identity cannot be reused while the key exists.
     """
     if value is None or isinstance(value, bool | int | float | str):
         return (type(value).__name__, value)
+    if isinstance(value, np.ndarray):
+        # by value: a NumPy array can change in place, and a program compiled for its old
+        # values (a filter's constant u_nom is a constant of the step) must not be reused
+        return ("array", value.dtype.str, value.shape, value.tobytes())
     if isinstance(value, tuple | list):
         # a list and a tuple of the same elements alike: ``SafetyFilter(cbfs=[...])`` keeps
         # them as a tuple, which ``replace`` passes on (they were two tree structures)
@@ -122,6 +127,15 @@ def register_model(
     jax.tree_util.register_pytree_node(cls, flatten, unflatten)
 
 
+def _frozen(value: Any) -> Any:
+    """A read-only copy of a NumPy array (the caller's array may change later); else as is."""
+    if not isinstance(value, np.ndarray):
+        return value
+    frozen = np.array(value)
+    frozen.flags.writeable = False
+    return frozen
+
+
 class PytreeValue:
     """Base of the values that are pytrees (controllers, filters and certificates).
 
@@ -149,19 +163,18 @@ class ControllerValue(PytreeValue):
     def _remember(self, init: type, kwargs: dict) -> None:
         """Keep the constructor (``init``) and its arguments, for :meth:`replace`.
 
-        The parameters held as NumPy arrays become read-only copies: a controller is a value.
-        (A caller's array kept as given, or an array of :meth:`tunables` written in place,
-        changed the controller's numbers without a new controller: an eager step, whose
-        device copies of the parameters are kept with the controller, still gave the input
-        for the old numbers, outside the limits the controller then reported.)
+        The parameters and constructor arguments given as NumPy arrays are kept as read-only
+        copies (a controller JAX rebuilds from NumPy leaves holds such copies too): a
+        controller is a value. (A caller's array kept as given, or an array of
+        :meth:`tunables` written in place, changed the controller's numbers without a new
+        controller: an eager step, whose device copies of the parameters are kept with the
+        controller, still gave the input for the old numbers, outside the limits the
+        controller then reported.)
         """
-        self._init, self._kwargs = init, dict(kwargs)
+        self._init = init
+        self._kwargs = {name: _frozen(value) for name, value in kwargs.items()}
         for name in self._leaf_names():
-            value = self._get_leaf(name)
-            if isinstance(value, np.ndarray):
-                frozen = np.array(value)  # a copy: the caller's array may change later
-                frozen.flags.writeable = False
-                self._set_leaf(name, frozen)
+            self._set_leaf(name, _frozen(self._get_leaf(name)))
         if not type(self).__module__.startswith("safestab."):
             # a user's subclass may keep state its constructor arguments do not show
             self._template = Template(self)
@@ -226,6 +239,6 @@ class ControllerValue(PytreeValue):
         new = copy.copy(template.obj)  # no constructor: JAX may pass placeholders as leaves
         new.params = dict(template.obj.params)
         for name, value in zip(names, leaves, strict=True):
-            new._set_leaf(name, value)
+            new._set_leaf(name, _frozen(value))
         new._rebuild()
         return new

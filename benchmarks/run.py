@@ -28,6 +28,9 @@ from safestab.scenarios import load_scenario
 from safestab.simulation import TrajectoryRecorder, closed_loop
 
 ROOT = Path(__file__).resolve().parent.parent
+#: The markers of this run's block of performance.md (the page's head, to its targets and
+#: benchmarks/NOTES.md); the other blocks are their benchmarks' own.
+BEGIN, END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
 
 
 def latency(fn, args_list, repeat):
@@ -818,7 +821,12 @@ def write_markdown(r, path):
     notes = ROOT / "benchmarks" / "NOTES.md"
     if notes.exists():
         lines += [notes.read_text()]
-    path.write_text("\n".join(lines))
+    # only this run's block: the page's other blocks and the prose around them stay (the
+    # whole page was rewritten, and the paragraphs written beside the other blocks lost)
+    from _page import put_block
+
+    body = "\n".join(lines).rstrip("\n")
+    put_block(path, f"{BEGIN}\n{body}\n{END}", BEGIN, END)
 
 
 if __name__ == "__main__":

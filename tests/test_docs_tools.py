@@ -396,3 +396,24 @@ def test_price_table_from_a_study_document():
     assert lines[3] == "| 4,000 | 17/30, -0.00012 | 30/30, +0.012 |"
     assert lines[5].startswith("| Q | GP mean: median settle time - settle time_true (s), median")
     assert lines[7] == "| 25 | +2.35, 0.012 | +2.35, 0.012 |"
+
+
+def test_the_benchmarks_page_keeps_every_block_and_paragraph_it_did_not_measure(
+    tmp_path, monkeypatch
+):
+    """``benchmarks/run.py`` rewrites only its own block of performance.md: from the committed
+    results, the committed page comes back byte for byte (it rebuilt the whole page, losing
+    the jax block and the paragraphs written beside the other blocks: 78 lines)."""
+    import shutil
+    import sys
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.delitem(sys.modules, "run", raising=False)
+    import run
+
+    for path in (ROOT / "docs").glob("performance*"):
+        shutil.copy(path, tmp_path / path.name)
+    page = (tmp_path / "performance.md").read_text()
+    assert page.index(run.BEGIN) < page.index(run.END) < page.index("<!-- montecarlo:begin -->")
+    run.write_page(json.loads((tmp_path / "performance.json").read_text()), tmp_path)
+    assert (tmp_path / "performance.md").read_text() == page

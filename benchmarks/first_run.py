@@ -49,7 +49,9 @@ def main_job_scenarios(script: Path = ROOT / "scripts" / "run-acc.sh") -> list[s
     raise RuntimeError(f"no 'safestab run' command in {script}")
 
 
-MAIN = f"main job (scripts/run-acc.sh's first command: {', '.join(main_job_scenarios())})"
+#: the main job's scenarios, as scripts/run-acc.sh runs them
+MAIN_SCENARIOS = main_job_scenarios()
+MAIN = f"main job (scripts/run-acc.sh's first command: {', '.join(MAIN_SCENARIOS)})"
 #: the same command with XLA's default fusion emitters (safestab/_xla_flags.py), for comparison
 MAIN_XLA = "the same, SAFESTAB_XLA_FLAGS=off (no target: the comparison)"
 #: issue 22's targets in seconds, per row name: (first run, second run)
@@ -63,7 +65,7 @@ TARGETS = {
 def _commands(out: Path, tests: bool) -> list[tuple[str, list[list[str]]]]:
     """Rows: a name and the commands whose wall times add up to it."""
     main = [*SAFESTAB, "run"]  # as scripts/run-acc.sh runs them: one command (default --jobs)
-    for name in main_job_scenarios():
+    for name in MAIN_SCENARIOS:
         main += ["--scenario", name]
     main += ["--out", str(out / "main")]
     rows = [

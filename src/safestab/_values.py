@@ -30,9 +30,8 @@ __all__ = ["PytreeValue", "ControllerValue", "Template", "register_model", "stat
 def static_key(value: Any) -> Any:
     """A hashable stand-in for a static (non-leaf) constructor argument.
 
-    Numbers, strings, ``None`` and frozen dataclasses (the formula objects) by value,
-    sequences (lists and tuples alike) element by element, NumPy arrays by their values,
-    anything else (a system, a
+    Numbers, strings, ``None``, frozen dataclasses (the formula objects) and NumPy arrays by
+    value, sequences (lists and tuples alike) element by element, anything else (a system, a
     certificate, a GP, a callable) by identity: the :class:`Template` that holds the key also
     holds the object, so the identity cannot be reused while the key exists.
     """

@@ -303,6 +303,31 @@ def fast_band_table(rows: list[dict]) -> str:
     return _table(header, ["---", "---:", "---:", "---:", "---:", "---:", "---:", "---:"], body)
 
 
+def _signed(x: float) -> str:
+    """A least ``h`` with its sign: four decimals, or two digits below 1e-3 (no ``+0.0000``)."""
+    return f"{x:+.4f}" if abs(x) >= 1e-3 or x == 0 else f"{x:+.1e}"
+
+
+def deployed_table(rows: list[dict]) -> str:
+    """docs/deployed.md's table from benchmarks/deployed.py's --json rows."""
+    body = []
+    for r in rows:
+        statuses = ", ".join(f"{k} {v}" for k, v in r["statuses"].items()) or "-"
+        body.append([
+            r["case"], f"{r['rate_hz']:g}",
+            r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})"),
+            f"{r['left_at_samples']} / {r['runs']}", f"{r['left_between_samples']} / {r['runs']}",
+            _signed(r["min_h_samples"]), _signed(r["min_h_between"]),
+            f"{r['steps_not_ok']} of {r['steps']}", statuses,
+        ])  # fmt: skip
+    header = ["loop", "rate (Hz)", "sampled-data margin", "runs below h = 0 at the samples",
+              "runs below h = 0 between the samples", "min h at the samples",
+              "min h between the samples", "steps not OK", "their statuses"]  # fmt: skip
+    return _table(
+        header, ["---", "---:", "---", "---:", "---:", "---:", "---:", "---:", "---"], body
+    )
+
+
 def _num(x: float | None) -> str:
     """A measured value as the tables print it.
 
@@ -619,6 +644,14 @@ def step_fast_band(out: Path) -> dict[str, tuple[str, str]]:
     return {"fastgp-width": ("docs/learning.md", fast_band_table(_load(rows)))}
 
 
+def step_deployed(out: Path) -> dict[str, tuple[str, str]]:
+    """benchmarks/deployed.py: docs/deployed.md's table (sampled loops, limits, between)."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = out / "deployed.json"
+    _run([sys.executable, "benchmarks/deployed.py", "--json", str(rows)])
+    return {"deployed": ("docs/deployed.md", deployed_table(_load(rows)))}
+
+
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "acc": step_acc,
     "swarm": step_swarm,
@@ -627,6 +660,7 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "mc-presets": step_mc_presets,
     "gp-coverage": step_gp_coverage,
     "fast-band": step_fast_band,
+    "deployed": step_deployed,
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
     "price": step_price,
@@ -650,6 +684,7 @@ PRODUCES = {
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],
     "fast-band": ["fastgp-width"],
+    "deployed": ["deployed"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "price": ["price-stress", "price-obstacle"],

@@ -11,6 +11,7 @@ from safestab import (
     CBFController,
     ModelError,
     ParameterError,
+    RelativeDegreeError,
     SontagController,
     StepStatus,
     UniversalController,
@@ -138,9 +139,14 @@ def test_high_order_cbf_keeps_a_position_limit_where_degree_one_cannot():
 
     kw = {"kappa": 0.0, "rho": 0.0, "phi": 0.0, "varphi": 0.0, "slack_weight": 10.0}
     x0 = np.array([0.0, 0.0])
-    # degree one: d = L_g h = 0, so the barrier cannot act; the CLF drives p past 1
-    plain = UniversalController(system, clf, CBF(h, beta=1.0), **kw)
-    t_plain = simulate(plain, x0, t_final=8.0, dt=0.01)
+    # degree one: d = L_g h = 0, so the barrier cannot act (the CLF would drive p past 1):
+    # refused where the controller is built, with a pointer to high_order_cbf
+    with pytest.raises(RelativeDegreeError, match=r"cbf: L_g h is zero at every probe.*high_order"):
+        UniversalController(system, clf, CBF(h, beta=1.0), **kw)
+    # Sontag's CLF formula does not enforce the barrier: it is not refused, and it crosses
+    t_plain = simulate(UniversalController(system, clf, CBF(h, beta=1.0), formula="sontag",
+                                           **{**kw, "slack_weight": None}), x0, t_final=8.0,
+                       dt=0.01)  # fmt: skip
     assert float(np.min(np.asarray(t_plain.h))) < -0.5
     # degree two: psi1 = -v + 2 (1 - p); the closed loop keeps h >= 0 throughout
     hocbf = high_order_cbf(system, h, alpha1=2.0, beta=2.0)

@@ -127,10 +127,21 @@ def test_diverging_plant_gets_a_status_and_the_first_time():
     x = np.asarray(traj.x)
     first_bad = int(np.argmax(~np.all(np.isfinite(x), axis=-1)))  # independent: from x itself
     assert first_bad > 0 and not traj.ok
-    assert int(traj.first_failure_index) == first_bad
-    assert np.asarray(traj.status)[first_bad] == StepStatus.NONFINITE_STATE
-    assert np.all(np.asarray(traj.status)[:first_bad] == StepStatus.OK)
-    assert f"step {first_bad}" in traj.failure_summary()
+    status = np.asarray(traj.status)
+    assert status[first_bad] == StepStatus.NONFINITE_STATE
+    # before it the run stays on x1 = 0, where L_g h = -2 x1 = 0: once h < 0 (x0 > 2) the CBF
+    # condition fails there and no input can move h, which the step names
+    before = status[:first_bad]
+    h = 4.0 - x[:first_bad, 0] ** 2 - x[:first_bad, 1] ** 2
+    assert np.all(x[:first_bad, 1] == 0.0)
+    np.testing.assert_array_equal(before == StepStatus.CBF_UNACTUATED, h < 0)
+    np.testing.assert_array_equal(before == StepStatus.OK, h >= 0)
+    first_unmet = int(np.argmax(h < 0))
+    assert int(traj.first_failure_index) == first_unmet
+    assert traj.failure_summary().startswith(f"CBF_UNACTUATED first at step {first_unmet}")
+    assert f"{int(np.sum(h < 0))} of {status.size} steps missed a CBF condition" in (
+        traj.failure_summary()
+    )
     with pytest.raises(NonFiniteError, match=r"NONFINITE_STATE first at step"):
         simulate(ctrl, np.array([1.0, 0.0]), t_final=1.0, dt=0.01, plant=plant, strict=True)
 

@@ -257,8 +257,8 @@ def test_safety_filter_matches_the_formula_and_keeps_every_barrier():
     assert solved.sum() >= 30 and np.all(np.asarray(out.cbf_satisfied)[solved])
 
 
-def test_status_ok_is_not_a_safety_certificate_where_the_box_and_the_cbf_conflict():
-    """The review: status OK with slack 0 where the input box and the CBF conflict. The
+def test_status_names_where_the_box_and_the_cbf_conflict():
+    """Where the input box and the CBF conflict the status says so (it said OK). The
     filter's ``safety_certified`` must be False exactly where no input in the box meets the
     CBF condition, computed here by hand: c + d u >= rho Gamma, Gamma = sqrt(c^2 + varphi
     d^4), for the one-input ACC at the box's two ends."""
@@ -282,10 +282,15 @@ def test_status_ok_is_not_a_safety_certificate_where_the_box_and_the_cbf_conflic
     scale = np.abs(c) + np.abs(d) * hi + need  # the condition's own magnitudes
     clear = np.abs(best - need) > 1e-9 * scale  # away from the feasibility boundary
     feasible = best >= need
-    assert np.all(np.asarray(out.status) == ss.StepStatus.OK)  # an input everywhere
+    status = np.asarray(out.status)
+    assert np.all(np.isfinite(np.asarray(out.u)))  # an input everywhere
     assert 100 < np.sum(~feasible) < 1900  # both kinds of state are drawn
     certified = np.asarray(out.safety_certified)
     np.testing.assert_array_equal(certified[clear], feasible[clear])
+    # the status says it too: OK exactly where certified, CBF_INFEASIBLE where the box and
+    # the barrier conflict
+    np.testing.assert_array_equal(status == ss.StepStatus.OK, certified)
+    assert np.all(status[clear & ~feasible] == ss.StepStatus.CBF_INFEASIBLE)
     fstat = np.asarray(out.formula_status)
     assert np.all(fstat[clear & ~feasible] == MultiStatus.CBF_RELAXED)
     # the single-pair controller with the same box says the same
@@ -293,4 +298,8 @@ def test_status_ok_is_not_a_safety_certificate_where_the_box_and_the_cbf_conflic
         system, clf, cbf, kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
         slack_weight=10.0, u_min=lo, u_max=hi,
     )  # fmt: skip
-    np.testing.assert_array_equal(np.asarray(ctrl.step(x).safety_certified)[clear], feasible[clear])
+    cout = ctrl.step(x)
+    np.testing.assert_array_equal(np.asarray(cout.safety_certified)[clear], feasible[clear])
+    cstatus = np.asarray(cout.status)
+    np.testing.assert_array_equal(cstatus == ss.StepStatus.OK, np.asarray(cout.safety_certified))
+    assert np.all(cstatus[clear & ~feasible] == ss.StepStatus.CBF_INFEASIBLE)

@@ -20,6 +20,7 @@ from safestab import (
     NonFiniteError,
     ParameterError,
     SafetyFilter,
+    StepStatus,
     UniversalController,
     high_order_cbf,
     lie_terms,
@@ -181,7 +182,13 @@ def test_simulate_with_a_moving_obstacle_and_a_time_varying_wind(ctrl):
     # closed loop over 100 steps
     np.testing.assert_allclose(traj.x, np.asarray(ref.x)[..., :2], rtol=0, atol=1e-10)
     np.testing.assert_allclose(traj.h, ref.h, rtol=0, atol=1e-10)
-    assert traj.ok and np.asarray(traj.region).tolist() == np.asarray(ref.region).tolist()
+    assert np.asarray(traj.region).tolist() == np.asarray(ref.region).tolist()
+    # the paper's projection onto the box breaks the CBF condition at a few steps where an
+    # input in the box meets it: named CBF_UNMET, in both runs alike
+    status = np.asarray(traj.status)
+    np.testing.assert_array_equal(status, np.asarray(ref.status))
+    assert set(np.unique(status)) <= {StepStatus.OK, StepStatus.CBF_UNMET}
+    np.testing.assert_array_equal(status == StepStatus.OK, np.asarray(traj.cbf_satisfied))
     assert np.ptp(np.asarray(traj.x)[..., 1]) > 0.05  # the moving obstacle pushed it around
 
 

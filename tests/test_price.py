@@ -129,7 +129,7 @@ def test_settle_time_and_input_gap_against_a_simulated_history():
     plant = ss.ControlAffineSystem(lambda x: jnp.array([x[1], 0.5 * x[1]]),
                                    lambda x: jnp.array([[0.0], [1.0]]), 2)  # fmt: skip
     clf = ss.CLF(lambda x: x[0] ** 2 + x[0] * x[1] + x[1] ** 2, lam=1.0)
-    cbf = ss.CBF(lambda x: 4.0 - x[0], beta=1.0)
+    cbf = ss.CBF(lambda x: 4.0 - x[0] - x[1], beta=1.0)  # the input moves h (d = -1)
     ctrl = ss.UniversalController(
         plant, clf, cbf, kappa=0.5, rho=0.1, phi=1.0, varphi=1.0, slack_weight=10.0
     )

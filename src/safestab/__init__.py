@@ -47,6 +47,7 @@ from .controllers import (  # noqa: E402
     SontagController,
     StepStatus,
     UniversalController,
+    has_input,
 )
 from .errors import (  # noqa: E402
     CompilationError,
@@ -58,6 +59,7 @@ from .errors import (  # noqa: E402
     NumericalError,
     OutputError,
     ParameterError,
+    RelativeDegreeError,
     SafeStabError,
     ScenarioError,
     UnsupportedPrimitiveError,
@@ -107,6 +109,7 @@ __all__ = [
     "SontagController",
     "CBFController",
     "StepStatus",
+    "has_input",
     "SafetyFilter",
     "FilterOutput",
     "LieTerms",
@@ -129,6 +132,7 @@ __all__ = [
     "NumericalError",
     "OutputError",
     "ParameterError",
+    "RelativeDegreeError",
     "SafeStabError",
     "ScenarioError",
     "DEFAULT_PARALLEL_RTOL",

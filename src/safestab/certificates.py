@@ -21,10 +21,18 @@ from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, check_scalar_range, is_concrete
 from ._values import PytreeValue, Template
-from .errors import DimensionError, NonFiniteError, ParameterError
+from .errors import DimensionError, NonFiniteError, ParameterError, RelativeDegreeError
 from .systems import ControlAffineSystem
 
-__all__ = ["CLF", "CBF", "LieTerms", "lie_terms", "high_order_cbf", "RELATIVE_DEGREE_RTOL"]
+__all__ = [
+    "CLF",
+    "CBF",
+    "LieTerms",
+    "lie_terms",
+    "high_order_cbf",
+    "check_actuated",
+    "RELATIVE_DEGREE_RTOL",
+]
 
 #: ``L_g h`` counts as zero for a relative-degree-2 barrier when
 #: ``|L_g h| <= RELATIVE_DEGREE_RTOL (|grad h| |g|)``: rounding of the product, with room.
@@ -486,6 +494,51 @@ def high_order_cbf(
     cbf.base = h
     cbf.base_grad = grad_h_of
     return cbf
+
+
+def check_actuated(system: ControlAffineSystem, cbf: CBF, name: str, params: Any = None) -> None:
+    """Refuse a barrier the input cannot move: ``L_g h = 0`` at every probe state.
+
+    The probe states are the origin and 16 seeded standard-normal states (those of
+    :func:`high_order_cbf`); ``L_g h`` counts as zero where ``|L_g h| <= RELATIVE_DEGREE_RTOL
+    (|grad h| |g|)``. A barrier whose ``L_g h`` vanishes only on a set (where ``grad h`` is
+    orthogonal to every input direction) passes; the controllers then name a step where its
+    condition fails there (status ``CBF_UNACTUATED``). The result is kept on the barrier per
+    system, so :meth:`~safestab.Controller.replace` does not probe again. A system built of
+    traced values (inside a user's ``jit`` or ``vmap``) cannot be probed, and is not.
+
+    Parameters
+    ----------
+    system : ControlAffineSystem
+    cbf : CBF
+    name : str
+        The argument's name in the message (``"cbf"``, ``"cbfs[2]"``).
+    params : pytree, optional
+        The run-time parameters' example, when the system or the barrier takes them.
+
+    Raises
+    ------
+    RelativeDegreeError
+        If ``L_g h`` is zero at every probe state.
+    """
+    checked = cbf.__dict__.setdefault("_actuated_by", [])
+    if any(s is system for s in checked):
+        return
+    n = system.n_states
+    pts = np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
+    with jax.ensure_compile_time_eval():
+        lgh, scale = _lg_h(system, cbf.grad_of, jnp.asarray(pts), params)
+    if not is_concrete(lgh, scale):  # the system holds traced values (a vmapped model): the
+        return  # run-time status CBF_UNACTUATED still names a failing step
+    lgh, scale = np.asarray(lgh), np.asarray(scale)
+    if np.all(np.abs(lgh) <= RELATIVE_DEGREE_RTOL * scale):
+        raise RelativeDegreeError(
+            f"{name}: L_g h is zero at every probe state (the origin and 16 random states), so "
+            "no input moves h: its relative degree is 2 or more (a distance when the input is "
+            "an acceleration, say). Build the barrier with high_order_cbf(system, h, "
+            "alpha1=...), which imposes the condition on L_f h + alpha1 h instead"
+        )
+    checked.append(system)
 
 
 def _lg_h(

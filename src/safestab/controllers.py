@@ -20,7 +20,7 @@ from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_real, is_concrete, traced_results
 from ._values import ControllerValue
-from .certificates import CBF, CLF, LieTerms, lie_terms_point
+from .certificates import CBF, CLF, LieTerms, check_actuated, lie_terms_point
 from .errors import (
     DimensionError,
     InfeasibleError,
@@ -42,12 +42,15 @@ from .formulas.problem import (
     SontagFormula,
 )
 from .robust import UncertaintyModel, check_beta, check_uncertainty_model, robust_lie_terms
+from .sampled import check_sampled, sampled_shift
 from .systems import ControlAffineSystem
 
 __all__ = [
     "ControlOutput",
     "Controller",
     "StepStatus",
+    "INPUT_STATUSES",
+    "has_input",
     "UniversalController",
     "SontagController",
     "CBFController",
@@ -55,10 +58,20 @@ __all__ = [
 
 
 class StepStatus(IntEnum):
-    """Why a controller step could (``OK``) or could not compute a trustworthy input.
+    """What a controller step achieved: ``OK``, no input at all, or an input that misses a barrier.
 
-    Any status other than ``OK`` comes with ``u = NaN`` and every flag False: the step did not
-    produce an input, and says why. The first failing stage is reported.
+    ``OK`` means that an input was computed and that it meets every CBF condition the
+    controller enforces (every formula but Sontag's CLF formula enforces its CBFs), judged
+    against the condition's own magnitudes: read ``status == OK`` as "safe at this sample",
+    in the setting of the conditions (continuous time at the sample, with the input held;
+    docs/deployed.md). The CLF condition is reported by the flags (``clf_satisfied``,
+    ``region``, ``formula_status``): the relaxed formulas and the safety-first fallbacks give
+    it up by design.
+
+    Statuses 1 to 7 come with ``u = NaN`` and every flag False: the step did not produce an
+    input, and says why (the first failing stage). Statuses 8 and above come with a finite
+    input, the controller's best, that does not meet every CBF condition, and name why
+    (:data:`INPUT_STATUSES` lists the statuses that carry an input).
     """
 
     OK = 0
@@ -69,6 +82,37 @@ class StepStatus(IntEnum):
     NONFINITE_INPUT = 5  #: the formula's exact input overflows float64 (rescale the problem)
     NEGATIVE_WEIGHT = 6  #: a state-dependent phi(x) or varphi(x) is negative
     RELATIVE_DEGREE = 7  #: a high-order CBF's L_g h is not zero here (degree 2 fails)
+    #: a CBF condition fails where that barrier's ``L_g h`` is zero: no input moves ``h``
+    #: here (a barrier of relative degree 2 needs :func:`~safestab.high_order_cbf`)
+    CBF_UNACTUATED = 8
+    #: no input meets every CBF condition (within the input limits, where given): the limits
+    #: and a barrier conflict, or the barriers conflict with each other; ``u`` is the
+    #: controller's best compromise inside the limits
+    CBF_INFEASIBLE = 9
+    #: the applied input breaks a CBF condition that some input within the limits meets
+    #: (the paper's projection onto the limits, eq. (26), can do this; the safety filter and
+    #: ``saturation="safety_first"`` do not)
+    CBF_UNMET = 10
+    #: the safety filter's solver did not certify its input (``MultiStatus``
+    #: ``ITERATION_LIMIT`` or ``UNCERTIFIED``): ``u`` is inside the limits, nothing else is
+    #: promised
+    UNCERTIFIED = 11
+
+
+#: The statuses whose step carries a finite input: ``OK`` and the statuses from 8 on.
+INPUT_STATUSES = (
+    StepStatus.OK,
+    StepStatus.CBF_UNACTUATED,
+    StepStatus.CBF_INFEASIBLE,
+    StepStatus.CBF_UNMET,
+    StepStatus.UNCERTIFIED,
+)
+
+
+def has_input(status: Any) -> Any:
+    """Bool array: where a step's ``status`` carries a finite input (:data:`INPUT_STATUSES`)."""
+    status = jnp.asarray(status)
+    return (status == StepStatus.OK) | (status >= StepStatus.CBF_UNACTUATED)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,7 +122,8 @@ class ControlOutput:
     Attributes
     ----------
     u : array of shape (..., m)
-        The input applied (after input limits, if any); NaN where ``status`` is not OK.
+        The input applied (after input limits, if any); NaN where ``status`` says the step
+        produced no input (statuses 1 to 7, see :class:`StepStatus`).
     u_unconstrained : array of shape (..., m)
         The formula's input before limits.
     region : int array of shape (...,)
@@ -95,9 +140,10 @@ class ControlOutput:
     slack : array of shape (...,)
         The CLF slack of the relaxed formula (0 otherwise).
     status : int array of shape (...,)
-        A :class:`StepStatus` per state. ``OK`` says that an input was computed (finite
-        state, model and input); it does not say that the input meets the CBF condition
-        (input limits can forbid it): read :attr:`safety_certified`.
+        A :class:`StepStatus` per state. ``OK`` says that an input was computed and that it
+        meets the CBF condition the formula enforces (Sontag's CLF formula enforces none);
+        where it does not, the status names why (``CBF_UNACTUATED``, ``CBF_INFEASIBLE``,
+        ``CBF_UNMET``) and ``u`` is still the controller's input.
     terms : LieTerms
         The terms the formula used (GP-robust ones when an uncertainty model is given).
     """
@@ -118,7 +164,8 @@ class ControlOutput:
 
         False where ``status`` is not OK, and where the applied input (after limits) breaks
         the CBF condition, judged against the condition's own magnitudes (where the limits
-        and the barrier conflict, say).
+        and the barrier conflict, say). Equal to ``status == OK`` for every formula that
+        enforces the CBF (all but Sontag's CLF formula).
         """
         return (self.status == StepStatus.OK) & self.cbf_satisfied
 
@@ -128,6 +175,31 @@ jax.tree_util.register_dataclass(
     data_fields=[f.name for f in dataclasses.fields(ControlOutput)],
     meta_fields=[],
 )
+
+
+def barrier_message(name: str, where: str, x: Any = None, detail: str = "") -> str:
+    """The ``strict=True`` message for a step whose input misses a barrier, by status name.
+
+    ``where`` names the state ("state index 3"); ``x`` its value; ``detail`` an addition
+    (the solver's :class:`~safestab.formulas.MultiStatus`, say).
+    """
+    at = where + ("" if x is None else f" (x = {np.asarray(x).tolist()})")
+    extra = f", {detail}" if detail else ""
+    if name == "UNCERTIFIED":
+        return f"the solver did not certify its input at {at} (status {name}{extra})"
+    if name == "CBF_UNMET":
+        return (
+            f"the CBF condition is not met at {at} (status {name}{extra}): the applied input "
+            "breaks it where an input within the limits meets it; use "
+            "saturation='safety_first' or a SafetyFilter with the limits"
+        )
+    why = {
+        "CBF_UNACTUATED": "L_g h = 0 there, so no input moves h; for a barrier the input "
+        "acts on through its derivative, use high_order_cbf",
+        "CBF_INFEASIBLE": "no input within the limits meets every CBF condition (the limits "
+        "and a barrier, or two barriers, conflict); relax the limits or the barrier",
+    }[name]
+    return f"the CBF condition cannot be met at {at} (status {name}{extra}): {why}"
 
 
 def _all_finite(*arrays: jax.Array) -> jax.Array:
@@ -399,6 +471,16 @@ class UniversalController(Controller):
         the condition (a lower precision, a model error), a step whose flag says satisfied
         keeps the exact condition: :func:`~safestab.export.export_scenario` uses it for the
         float export (docs/export.md, "Float that stays safe"). Default: none (0).
+    sample_time, ddh_bound : float, optional
+        The sampled-data margin (both or neither): the controller is run every
+        ``sample_time`` s with its input held (zero-order hold), and ``ddh_bound`` is a bound
+        ``M >= 0`` on ``-d^2h/dt^2`` along the true plant's flow with the input held, over the
+        states the loop visits and the inputs it applies (units of ``h`` per s^2;
+        :func:`~safestab.sampled.ddh_bound` estimates one). The CBF condition is then shifted
+        to ``c + d.u >= rho Gamma + M T / 2 + max(0, alpha(h) - h / T)``, which keeps
+        ``h >= 0`` over every hold interval where it holds at the sample, not only at the
+        samples (:mod:`safestab.sampled`, docs/deployed.md); ``terms.c`` and the flags are
+        those of the shifted condition. Default: none (the continuous-time condition).
     robust_clf_layer : float, optional
         With an uncertainty model only: a boundary layer ``eps >= 0`` (in the units of
         ``dV/dx``) on the CLF's robust term, which Lemma 3 makes proportional to ``|dV/dx|``
@@ -456,9 +538,12 @@ class UniversalController(Controller):
         params: Any = None,
         cbf_margin: float | None = None,
         robust_clf_layer: float | None = None,
+        sample_time: float | None = None,
+        ddh_bound: float | None = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         formula_obj = self._formula_object(formula, slack_weight, parallel_rtol)
+        sample_time, ddh_bound = check_sampled(sample_time, ddh_bound)
         if not isinstance(clf, CLF):
             raise InputTypeError(
                 f"clf must be a CLF, got {type(clf).__name__}; for a controller with barriers "
@@ -491,6 +576,8 @@ class UniversalController(Controller):
         self.params_spec: ParamSpec | None = merge_specs(
             [system.params_spec, clf.params_spec, cbf.params_spec, own_spec]
         )
+        if not isinstance(formula_obj, SontagFormula):  # a formula that enforces the CBF
+            check_actuated(system, cbf, "cbf", getattr(self.params_spec, "example", None))
         m = system.n_inputs
         u_min, u_max = self._check_limits(u_min, u_max, m)
         if saturation not in ("project", "safety_first"):
@@ -534,6 +621,9 @@ class UniversalController(Controller):
         )
         self.cbf_margin = None if cbf_margin is None else as_scalar(cbf_margin)
         self.robust_clf_layer = None if robust_clf_layer is None else as_scalar(robust_clf_layer)
+        #: The hold time ``T`` (s) and the bound ``M`` of the sampled-data margin (None: none).
+        self.sample_time = None if sample_time is None else as_scalar(sample_time)
+        self.ddh_bound = None if ddh_bound is None else as_scalar(ddh_bound)
         self._remember(UniversalController, init_args)
         self._rebuild()
 
@@ -565,6 +655,7 @@ class UniversalController(Controller):
         names += ["gp_beta"] if self.uncertainty is not None else []
         names += ["cbf_margin"] if self.cbf_margin is not None else []
         names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
+        names += ["sample_time", "ddh_bound"] if self.sample_time is not None else []
         return tuple(names)
 
     @staticmethod
@@ -660,6 +751,10 @@ class UniversalController(Controller):
                     jnp.where(jnp.any(std < 0), S.NEGATIVE_STD, S.OK),
                 ),
             )
+        if self.sample_time is not None:  # the sampled-data margin: a shift of c
+            h = self.cbf.fn_of(x, p)
+            shift = sampled_shift(h, self.cbf.rate_term(h), self.sample_time, self.ddh_bound)
+            terms = terms._replace(c=terms.c - shift)
         return terms, status.astype(jnp.int32), weights
 
     def _step(self, x: jax.Array, p: Any = None, given: tuple | None = None) -> ControlOutput:
@@ -698,6 +793,8 @@ class UniversalController(Controller):
             (status == StepStatus.OK) & ~finite_out, StepStatus.NONFINITE_INPUT, status
         ).astype(jnp.int32)
         ok = status == StepStatus.OK
+        if not isinstance(self.formula, SontagFormula):  # the formula enforces the CBF
+            status = self._barrier_status(status, cbf_ok, a, b, c, d, mg_flags)
         nan = jnp.full_like(u, jnp.nan)
         return ControlOutput(
             u=jnp.where(ok[..., None], u, nan),
@@ -710,6 +807,29 @@ class UniversalController(Controller):
             status=status,
             terms=terms,
         )
+
+    def _barrier_status(self, status, cbf_ok, a, b, c, d, mg) -> jax.Array:
+        """``status`` with the reason named where an input was computed but breaks the CBF.
+
+        ``CBF_UNACTUATED`` where ``d = L_g h`` is zero (no input moves ``h``);
+        ``CBF_INFEASIBLE`` where no input within the limits meets the condition (judged by
+        the same flag at the box corner that maximises ``d.u``); ``CBF_UNMET`` where one
+        does (the projection onto the limits broke the condition).
+        """
+        S = StepStatus
+        unmet = (status == S.OK) & ~cbf_ok
+        if self.u_min is not None:
+            lo, hi = jnp.asarray(self.u_min), jnp.asarray(self.u_max)
+            best = jnp.where(d > 0, hi, lo)  # the box input that maximises d.u
+            _, box_ok = condition_flags(
+                a, b, c, d, best, mg, self.params["kappa"], self.params["rho"], SATISFIED_RTOL
+            )
+        else:
+            box_ok = jnp.asarray(True)
+        reason = jnp.where(
+            jnp.all(d == 0, -1), S.CBF_UNACTUATED, jnp.where(box_ok, S.CBF_UNMET, S.CBF_INFEASIBLE)
+        )
+        return jnp.where(unmet, reason, status).astype(jnp.int32)
 
     # -- public, checked entry points ---------------------------------------------------
 
@@ -764,6 +884,8 @@ class UniversalController(Controller):
         if badi.size:
             i = int(badi[0])
             name = StepStatus(int(flat[i])).name
+            if flat[i] in INPUT_STATUSES:
+                raise InfeasibleError(barrier_message(name, f"state index {i}", xs[i]))
             if flat[i] == StepStatus.RELATIVE_DEGREE:
                 raise ModelError(
                     f"controller step failed with status {name} at state index {i} "

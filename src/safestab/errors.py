@@ -14,6 +14,7 @@ __all__ = [
     "NumericalError",
     "ScenarioError",
     "InfeasibleError",
+    "RelativeDegreeError",
     "InputTypeError",
     "ModelError",
     "OutputError",
@@ -48,6 +49,15 @@ class NumericalError(SafeStabError, ArithmeticError):
 
 class ScenarioError(SafeStabError, ValueError):
     """A scenario file is invalid; the message names the offending key."""
+
+
+class RelativeDegreeError(SafeStabError, ValueError):
+    """A barrier the input cannot move: its ``L_g h`` is zero wherever it was probed.
+
+    Such a barrier (relative degree 2 or more: a distance when the input is an acceleration)
+    cannot be kept by choosing the input; build it with
+    :func:`~safestab.certificates.high_order_cbf`.
+    """
 
 
 class InfeasibleError(SafeStabError, RuntimeError):

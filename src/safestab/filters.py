@@ -21,14 +21,15 @@ from ._batching import over_batch
 from ._numerics import as_scalar
 from ._params import ParamSpec, bind, make_spec, merge_specs, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
-from .certificates import CBF, CLF
-from .controllers import Controller, StepStatus
+from .certificates import CBF, CLF, check_actuated
+from .controllers import Controller, StepStatus, barrier_message, has_input
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
 from .formulas.problem import MultiFormula, Problem
 from .robust import UncertaintyModel, robust_margins
+from .sampled import check_sampled, sampled_shift
 from .systems import ControlAffineSystem
 
 __all__ = ["SafetyFilter", "FilterOutput"]
@@ -41,12 +42,16 @@ class FilterOutput:
     Attributes
     ----------
     u : array of shape (..., m)
-        The input (NaN where ``status`` is not OK).
+        The input (NaN where ``status`` says the step produced none: statuses 1 to 7).
     status : int array of shape (...,)
-        A :class:`~safestab.controllers.StepStatus`: ``OK`` says that an input was computed
-        (finite state, model and input), not that it meets the barriers: where the input
-        limits and a CBF conflict the status is ``OK`` and the input is the limits' best
-        compromise (``formula_status`` ``CBF_RELAXED``). Read :attr:`safety_certified`.
+        A :class:`~safestab.controllers.StepStatus`: ``OK`` says that an input was computed,
+        certified by the solver, and that it meets every CBF condition (and the limits): the
+        step is safe in the setting of the conditions. Where it does not, the status names
+        why and ``u`` is still the filter's input: ``CBF_UNACTUATED`` (a violated barrier's
+        ``L_g h`` is zero), ``CBF_INFEASIBLE`` (the limits and the barriers, or two barriers,
+        conflict: ``formula_status`` ``CBF_RELAXED``, ``u`` their best compromise inside the
+        limits), ``UNCERTIFIED`` (the solver stopped uncertified). Statuses 1 to 7 mean no
+        input (``u`` NaN).
     formula_status : int array of shape (...,)
         A :class:`~safestab.formulas.MultiStatus`: solved, or which fallback was used.
     active : bool array of shape (..., rows)
@@ -78,7 +83,7 @@ class FilterOutput:
         ``CLF_DROPPED``) and every CBF condition holds at ``u``, judged against its own
         magnitudes. False where the limits and a CBF conflict (``CBF_RELAXED``), where the
         solver stopped uncertified, and where the step failed. (A property, not a field: the
-        exported C step's outputs are unchanged.)
+        exported C step's outputs are unchanged.) Equal to ``status == OK``.
         """
         solved = (self.formula_status == MultiStatus.SOLVED) | (
             self.formula_status == MultiStatus.CLF_DROPPED
@@ -125,23 +130,49 @@ def raise_where_failed(out: Any) -> None:
         violated; the message names the first such state.
     """
     status = np.atleast_1d(np.asarray(out.status)).reshape(-1)
-    if np.any(status != StepStatus.OK):
-        i = int(np.flatnonzero(status != StepStatus.OK)[0])
+    fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
+    no_input = ~np.asarray(has_input(status))
+    if np.any(no_input):
+        i = int(np.flatnonzero(no_input)[0])
         name = StepStatus(int(status[i])).name
         raise NonFiniteError(f"filter step failed with status {name} at state index {i}")
-    fstat = np.atleast_1d(np.asarray(out.formula_status)).reshape(-1)
     cbf_ok = np.asarray(out.cbf_satisfied).reshape(fstat.shape[0], -1).all(-1)
-    failing = (fstat != MultiStatus.SOLVED) | ~cbf_ok
+    failing = (status != StepStatus.OK) | (fstat != MultiStatus.SOLVED) | ~cbf_ok
     if np.any(failing):
         i = int(np.argmax(failing))
-        name = MultiStatus(int(fstat[i])).name
-        if fstat[i] in (MultiStatus.ITERATION_LIMIT, MultiStatus.UNCERTIFIED):
+        name = StepStatus(int(status[i])).name
+        detail = f"formula_status {MultiStatus(int(fstat[i])).name}"
+        if status[i] == StepStatus.OK:  # certified and safe, but a hard CLF was dropped
             raise InfeasibleError(
-                f"the solver did not certify its input at state index {i} ({name}: see MultiStatus)"
+                f"the CBF and CLF conditions and limits cannot all be met at state index {i} "
+                f"({detail}: the CLF rows were dropped)"
             )
-        raise InfeasibleError(
-            f"the CBF conditions and limits cannot all be met (state index {i}, {name})"
-        )
+        raise InfeasibleError(barrier_message(name, f"state index {i}", detail=detail))
+
+
+def _barrier_status(status: Any, formula_status: Any, cbf_ok: Any, d: Any) -> jax.Array:
+    """``status`` with the reason named where the filter's input misses a barrier.
+
+    ``CBF_UNACTUATED`` where a violated barrier's ``d = L_g h`` is zero; else
+    ``CBF_INFEASIBLE`` where the solver relaxed the CBFs (they conflict with the limits or
+    with each other); ``UNCERTIFIED`` where it stopped uncertified; ``CBF_UNMET`` where a
+    CBF flag fails at an otherwise certified answer.
+    """
+    S, M = StepStatus, MultiStatus
+    unmet = ~cbf_ok  # (..., k)
+    unactuated = jnp.any(unmet & jnp.all(d == 0, -1), -1)
+    certified = (formula_status == M.SOLVED) | (formula_status == M.CLF_DROPPED)
+    reason = jnp.where(
+        unactuated,
+        S.CBF_UNACTUATED,
+        jnp.where(
+            formula_status == M.CBF_RELAXED,
+            S.CBF_INFEASIBLE,
+            jnp.where(certified, S.CBF_UNMET, S.UNCERTIFIED),
+        ),
+    )
+    failed = unactuated | ~certified | jnp.any(unmet, -1)
+    return jnp.where((status == S.OK) & failed, reason, status).astype(jnp.int32)
 
 
 def _as_tuple(value: Any, kind: type, name: str) -> tuple:
@@ -193,6 +224,12 @@ class SafetyFilter(Controller):
         ``u_nom`` takes ``(x, p)`` (a set-point, say). The system and the certificates declare
         their own; all declared examples must agree, and one ``p`` reaches every function:
         ``step(x, params=p)``, ``step_fn(x, p)``. New values of ``p`` never recompile.
+    sample_time, ddh_bound : optional
+        The sampled-data margin (both or neither): the hold time ``T`` (s) and a bound ``M``
+        on ``-d^2h/dt^2`` along the true plant's held flow, a scalar or one per CBF (shape
+        (k,)); every CBF condition is shifted by ``M T / 2 + max(0, alpha(h) - h / T)``, which
+        keeps each ``h >= 0`` over the hold intervals (as for
+        :class:`~safestab.UniversalController`; :mod:`safestab.sampled`, docs/deployed.md).
     max_iter : int, optional
         Iteration bound of the solver per phase (default: as
         :func:`~safestab.formulas.clf_cbf_multi`); where it is reached, ``formula_status`` is
@@ -224,6 +261,8 @@ class SafetyFilter(Controller):
         robust_clf_layer: float | None = None,
         params: Any = None,
         max_iter: int | None = None,
+        sample_time: float | None = None,
+        ddh_bound: Any = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
@@ -231,6 +270,7 @@ class SafetyFilter(Controller):
         if not self.cbfs:
             raise ParameterError("give at least one CBF")
         max_iter = check_max_iter(max_iter)
+        sample_time, ddh_bound = check_sampled(sample_time, ddh_bound, len(self.cbfs))
         check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
         if slack_weight is not None:
             check_params((), slack_weight=slack_weight)
@@ -273,6 +313,9 @@ class SafetyFilter(Controller):
         self.params_spec: ParamSpec | None = merge_specs(
             [system.params_spec, *(c.params_spec for c in self.clfs + self.cbfs), own_spec]
         )
+        example = getattr(self.params_spec, "example", None)
+        for i, cb in enumerate(self.cbfs):
+            check_actuated(system, cb, f"cbfs[{i}]" if len(self.cbfs) > 1 else "cbfs", example)
         self.system = system
         self.u_nom = u_nom
         self._u_nom_of = u_nom_of
@@ -283,6 +326,9 @@ class SafetyFilter(Controller):
         self.uncertainty = uncertainty
         self.gp_beta = gp_beta
         self.robust_clf_layer = None if robust_clf_layer is None else as_scalar(robust_clf_layer)
+        #: The hold time ``T`` (s) and the bound(s) ``M`` of the sampled-data margin (None).
+        self.sample_time = None if sample_time is None else as_scalar(sample_time)
+        self.ddh_bound = ddh_bound
         #: The several-row formula object that solves each step's problem.
         self.formula = MultiFormula(max_iter)
         self._remember(SafetyFilter, init_args)
@@ -302,6 +348,7 @@ class SafetyFilter(Controller):
         names += ["H"] if self.H is not None else []
         names += ["gp_beta"] if self.uncertainty is not None else []
         names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
+        names += ["sample_time", "ddh_bound"] if self.sample_time is not None else []
         return tuple(names)
 
     def _point(self, x: jax.Array, p: Any = None, given: tuple | None = None):
@@ -316,8 +363,12 @@ class SafetyFilter(Controller):
             if self.clfs
             else jnp.zeros((0, g.shape[1]))
         )
-        c = jnp.stack([cb.grad_of(x, p) @ f + cb.rate_term(cb.fn_of(x, p)) for cb in self.cbfs])
+        hs = [cb.fn_of(x, p) for cb in self.cbfs]
+        alphas = jnp.stack([cb.rate_term(h) for cb, h in zip(self.cbfs, hs, strict=True)])
+        c = jnp.stack([cb.grad_of(x, p) @ f for cb in self.cbfs]) + alphas
         d = jnp.stack([cb.grad_of(x, p) @ g for cb in self.cbfs])
+        if self.sample_time is not None:  # the sampled-data margin: a shift of each c
+            c = c - sampled_shift(jnp.stack(hs), alphas, self.sample_time, self.ddh_bound)
         S = StepStatus
         status = jnp.where(jnp.all(jnp.isfinite(x)), S.OK, S.NONFINITE_STATE)
         finite = jnp.all(jnp.isfinite(a)) & jnp.all(jnp.isfinite(b)) & jnp.all(jnp.isfinite(c))
@@ -377,6 +428,7 @@ class SafetyFilter(Controller):
         finite = jnp.all(jnp.isfinite(u), -1)
         status = jnp.where((status == StepStatus.OK) & ~finite, StepStatus.NONFINITE_INPUT, status)
         ok = status == StepStatus.OK
+        status = _barrier_status(status, res.status, cbf_ok, d)
         return FilterOutput(
             u=jnp.where(ok[..., None], u, jnp.nan),
             status=status.astype(jnp.int32),

@@ -16,7 +16,7 @@ import numpy as np
 from ._numerics import tied
 from ._params import ParamSpec, merge_specs, resolve
 from ._validation import check_real, check_scalar_range, traced_results
-from .controllers import Controller, StepStatus
+from .controllers import Controller, StepStatus, has_input
 from .errors import (
     DimensionError,
     InfeasibleError,
@@ -89,6 +89,11 @@ class Trajectory:
     status : int array of shape (..., T)
         :class:`~safestab.controllers.StepStatus` per step: ``NONFINITE_STATE`` from the first
         step whose state is not finite (a diverging plant), or the controller's own status.
+    h_between : array of shape (..., T) or (..., T, k), or None
+        With ``simulate(..., substeps=N)``, ``N > 1``: the least ``h`` over each hold
+        interval ``[t_k, t_k + dt]``, at its start and after each of the ``N`` RK4
+        substeps (NaN at the final sample, which starts no interval); ``None`` otherwise.
+        The samples alone (``h``) can miss a dip between them.
     multi : bool
         True for a filter's trajectory (static: not a pytree leaf).
     """
@@ -102,6 +107,7 @@ class Trajectory:
     compatible: jax.Array
     cbf_satisfied: jax.Array
     status: jax.Array
+    h_between: jax.Array | None = None
     multi: bool = False
 
     @property
@@ -117,8 +123,24 @@ class Trajectory:
 
     @property
     def ok(self) -> bool:
-        """True when every step of every trajectory has status ``OK``."""
+        """True when every step of every trajectory has status ``OK``.
+
+        So every step produced an input and that input met every CBF condition the controller
+        enforces, at the samples (docs/deployed.md says what holds between them).
+        """
         return bool(np.all(np.asarray(self.status) == StepStatus.OK))
+
+    @property
+    def barrier_unmet_steps(self) -> int:
+        """Steps (all batches) whose applied input broke a CBF condition the controller used.
+
+        Counted where the step produced an input (``cbf_satisfied`` False there): the
+        statuses ``CBF_UNACTUATED``, ``CBF_INFEASIBLE`` and ``CBF_UNMET``, and, for Sontag's
+        CLF formula, which does not enforce the CBF, the steps whose input happened to break
+        it.
+        """
+        with_input = np.asarray(has_input(np.asarray(self.status)))
+        return int(np.sum(with_input & ~np.asarray(self.cbf_satisfied, dtype=bool)))
 
     @property
     def first_failure_index(self) -> np.ndarray:
@@ -131,14 +153,24 @@ class Trajectory:
         return np.where(np.any(bad, axis=-1), first, -1)
 
     def failure_summary(self) -> str:
-        """One line naming the first failing step (status and time), or ``"ok"``."""
+        """One line naming the first step that was not OK (status and time), or ``"ok"``.
+
+        Where inputs broke a barrier's condition, the line also counts those steps
+        (:attr:`barrier_unmet_steps`).
+        """
         status = np.asarray(self.status)
-        bad = status != StepStatus.OK
-        if not np.any(bad):
+        if not np.any(status != StepStatus.OK):
             return "ok"
+        unmet = self.barrier_unmet_steps
+        count = f"; {unmet} of {status.size} steps missed a CBF condition" if unmet else ""
+        return self._first_where(status != StepStatus.OK) + count
+
+    def _first_where(self, bad: np.ndarray) -> str:
+        """``"NAME first at [trajectory i, ]step k (t = ... s)"``: the earliest step in ``bad``."""
+        status = np.asarray(self.status)
         flat = status.reshape(-1, status.shape[-1])
         badf = bad.reshape(-1, status.shape[-1])
-        # the earliest failure over the batch
+        # the earliest over the batch
         firsts = np.where(badf.any(-1), badf.argmax(-1), status.shape[-1])
         traj = int(np.argmin(firsts))
         k = int(firsts[traj])
@@ -194,6 +226,8 @@ def closed_loop(
     *,
     n_steps: int,
     dt: float,
+    substeps: int = 1,
+    watch: Callable[[jax.Array, jax.Array, Any], jax.Array] | None = None,
 ) -> Callable[[jax.Array, Any], Any]:
     """The closed loop, one ``lax.scan``, as a function ``run(x0, data) -> recorded``.
 
@@ -214,6 +248,13 @@ def closed_loop(
         Steps ``K``: the states ``x_0 .. x_K`` at ``t_k = k dt`` are visited.
     dt : float
         Step, s: zero-order hold of ``out`` over ``[t_k, t_k + dt)``, one RK4 step.
+    substeps : int
+        RK4 steps per hold interval (default 1), each of ``dt / substeps``: the input is
+        still held over the whole interval.
+    watch : callable, optional
+        ``watch(t, x, data)``, an array (a barrier's value, say): its elementwise least value
+        over each hold interval, at the start and after every substep, reaches the recorder
+        as ``update(..., between=least)`` (a recorder given a ``watch`` accepts the keyword).
 
     Returns
     -------
@@ -241,6 +282,32 @@ def closed_loop(
     # recorder's update once: as jitted functions, the loop's calls reuse those traces
     step_once = jax.jit(step)
     update_once = jax.jit(recorder.update)
+    if int(substeps) != substeps or substeps < 1:
+        raise ParameterError(f"substeps must be an integer >= 1, got {substeps!r}")
+    substeps = int(substeps)
+    h_sub = dt / substeps
+
+    def held(t, x, out, data):
+        """The state after the hold interval and the least ``watch`` value over it."""
+        if substeps == 1 and watch is None:
+            return rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt), None
+
+        def sub(carry, i):
+            z, least = carry
+            ts = t + i * h_sub
+            z = rk4_step(lambda s, q: rhs(s, q, out, data), ts, z, h_sub)
+            if watch is not None:
+                least = jnp.minimum(least, watch(ts + h_sub, z, data))
+            return (z, least), None
+
+        least0 = watch(t, x, data) if watch is not None else jnp.zeros(())
+        (z, least), _ = jax.lax.scan(sub, (x, least0), jnp.arange(substeps, dtype=jnp.float64))
+        return z, (least if watch is not None else None)
+
+    def update_with(state, k, t, x, out, data, least):
+        if least is None:
+            return update_once(state, k, t, x, out, data)
+        return update_once(state, k, t, x, out, data, between=least)
 
     def run(x0: jax.Array, data: Any) -> Any:
         k0, t0 = jnp.asarray(0, jnp.int64), jnp.asarray(0.0, jnp.float64)
@@ -250,7 +317,11 @@ def closed_loop(
         # and the scan's batching rule passes over the body once instead of twice
         tie = x0.reshape(-1)[0]
         out0 = tied(_zeros_of(jax.eval_shape(step_once, t0, x0, data)), tie)
-        y0 = tied(_zeros_of(jax.eval_shape(update_once, state0, k0, t0, x0, out0, data)[1]), tie)
+        least0 = None if watch is None else jax.eval_shape(watch, t0, x0, data)
+        if least0 is not None:
+            least0 = _zeros_of(least0)
+        shapes = jax.eval_shape(update_with, state0, k0, t0, x0, out0, data, least0)
+        y0 = tied(_zeros_of(shapes[1]), tie)
 
         def body(carry, k):
             x, _, state = carry
@@ -258,8 +329,12 @@ def closed_loop(
             out = step_once(t, x, data)
 
             def advance(state):
-                state, y = update_once(state, k, t, x, out, data)
-                return rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt), state, y
+                if substeps == 1 and watch is None:  # the plain loop, as it always was
+                    state, y = update_once(state, k, t, x, out, data)
+                    return rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt), state, y
+                x_next, least = held(t, x, out, data)
+                state, y = update_with(state, k, t, x, out, data, least)
+                return x_next, state, y
 
             # at k = K only the output at x_K is wanted: no row, no step (a branch fixed by
             # the counter: the held output and the next state are buffers, see the notes)
@@ -315,13 +390,20 @@ class TrajectoryRecorder:
             region, compatible, sat = out.region, out.compatible, out.cbf_satisfied
         return (x, out.u, V, h, region, compatible, sat, out.status)
 
-    def update(self, state, k, t, x, out, data):
-        """The step's row: the state, the input, ``V``, ``h`` and the flags."""
-        return None, self._row_once(x, jnp.asarray(t, jnp.float64), out, data)
+    def update(self, state, k, t, x, out, data, between=None):
+        """The step's row: the state, the input, ``V``, ``h``, the flags (and ``between``)."""
+        row = self._row_once(x, jnp.asarray(t, jnp.float64), out, data)
+        return None, row if between is None else (*row, between)
 
     def finish(self, state, ys, x_final, out_final, t_final, data):
-        """The rows of every step and the final state's, stacked along time (``K + 1``)."""
+        """The rows of every step and the final state's, stacked along time (``K + 1``).
+
+        With a watched value per hold interval (``between``), the final state's is NaN: no
+        interval follows it.
+        """
         last = self._row_once(x_final, jnp.asarray(t_final, jnp.float64), out_final, data)
+        if len(ys) > len(last):
+            last = (*last, jnp.full_like(ys[-1][0], jnp.nan))
         return tuple(jnp.concatenate([a, b[None]], 0) for a, b in zip(ys, last, strict=True))
 
 
@@ -382,7 +464,7 @@ def clear_programs() -> None:
         _programs.clear()
 
 
-def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched) -> Any:
+def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched, substeps) -> Any:
     """What a closed loop of :func:`simulate` is compiled from, or None (do not reuse).
 
     The controller by its pytree structure (its class, options, system and certificates;
@@ -402,11 +484,11 @@ def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched) 
         a = np.asarray(leaf)
         values.append((type(leaf), a.dtype.str, a.shape, a.tobytes()))
     ids = tuple(_identity(o) for o in (plant, exogenous, params_fn))
-    return (treedef, tuple(values), ids, n_steps, dt, batched)
+    return (treedef, tuple(values), ids, n_steps, dt, batched, substeps)
 
 
 def _simulation_program(
-    controller, plant, exogenous, params_at, params_fn, n_steps, dt, batched
+    controller, plant, exogenous, params_at, params_fn, n_steps, dt, batched, substeps=1
 ) -> Callable[[jax.Array, Any, Any], Any]:
     """The jitted closed loop ``loop(x0, params, model)`` of :func:`simulate`.
 
@@ -415,7 +497,7 @@ def _simulation_program(
     study, which share a parametric model and differ in ``params`` only, are one program
     in one process. The last :data:`PROGRAMS_KEPT` are kept.
     """
-    key = _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched)
+    key = _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched, substeps)
     if key is not None:
         with _programs_lock:
             found = _programs.get(key)
@@ -433,7 +515,19 @@ def _simulation_program(
             p = params_at(t, data)
             return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
 
-        return closed_loop(step, rhs, TrajectoryRecorder(ctrl, params_at), n_steps=n_steps, dt=dt)
+        watch = None
+        if substeps > 1:  # the barriers' least value over each hold interval
+
+            def watch(t, x, data):
+                p = params_at(t, data)
+                if _records_rows(ctrl):
+                    return jnp.stack([c.fn_of(x, p) for c in ctrl.cbfs])
+                return ctrl.cbf.fn_of(x, p)
+
+        recorder = TrajectoryRecorder(ctrl, params_at)
+        return closed_loop(
+            step, rhs, recorder, n_steps=n_steps, dt=dt, substeps=substeps, watch=watch
+        )
 
     def run(x0: jax.Array, params: Any, model: Any) -> Any:
         # the uncertainty model's arrays are arguments of the compiled loop, not constants
@@ -462,6 +556,7 @@ def simulate(
     exogenous: Exogenous | None = None,
     strict: bool = False,
     params: Any = None,
+    substeps: int = 1,
 ) -> Trajectory:
     """Simulate ``controller`` in closed loop from ``x0`` (one state or a batch).
 
@@ -495,6 +590,11 @@ def simulate(
         controller sees ``params(t_k)`` at each sampling instant (held with the input); the
         plant sees ``params(t)`` at every RK4 stage; ``V`` and ``h`` are recorded with
         ``params(t_k)``. The same ``p`` for every trajectory of a batch.
+    substeps : int
+        RK4 steps per hold interval, each of ``dt / substeps`` (default 1), the input held
+        over the whole interval. With ``substeps > 1`` the trajectory also records the least
+        ``h`` over each interval (:attr:`Trajectory.h_between`), which the samples alone can
+        miss.
 
     Returns
     -------
@@ -574,9 +674,12 @@ def simulate(
         shape = getattr(jax.eval_shape(exogenous, probe), "shape", None)
         if shape != (n,):
             raise DimensionError(f"exogenous(t) must return shape ({n},), got {shape}")
+    if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
+        raise ParameterError(f"substeps must be an integer >= 1, got {substeps!r}")
     n_steps = int(round(n_steps_float))
     batch = x0.shape[0] if x0.ndim == 2 else 1
     n_values = len(controller.cbfs) + len(controller.clfs)
+    n_values += len(controller.cbfs) if substeps > 1 else 0
     history = (n_steps + 1) * batch * (2 * n + 2 * controller.system.n_inputs + 6 + n_values) * 8
     if history > MAX_HISTORY_BYTES:
         raise ParameterError(
@@ -589,9 +692,10 @@ def simulate(
 
     model = _model_as_data(getattr(controller, "uncertainty", None))
     loop = _simulation_program(
-        controller, plant, exogenous, params_at, params_fn, n_steps, float(dt), x0.ndim == 2
-    )
-    xs, us, Vs, hs, regions, comps, sats, stats = loop(x0, params, model)
+        controller, plant, exogenous, params_at, params_fn, n_steps, float(dt), x0.ndim == 2,
+        int(substeps),
+    )  # fmt: skip
+    xs, us, Vs, hs, regions, comps, sats, stats, *between = loop(x0, params, model)
     traj = Trajectory(
         t=jnp.asarray(np.arange(n_steps + 1) * dt),
         x=xs,
@@ -602,6 +706,7 @@ def simulate(
         compatible=comps,
         cbf_satisfied=sats,
         status=stats,
+        h_between=between[0] if between else None,
         multi=_records_rows(controller),
     )
     if traced_results((xs, us, stats), strict, "simulate"):  # the statuses are the record
@@ -611,12 +716,13 @@ def simulate(
             "the uncertainty model returned a negative standard deviation during the run: "
             f"{traj.failure_summary()}"
         )
-    if strict and not traj.ok:
-        raise NonFiniteError(f"the closed loop stopped being finite: {traj.failure_summary()}")
-    if strict and (traj.infeasible_steps or not bool(np.all(np.asarray(sats)))):
+    no_input = ~np.asarray(has_input(np.asarray(stats)))
+    if strict and np.any(no_input):
+        raise NonFiniteError(f"the closed loop stopped being finite: {traj._first_where(no_input)}")
+    if strict and (traj.infeasible_steps or not traj.ok or not bool(np.all(np.asarray(sats)))):
         raise InfeasibleError(
             f"{traj.infeasible_steps} infeasible steps and "
             f"{int(np.sum(~np.asarray(sats)))} steps where the applied input broke the CBF "
-            "condition"
+            f"condition ({traj.failure_summary()})"
         )
     return traj

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from ..certificates import lie_terms_point
-from ..controllers import StepStatus, UniversalController
+from ..controllers import StepStatus, UniversalController, has_input
 from ..filters import SafetyFilter
 from ..formulas import SATISFIED_RTOL, MultiStatus, Region
 from ..simulation import closed_loop
@@ -38,11 +38,15 @@ RECORD_FIELDS: dict[str, str] = {
     "incompatible_steps": "steps where the conditions the controller used were incompatible",
     "lemma2_violations": "visited states where |omega_i - m_i| <= beta_i sigma_i failed for "
     "some i, with the simulator's true omega; -1 for controllers without a GP",
-    "first_bad_status": "the first StepStatus other than OK (0 if none)",
+    "first_bad_status": "the first StepStatus that gave no input (statuses 1 to 7: a "
+    "non-finite state, model or input; 0 if none)",
     "first_bad_step": "the step of first_bad_status (-1 if none)",
     "mean_input_gap": "mean over steps of max_j |u_j - u_ref,j(x)|, u_ref the reference "
     "(true-model) controller's input at the same state; -1 when not measured "
     "(MonteCarloSpec.price_metrics)",
+    "barrier_unmet_steps": "steps whose input broke a CBF condition the controller enforces "
+    "and said so (StepStatus CBF_UNACTUATED, CBF_INFEASIBLE, CBF_UNMET or UNCERTIFIED: the "
+    "limits and the barrier conflicted, say)",
     "settle_time": "time (s) from which V stays at or below SETTLE_FRACTION V(x_0) to the end; "
     "the horizon if it never settles; -1 when not measured",
 }
@@ -86,6 +90,7 @@ class StatisticsRecorder:
             "lemma2_violations": zero_i,
             "first_bad_status": zero_i,
             "first_bad_step": jnp.asarray(-1, jnp.int64),
+            "barrier_unmet_steps": zero_i,
             **(self._price_init(x0) if self.price else {}),
         }
 
@@ -114,7 +119,7 @@ class StatisticsRecorder:
         cbf_bad = _violated(c_true, jnp.abs(c) + jnp.abs(gh @ e) + jnp.abs(d) @ jnp.abs(u), 1.0)
         clf_ok = ~_violated(a_true, jnp.abs(a) + jnp.abs(gv @ e) + jnp.abs(b) @ jnp.abs(u), -1.0)
         h, status = cbf.fn(x), ev["status"]
-        bad = status != StepStatus.OK
+        bad = ~has_input(status)
         first = (s["first_bad_status"] == 0) & bad
         new = {
             "min_h": jnp.minimum(s["min_h"], h),
@@ -126,6 +131,7 @@ class StatisticsRecorder:
             "lemma2_violations": s["lemma2_violations"] + self._lemma2_bad(x, data, ev),
             "first_bad_status": jnp.where(first, status, s["first_bad_status"]),
             "first_bad_step": jnp.where(first, k, s["first_bad_step"]),
+            "barrier_unmet_steps": s["barrier_unmet_steps"] + (status >= StepStatus.CBF_UNACTUATED),
         }
         if self.price:
             unsettled = self.clf.fn(x) > s["v_settled"]
@@ -155,6 +161,7 @@ class StatisticsRecorder:
                 final_bad, int(StepStatus.NONFINITE_STATE), s["first_bad_status"]
             ),
             "first_bad_step": jnp.where(final_bad, n_steps, s["first_bad_step"]),
+            "barrier_unmet_steps": s["barrier_unmet_steps"],
             **(self._price_finish(s, v_final) if self.price else
                {"mean_input_gap": jnp.asarray(-1.0), "settle_time": jnp.asarray(-1.0)}),
         }  # fmt: skip

@@ -95,9 +95,10 @@ def empirical_bernstein(values: Any, confidence: float = 0.95) -> tuple[float, f
 
 
 def safe_mask(records: dict[str, np.ndarray]) -> np.ndarray:
-    """Trials (rows) x controllers where every step was OK and ``min h >= 0``.
+    """Trials (rows) x controllers where every step gave an input and ``min h >= 0``.
 
-    A trial whose run stopped being finite counts as not safe (its ``min_h`` is NaN).
+    A trial whose run stopped being finite counts as not safe (its ``min_h`` is NaN). Steps
+    whose input could not meet a CBF condition (``barrier_unmet_steps``) are counted apart.
     """
     ok = records["first_bad_status"] == StepStatus.OK
     with np.errstate(invalid="ignore"):
@@ -267,6 +268,10 @@ def summarize(run: MonteCarloRun) -> dict[str, Any]:
             "mean_final_V": float(np.mean(rec["final_V"][:, c])),
             "incompatible_steps_total": int(np.sum(rec["incompatible_steps"][:, c])),
         }
+        if "barrier_unmet_steps" in rec:  # records written before the count existed lack it
+            unmet = rec["barrier_unmet_steps"][:, c]
+            entry["barrier_unmet_steps_total"] = int(np.sum(unmet))
+            entry["barrier_unmet_trials"] = int(np.sum(unmet > 0))
         l2 = rec["lemma2_violations"][:, c]
         if np.all(l2 >= 0):
             held = l2 == 0

@@ -123,7 +123,7 @@ def trajectory_metrics(
 
     Returns min h (m), time with h < 0 (s), RMS speed error to ``v_d`` (m/s), fraction of
     steps per formula region, steps where the conditions were incompatible or the applied
-    input broke the CBF condition, the step status (``"ok"`` or the first non-finite step,
+    input broke the CBF condition, the step status (``"ok"`` or the first step that was not OK,
     :meth:`~safestab.simulation.Trajectory.failure_summary`), and, given a ``reference`` run,
     the largest gap in ``h``
     (m) and the RMS gap in ``v_f`` (m/s) between the two.

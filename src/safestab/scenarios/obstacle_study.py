@@ -28,7 +28,7 @@ import numpy as np
 from .._batching import in_threads
 from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
-from ..controllers import UniversalController
+from ..controllers import StepStatus, UniversalController
 from ..errors import ParameterError
 from ..filters import SafetyFilter
 from ..formulas import clf_cbf, compatibility
@@ -225,6 +225,14 @@ def doa_level(
     return float(np.min(np.asarray(sc.V(pts[bad])))) if np.any(bad) else float("inf")
 
 
+def _status_summary(status: np.ndarray) -> str:
+    """``"ok"``, or the count of steps per :class:`~safestab.StepStatus` other than OK."""
+    names, counts = np.unique(np.asarray(status)[np.asarray(status) != 0], return_counts=True)
+    if not names.size:
+        return "ok"
+    return ", ".join(f"{StepStatus(int(v)).name} {int(n)}" for v, n in zip(names, counts))
+
+
 @dataclasses.dataclass(frozen=True)
 class ObstacleRun:
     """The closed loops of one controller with one limit setting, from every start.
@@ -351,7 +359,7 @@ class ObstacleRun:
                     ),
                 }
             ),
-            "status": "ok" if np.all(self.status == 0) else "non-finite steps",
+            "status": _status_summary(self.status),
             "stuck": [
                 {
                     "x0_m": self.x0[i].tolist(),

@@ -74,7 +74,9 @@ def ensure_writable_dir(path: str | os.PathLike[str], name: str = "out") -> Path
     Returns
     -------
     Path
-        ``path`` as a :class:`~pathlib.Path`.
+        ``path`` made absolute against the current working folder, once: a subprocess run in
+        another folder, or a later change of folder, then finds the same folder. Error
+        messages name ``path`` as given.
 
     Raises
     ------
@@ -118,7 +120,7 @@ def ensure_writable_dir(path: str | os.PathLike[str], name: str = "out") -> Path
             f"{name} must be {expected}, got {str(path)!r}: cannot create a file in it "
             f"({_reason(exc)})"
         ) from None
-    return path
+    return path.absolute()
 
 
 # -- all-or-none writes -----------------------------------------------------------------

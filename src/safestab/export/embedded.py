@@ -373,7 +373,7 @@ def _qemu(tools: dict[str, str], target: Target, elf: str, cwd: Path, icount: bo
 
 
 def _sizes(tools: dict[str, str], path: Path) -> tuple[int, int, int]:
-    out = _run([tools["size"], str(path)], path.parent, "arm-none-eabi-size")
+    out = _run([tools["size"], path.name], path.parent, "arm-none-eabi-size")
     text, data, bss = (int(v) for v in out.strip().splitlines()[-1].split()[:3])
     return text, data, bss
 
@@ -418,7 +418,8 @@ def run_on_target(
     ----------
     folder : path
         Holds ``<name>.c``, ``<name>.h`` and ``<name>_harness.c``; the target's build goes
-        to ``folder/<target>/``.
+        to ``folder/<target>/``. A relative path is taken against the current working
+        folder when the function is called.
     name : str
     exported : ExportedC
         What :func:`~safestab.export.export_c` returned for these files.
@@ -446,7 +447,7 @@ def run_on_target(
     tgt = TARGETS[target]
     say = progress or (lambda msg: None)
     tools = find_toolchain(install=install)
-    src = Path(folder)
+    src = Path(folder).absolute()  # the tools run with the build folder as their cwd
     build = src / target
     build.mkdir(parents=True, exist_ok=True)
     for f in (f"{name}.c", f"{name}.h", f"{name}_harness.c"):
@@ -570,7 +571,7 @@ def export_for_target(
     states = np.asarray(states, dtype=np.float64)
     if precision == "float":
         states = states.astype(np.float32).astype(np.float64)
-    out = Path(out)
+    out = Path(out).absolute()  # once: run_on_target's tools run in a folder below it
     out.mkdir(parents=True, exist_ok=True)
     exported = export_c(
         controller, name, out, precision=precision, description=description, layout="embedded"

@@ -112,9 +112,9 @@ class ExportedC:
         Returns
         -------
         (Path, Path)
-            The paths of the source and the header.
+            The absolute paths of the source and the header.
         """
-        out = Path(out_dir)
+        out = Path(out_dir).absolute()  # the paths returned stay valid after a chdir
         out.mkdir(parents=True, exist_ok=True)
         paths = (out / f"{self.name}.c", out / f"{self.name}.h")
         for path, text in zip(paths, (self.source, self.header), strict=True):

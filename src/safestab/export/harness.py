@@ -442,7 +442,7 @@ def write_harness(
         "}",
         "",
     ]
-    path = Path(out_dir) / f"{name}_harness.c"
+    path = Path(out_dir).absolute() / f"{name}_harness.c"  # valid after a chdir
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("\n".join(src))

@@ -50,7 +50,13 @@ class ExportReport:
     embedded: Any = None  #: with ``target``, the EmbeddedReport
 
 
-def _check_writable(out: Path) -> None:
+def _writable_folder(out: str | Path) -> Path:
+    """``out``, created if missing and proved writable, made absolute (once, here).
+
+    The harness is compiled and run, and the embedded build's tools are run, in this folder
+    or below it: each subprocess gets an absolute path, whatever its own working folder.
+    """
+    out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".safestab-write-test"
@@ -58,6 +64,7 @@ def _check_writable(out: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise ParameterError(f"out must be a writable folder, got {str(out)!r}: {exc}") from None
+    return out.absolute()
 
 
 def export_scenario(
@@ -86,7 +93,8 @@ def export_scenario(
     scenario : str or path
         A preset name or a TOML file (see :func:`~safestab.scenarios.load_scenario`).
     out : path
-        Output folder, created if needed.
+        Output folder, created if needed; a relative path is taken against the current
+        working folder when the function is called.
     controller : {"gp", "nominal", "true"}
         The GP-corrected controller (GP fitted as in the study, exported through a
         :class:`~safestab.learning.FastGP` cache whose band contains the exact GP's), or the
@@ -149,8 +157,7 @@ def export_scenario(
         or n_inducing < 1
     ):
         raise ParameterError(f"n_inducing must be an integer >= 1, got {n_inducing!r}")
-    out = Path(out)
-    _check_writable(out)
+    out = _writable_folder(out)
     sc = load_any_scenario(scenario)
     seed = sc.seed if seed is None else int(seed)
     ctrl, description, default_name = scenario_controller(

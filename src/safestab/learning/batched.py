@@ -194,7 +194,7 @@ class InducingCache:
     b, rho_b : tuples of C arrays of shape (M_c,)
         The mean's weights and residual.
     scal : tuple of C arrays of shape (11,)
-        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and ``M_c``
+        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and the rows in use
         (``band_products``).
     min_beta : array of shape ()
         The band contains the exact band for every ``beta >= min_beta``.
@@ -237,7 +237,8 @@ class InducingCache:
             for key in ("b", "rho_b"):
                 out[key].append(_padded(a[key][c, :used], (m,)))
             keys = ("amp", "mu", "err", "ek", "gnorm", "bnorm", "rho_err", "rho", "wnorm", "cnorm")
-            scal.append(np.array([float(a[key][c]) for key in keys] + [float(m)]))
+            # the allowances count the rows in use: the bucket's padding is exact zeros
+            scal.append(np.array([float(a[key][c]) for key in keys] + [float(used)]))
         return cls(
             offset=a["offset"], scale=a["scale"], inv_ls=inv_ls, scal=tuple(scal),
             **{key: tuple(v) for key, v in out.items()},

@@ -139,3 +139,48 @@ def test_bad_input_is_refused_with_its_name():
         SparseGP().fit(x, y)
     with pytest.raises(ParameterError, match="seed"):
         SparseGP().fit(x, np.nan_to_num(y), seed=-1)
+
+
+def test_a_large_offset_is_fitted_with_the_constant_mean_the_warning_advises():
+    import inspect
+    import re
+    import warnings
+
+    from safestab.errors import ConvergenceWarning, DataWarning
+
+    x, y, _ = _data(120)
+    y = y + 1e6  # an offset 1e7 times the variation: the zero-mean fit warns
+    with pytest.warns(DataWarning, match="use mean='constant'") as record:
+        # the zero-mean model misfits the offset; its optimiser may stop early as well
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        SparseGP(120, hyper_subset=120, pivot_tol=0.0, noise_tol=0.0).fit(x, y, seed=3)
+    # every argument the fit's warnings and errors advise is one SparseGP takes
+    advised = {a for w in record for a in re.findall(r"\b(\w+)=", str(w.message))}
+    advised |= {"noise", "jitter", "max_iter"}  # ConvergenceWarning's and NumericalError's
+    assert advised <= set(inspect.signature(SparseGP).parameters), advised
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)  # the advice taken: no offset warning
+        sp = SparseGP(120, mean="constant", hyper_subset=120, pivot_tol=0.0, noise_tol=0.0).fit(
+            x, y, seed=3
+        )
+    exact = GaussianProcessModel(mean="constant").fit(x, y, hyper_subset=120, seed=3)
+    np.testing.assert_allclose(sp.model.mean_, exact.mean_, rtol=1e-12)
+    assert abs(float(sp.model.mean_[0]) - 1e6) < 1.0  # the offset is the fitted mean
+    xt = np.random.default_rng(1).uniform(-3, 3, size=(50, 2))
+    m_s, s_s = sp.predict(xt)
+    m_e, v_e = (np.asarray(a) for a in exact.predict(xt))
+    # with every input inducing, DTC is the exact posterior (as above; the variation, not
+    # the offset, sets the scale of the rounding)
+    np.testing.assert_allclose(m_s - 1e6, m_e - 1e6, atol=1e-4 * np.abs(m_e - 1e6).max())
+    np.testing.assert_allclose(s_s, np.sqrt(v_e), rtol=1e-2, atol=1e-4 * np.sqrt(v_e).max())
+    with pytest.raises(ParameterError, match="mean must be 'zero' or 'constant', got 'linear'"):
+        SparseGP(mean="linear")
+    with pytest.raises(ParameterError, match="noise must be >= 0"):
+        SparseGP(noise=-1.0)
+
+
+def test_all_rows_at_one_state_are_refused_by_name():
+    _, y, _ = _data(300)
+    x = np.tile([[0.3, -0.2]], (300, 1))
+    with pytest.raises(ParameterError, match=r"x has all 300 rows at one state \[ 0.3 -0.2\]"):
+        SparseGP().fit(x, y)

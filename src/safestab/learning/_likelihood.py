@@ -26,6 +26,7 @@ from .._batching import cpu_count, in_threads
 from ..errors import ConvergenceWarning, NumericalError
 from ._fit_cache import fit_cache_dir, load, problem_key, store
 from ._posterior import kernel
+from ._threads import blas_single_threaded
 
 __all__ = [
     "fit_components",
@@ -203,7 +204,7 @@ def fit_components(model, problems):
         return optimise_start(pr["fun"], s, pr["bounds"], pr["lo"], pr["hi"], model.max_iter)
 
     workers = 1  # one after the other: all read from the cache, or a multi-threaded BLAS
-    if tasks and _blas_single_threaded():
+    if tasks and blas_single_threaded():
         per_start = max(8 * pr["q"] ** 2 * (pr["n"] + 6) for pr in problems)
         workers = max(
             1, min(len(tasks), model.n_threads or cpu_count(), THREADS_MEMORY // per_start)
@@ -218,14 +219,6 @@ def fit_components(model, problems):
     for pr, results in zip(problems, found, strict=True):  # a loop: stacklevel counts frames
         fits.append(_finish(model, pr, results))
     return fits
-
-
-def _blas_single_threaded() -> bool:
-    """Whether every BLAS library loaded in this process (threadpoolctl's view) runs one thread."""
-    from threadpoolctl import threadpool_info
-
-    pools = [p.get("num_threads") for p in threadpool_info() if p.get("user_api") == "blas"]
-    return bool(pools) and all(n == 1 for n in pools)  # none found: assume several
 
 
 def pose_component(model, xs, y, fixed_noise, rng, comp):

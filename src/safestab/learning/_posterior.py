@@ -411,7 +411,9 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
     ----------
     kind : {"se", "matern52"}
     mm : int
-        Inducing inputs ``M`` of the arrays the returned function receives.
+        Inducing inputs ``M`` of the arrays the returned function receives; where they are
+        padded (``mask`` given), the allowances count the component's own rows
+        (``sum(mask)``).
     z0 : array of shape (n,)
         The standardised state.
     unit : float
@@ -429,7 +431,6 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
         (): the mean without the prior mean, the std without the mean-error term and the
         mean-error term; with ``with_scales``, the magnitudes of these.
     """
-    dot_unit = (mm + 3) * unit
 
     def per_comp(
         a,
@@ -453,14 +454,21 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
         mu,
     ):
         k = kernel(kind, a, l_)(z, z0[None, :])[:, 0]
+        # the component's own M: padded rows hold exact zeros (masked kernel values, zero
+        # rows and columns of Lj^-1, K_ZZ, G and C), and a sum with a zero operand is exact
+        # in any order, so every dot product rounds as one of its own M terms, not of the
+        # padded M (one component's band does not depend on the others' counts)
+        m_c = mm
         if mask is not None:
             k = jnp.where(mask, k, 0.0)
+            m_c = jnp.sum(mask.astype(k.dtype))
+        dot_unit = (m_c + 3) * unit
         amp2 = a * a
         c = li.T @ (li @ k)
         c1 = jnp.sum(jnp.abs(c))
         c2 = safe_sqrt(c @ c)
         q = amp2 - 2.0 * (c @ k) + c @ (kzz @ c)
-        allow = residual_allowance(amp2, c1, mm, ek, unit)
+        allow = residual_allowance(amp2, c1, m_c, ek, unit)
         r2 = jnp.maximum(q, 0.0) + allow
         r = safe_sqrt(r2)  # > 0 wherever amp > 0
         gc = g @ c
@@ -492,7 +500,7 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
         if proven:
             return (
                 mean,
-                _proven_sd(p, r, c, c1, c2, k, kzz, cm, rho, wnorm, cnorm, ek, amp2, mm, unit),
+                _proven_sd(p, r, c, c1, c2, k, kzz, cm, rho, wnorm, cnorm, ek, amp2, m_c, unit),
                 e_w * r + mround,
             )
         return mean, safe_sqrt(r2 + p * p), mround
@@ -609,8 +617,8 @@ def band_products(
     b, rho_b : arrays of shape (M,)
         Mean weights and residual.
     scal : array of shape (11,)
-        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and the padded ``M`` as
-        a float.
+        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and the component's own
+        ``M`` (the rows in use; padded rows are exact zeros and round nothing) as a float.
     min_beta : array of shape ()
     kind : {"se", "matern52"}
     proven : bool

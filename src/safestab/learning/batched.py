@@ -43,6 +43,7 @@ import numpy as np
 
 from .._values import register_model
 from ._posterior import band_products, bucket, exact_products
+from ._threads import one_blas_thread
 from .fast import FastGP
 from .gp import GaussianProcessModel
 
@@ -194,7 +195,7 @@ class InducingCache:
     b, rho_b : tuples of C arrays of shape (M_c,)
         The mean's weights and residual.
     scal : tuple of C arrays of shape (11,)
-        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and ``M_c``
+        ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and the rows in use
         (``band_products``).
     min_beta : array of shape ()
         The band contains the exact band for every ``beta >= min_beta``.
@@ -237,7 +238,8 @@ class InducingCache:
             for key in ("b", "rho_b"):
                 out[key].append(_padded(a[key][c, :used], (m,)))
             keys = ("amp", "mu", "err", "ek", "gnorm", "bnorm", "rho_err", "rho", "wnorm", "cnorm")
-            scal.append(np.array([float(a[key][c]) for key in keys] + [float(m)]))
+            # the allowances count the rows in use: the bucket's padding is exact zeros
+            scal.append(np.array([float(a[key][c]) for key in keys] + [float(used)]))
         return cls(
             offset=a["offset"], scale=a["scale"], inv_ls=inv_ls, scal=tuple(scal),
             **{key: tuple(v) for key, v in out.items()},
@@ -272,21 +274,6 @@ for _cls in (ExactPosterior, InducingCache):
     jax.tree_util.register_dataclass(
         _cls, data_fields=[f for f in _names if f not in _meta], meta_fields=_meta
     )
-
-
-def one_blas_thread() -> Any:
-    """A context in which BLAS and LAPACK (NumPy's, SciPy's and JAX's CPU LAPACK) use one thread.
-
-    Measured on this 2-core machine with other jobs running (load average 2.9): a 2000 x 2000
-    Cholesky factorisation took 1.14 s with OpenBLAS's two threads and 0.14 s with one (its
-    threads wait on each other while the cores are busy elsewhere). One thread also fixes the
-    summation order, so a data set's GP is the same bits in this process and in a worker
-    process whatever their thread settings; run several data sets in parallel as separate
-    tasks instead.
-    """
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1)
 
 
 def condition(hyper: Hyperparameters, x: Any, y: Any, *, seed: int = 0) -> GaussianProcessModel:

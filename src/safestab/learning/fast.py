@@ -51,6 +51,7 @@ from ._posterior import (
     kernel_matrix,
     residual_allowance,
 )
+from ._threads import fit_threads
 from .gp import GaussianProcessModel
 
 __all__ = ["EXCESS_WARN", "FastGP", "INFLATION_WARN", "STD_RATIO_WARN"]
@@ -617,48 +618,49 @@ class FastGP(InducingBand):
         self.n_states = model.n_states_
         self.components_ = model.components_
         comps = list(model.components_)
-        xs = (model.x_train_ - model.x_offset_) / model.x_scale_
-        q = xs.shape[0]
-        sample = np.random.default_rng(0).choice(q, min(q, _STD_SAMPLE), replace=False)
-        exact_sd = _exact_sd_at_training(model, sample)
-        zs, packed = [], []
-        for j in range(len(comps)):
-            floor = std_tol * float(np.median(exact_sd[:, j]))
-            z, comp = _component(model, j, xs, int(n_inducing), pivot_tol, floor)
-            zs.append(z)
-            packed.append(comp)
-        cap = min(int(n_inducing), q)
-        capped = [j for j, z in enumerate(zs) if cap > 1 and len(z) == cap]
-        if capped and std_tol > 0:
-            # where the cap stopped the pivoted Cholesky with a band wider than STD_RATIO_WARN
-            # times the exact one, a component whose one-input band is already within
-            # EXCESS_WARN noise stds of the exact band at every sampled input keeps that one
-            # input: more cannot change a decision (the MC data sets' kinematic components,
-            # a lengthscale the data cannot resolve)
+        with fit_threads():  # one BLAS thread (learning/_threads.py)
+            xs = (model.x_train_ - model.x_offset_) / model.x_scale_
+            q = xs.shape[0]
+            sample = np.random.default_rng(0).choice(q, min(q, _STD_SAMPLE), replace=False)
+            exact_sd = _exact_sd_at_training(model, sample)
+            zs, packed = [], []
+            for j in range(len(comps)):
+                floor = std_tol * float(np.median(exact_sd[:, j]))
+                z, comp = _component(model, j, xs, int(n_inducing), pivot_tol, floor)
+                zs.append(z)
+                packed.append(comp)
+            cap = min(int(n_inducing), q)
+            capped = [j for j, z in enumerate(zs) if cap > 1 and len(z) == cap]
+            if capped and std_tol > 0:
+                # where the cap stopped the pivoted Cholesky with a band wider than STD_RATIO_WARN
+                # times the exact one, a component whose one-input band is already within
+                # EXCESS_WARN noise stds of the exact band at every sampled input keeps that one
+                # input: more cannot change a decision (the MC data sets' kinematic components,
+                # a lengthscale the data cannot resolve)
+                self._pack(model, zs, packed)
+                ratio = np.median(self._sd_at(model.x_train_[sample]) / exact_sd, axis=0)
+                one = {
+                    j: _component(model, j, xs, 1, pivot_tol, 0.0)
+                    for j in capped
+                    if ratio[j] > STD_RATIO_WARN
+                }
+                if one:
+                    self._pack(
+                        model,
+                        [one[j][0] if j in one else z for j, z in enumerate(zs)],
+                        [one[j][1] if j in one else c for j, c in enumerate(packed)],
+                    )
+                    sd1 = self._sd_at(model.x_train_[sample])
+                    excess = np.max(sd1 - exact_sd, axis=0) / model.noise_
+                    for j in one:
+                        if excess[j] <= EXCESS_WARN:
+                            zs[j], packed[j] = one[j]
             self._pack(model, zs, packed)
-            ratio = np.median(self._sd_at(model.x_train_[sample]) / exact_sd, axis=0)
-            one = {
-                j: _component(model, j, xs, 1, pivot_tol, 0.0)
-                for j in capped
-                if ratio[j] > STD_RATIO_WARN
-            }
-            if one:
-                self._pack(
-                    model,
-                    [one[j][0] if j in one else z for j, z in enumerate(zs)],
-                    [one[j][1] if j in one else c for j, c in enumerate(packed)],
-                )
-                sd1 = self._sd_at(model.x_train_[sample])
-                excess = np.max(sd1 - exact_sd, axis=0) / model.noise_
-                for j in one:
-                    if excess[j] <= EXCESS_WARN:
-                        zs[j], packed[j] = one[j]
-        self._pack(model, zs, packed)
-        self.mean_error_norm_ = np.array([c["err"] for c in packed])
-        sd = self._sd_at(model.x_train_)
-        self.inflation_at_training_ = np.mean(sd / model.noise_ > INFLATION_WARN, axis=0)
-        self.std_over_exact_ = np.median(sd[sample] / exact_sd, axis=0)
-        excess = np.median(sd[sample] - exact_sd, axis=0) / model.noise_
+            self.mean_error_norm_ = np.array([c["err"] for c in packed])
+            sd = self._sd_at(model.x_train_)
+            self.inflation_at_training_ = np.mean(sd / model.noise_ > INFLATION_WARN, axis=0)
+            self.std_over_exact_ = np.median(sd[sample] / exact_sd, axis=0)
+            excess = np.median(sd[sample] - exact_sd, axis=0) / model.noise_
         notes = []
         for j, (comp, ratio) in enumerate(zip(comps, self.std_over_exact_, strict=True)):
             if ratio > STD_RATIO_WARN and excess[j] > EXCESS_WARN:

@@ -32,6 +32,7 @@ from ..errors import (
 from ._checks import check_fitted, check_seed
 from ._likelihood import fit_components, pose_component
 from ._posterior import exact_point, factor, panels, predict_batch
+from ._threads import fit_threads
 
 __all__ = [
     "GaussianProcessModel",
@@ -73,6 +74,58 @@ def _components(components: Any, n: int) -> tuple[int, ...]:
     if not comps or any(c < 0 or c >= n for c in comps) or len(set(comps)) != len(comps):
         raise DimensionError(f"components must be distinct indices in [0, {n}), got {components!r}")
     return comps
+
+
+#: The training inputs' design is rank-deficient (a :class:`DataWarning`) where the smallest
+#: singular value of the centred, standardised inputs is below this fraction of the largest:
+#: an exact linear relation between coordinates leaves about 1e-15 of rounding; a coordinate
+#: that varies independently, far more (a uniform draw of 300 rows in 3 coordinates: 0.8).
+DESIGN_RANK_TOL = 1e-8
+
+
+def _check_design(x: np.ndarray) -> None:
+    """Raise where every row of ``x`` (Q, n) is one state; warn where its columns are dependent.
+
+    Raises
+    ------
+    ParameterError
+        If all ``Q`` rows of ``x`` are the same state: a GP cannot learn how ``omega`` varies
+        with ``x`` from them (held-out coverage 0.000 on such data, std 1e-6).
+
+    Warns
+    -----
+    DataWarning
+        If the centred inputs have rank below ``n`` (a constant coordinate, or one that is a
+        linear combination of the others): the lengthscales along the missing directions are
+        not identified and the prediction off the data's subspace is the prior's.
+    """
+    q, n = x.shape
+    if q > 1 and np.all(x == x[0]):
+        raise ParameterError(
+            f"x has all {q} rows at one state {np.array2string(x[0], precision=4)}: a GP "
+            "cannot learn how omega varies with x from them (it would report a near-zero "
+            "std wherever it is asked); collect data at distinct states"
+        )
+    fixed = np.all(x == x[0], axis=0)  # exactly constant (its std may round above 0)
+    const = np.flatnonzero(fixed).tolist()
+    centred = np.where(fixed, 0.0, x - x.mean(0))
+    scale = np.sqrt(np.mean(centred**2, 0))
+    sv = np.linalg.svd(centred / np.where(scale > 0, scale, 1.0), compute_uv=False)
+    rank = int(np.sum(sv > DESIGN_RANK_TOL * sv[0]))
+    if rank < n:
+        if const:
+            what = f"coordinate(s) {const} of x are constant"
+        else:
+            what = "x's coordinates are linearly dependent"
+        warnings.warn(
+            f"the training inputs are rank-deficient: {what} (rank {rank} of {n} after "
+            "centring): the data lie in a lower-dimensional set, the "
+            "lengthscales across it are not identified and the GP predicts its prior off it; "
+            "collect data that vary every coordinate independently, or fit on independent "
+            "coordinates",
+            DataWarning,
+            stacklevel=3,
+        )
 
 
 class GaussianProcessModel:
@@ -247,104 +300,113 @@ class GaussianProcessModel:
         zero-mean prior must explain the offset with its amplitude).
         """
         seed = check_seed("seed", seed)
-        check_real("x", x)
-        check_real("y", y)
-        x = np.asarray(x, dtype=float)
-        y = np.asarray(y, dtype=float)
-        if x.ndim != 2:
-            raise DimensionError(f"x must have shape (Q, n), got shape {x.shape}")
-        if y.shape != x.shape:
-            raise DimensionError(
-                f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}"
-            )
-        q, n = x.shape
-        comps = _components(components, n)
-        check_finite("x", x)
-        check_finite("y", y[:, list(comps)])  # skipped columns are never read
-        for name, arr in (("x", x), ("y", y[:, list(comps)])):
-            # the fit squares the data (variances, kernel distances): beyond 1e150 they overflow
-            big = float(np.max(np.abs(arr))) if arr.size else 0.0
-            if big > MAX_DATA_MAGNITUDE:
-                raise ParameterError(
-                    f"{name} has entries up to {big:.3g} in magnitude; their squares overflow "
-                    f"float64 (the fit needs |{name}| <= {MAX_DATA_MAGNITUDE:g}): rescale the "
-                    "data, e.g. to units in which the values are of order one"
+        with fit_threads():  # one BLAS thread (learning/_threads.py)
+            check_real("x", x)
+            check_real("y", y)
+            x = np.asarray(x, dtype=float)
+            y = np.asarray(y, dtype=float)
+            if x.ndim != 2:
+                raise DimensionError(f"x must have shape (Q, n), got shape {x.shape}")
+            if y.shape != x.shape:
+                raise DimensionError(
+                    f"y must have the same shape as x, (Q, n) = {x.shape}, got {y.shape}"
                 )
-        if hyper_subset is not None and (
-            isinstance(hyper_subset, bool)
-            or not isinstance(hyper_subset, int | np.integer)
-            or hyper_subset < 1
-        ):
-            raise ParameterError(f"hyper_subset must be an integer >= 1, got {hyper_subset!r}")
-        n_hyper = n + 2 + (self.mean == "constant") - (self.noise is not None)
-        n_fit = q if hyper_subset is None else min(int(hyper_subset), q)
-        if n_fit <= n_hyper:
-            raise ParameterError(
-                f"too few samples to fit {n_hyper} hyperparameters per component: got "
-                f"{n_fit}, need at least {n_hyper + 1} (more in practice, or fix noise=)"
-            )
-        if n_fit < MIN_ROWS_PER_HYPERPARAMETER * n_hyper:
-            warnings.warn(
-                f"only {n_fit} rows to fit {n_hyper} hyperparameters per component: the fit "
-                f"is unreliable (fewer than {MIN_ROWS_PER_HYPERPARAMETER} rows per "
-                "hyperparameter); collect more data or fix noise=, and check the band with "
-                "conformal_beta on held-out data",
-                DataWarning,
-                stacklevel=2,
-            )
-        noise = None
-        if self.noise is not None:
-            noise = np.broadcast_to(np.asarray(self.noise, float), (len(comps),))
-
-        offset = x.mean(0)
-        scale = x.std(0)
-        scale = np.where(scale > 0, scale, 1.0)
-        xs = (x - offset) / scale
-        rng = np.random.default_rng(seed)
-        idx = np.sort(rng.choice(q, n_fit, replace=False)) if n_fit < q else np.arange(q)
-        self._warn_about_data(x[idx], y[idx][:, list(comps)], comps)
-
-        # every component's problem first (in order: each draws its starts from rng), then
-        # all their starts in one pool (fit_components)
-        problems = [
-            pose_component(
-                self, xs[idx], y[idx, comp], None if noise is None else float(noise[j]), rng, comp
-            )
-            for j, comp in enumerate(comps)
-        ]
-        fits = fit_components(self, problems)
-
-        self.n_states_ = n
-        self.components_ = comps
-        self.x_train_ = x
-        self.y_train_ = y[:, list(comps)]
-        self.x_offset_ = offset
-        self.x_scale_ = scale
-        self.amplitude_ = np.array([f["amplitude"] for f in fits])
-        self.noise_ = np.array([f["noise"] for f in fits])
-        self.mean_ = np.array([f["mean"] for f in fits])
-        self.lengthscale_std_ = np.array([f["lengthscale"] for f in fits])
-        self.lengthscale_ = self.lengthscale_std_ * scale
-        self.log_marginal_likelihood_ = np.array([f["lml"] for f in fits])
-        self.n_starts_ = len(fits[0]["start_lmls"])
-        self.start_log_marginal_likelihoods_ = np.array([f["start_lmls"] for f in fits])
-        self.n_iter_ = np.array([f["nit"] for f in fits], dtype=int)
-        self.converged_ = np.array([f["converged"] for f in fits], dtype=bool)
-        self.optimizer_status_ = tuple(f["message"] for f in fits)
-        self._condition()
-        self.loo_coverage_ = self._loo_coverage(rng)
-        for comp, cov in zip(comps, self.loo_coverage_, strict=True):
-            if cov < LOO_MIN_COVERAGE:
+            q, n = x.shape
+            comps = _components(components, n)
+            check_finite("x", x)
+            check_finite("y", y[:, list(comps)])  # skipped columns are never read
+            for name, arr in (("x", x), ("y", y[:, list(comps)])):
+                # the fit squares the data (variances, kernel distances): beyond 1e150 they overflow
+                big = float(np.max(np.abs(arr))) if arr.size else 0.0
+                if big > MAX_DATA_MAGNITUDE:
+                    raise ParameterError(
+                        f"{name} has entries up to {big:.3g} in magnitude; their squares overflow "
+                        f"float64 (the fit needs |{name}| <= {MAX_DATA_MAGNITUDE:g}): rescale the "
+                        "data, e.g. to units in which the values are of order one"
+                    )
+            if hyper_subset is not None and (
+                isinstance(hyper_subset, bool)
+                or not isinstance(hyper_subset, int | np.integer)
+                or hyper_subset < 1
+            ):
+                raise ParameterError(f"hyper_subset must be an integer >= 1, got {hyper_subset!r}")
+            n_hyper = n + 2 + (self.mean == "constant") - (self.noise is not None)
+            n_fit = q if hyper_subset is None else min(int(hyper_subset), q)
+            if n_fit <= n_hyper:
+                raise ParameterError(
+                    f"too few samples to fit {n_hyper} hyperparameters per component: got "
+                    f"{n_fit}, need at least {n_hyper + 1} (more in practice, or fix noise=)"
+                )
+            _check_design(x)
+            if n_fit < MIN_ROWS_PER_HYPERPARAMETER * n_hyper:
                 warnings.warn(
-                    f"leave-one-out check of component {comp}: only {cov:.0%} of the training "
-                    "targets lie within 2 predictive standard deviations of the prediction "
-                    "from the other rows (0.954 expected): the model understates the noise "
-                    "or the function's variation; do not fix noise= below the sensor's noise, "
-                    "and check the band with conformal_beta",
+                    f"only {n_fit} rows to fit {n_hyper} hyperparameters per component: the fit "
+                    f"is unreliable (fewer than {MIN_ROWS_PER_HYPERPARAMETER} rows per "
+                    "hyperparameter); collect more data or fix noise=, and check the band with "
+                    "conformal_beta on held-out data",
                     DataWarning,
                     stacklevel=2,
                 )
-        return self
+            noise = None
+            if self.noise is not None:
+                noise = np.broadcast_to(np.asarray(self.noise, float), (len(comps),))
+
+            offset = x.mean(0)
+            scale = x.std(0)
+            # a constant coordinate's std can round above 0 (0.7 repeated: 1e-16), which would
+            # blow its rounding up to unit size: it is scaled by 1, as a zero std is
+            scale = np.where((scale > 0) & ~np.all(x == x[0], axis=0), scale, 1.0)
+            xs = (x - offset) / scale
+            rng = np.random.default_rng(seed)
+            idx = np.sort(rng.choice(q, n_fit, replace=False)) if n_fit < q else np.arange(q)
+            self._warn_about_data(x[idx], y[idx][:, list(comps)], comps)
+
+            # every component's problem first (in order: each draws its starts from rng), then
+            # all their starts in one pool (fit_components)
+            problems = [
+                pose_component(
+                    self,
+                    xs[idx],
+                    y[idx, comp],
+                    None if noise is None else float(noise[j]),
+                    rng,
+                    comp,
+                )
+                for j, comp in enumerate(comps)
+            ]
+            fits = fit_components(self, problems)
+
+            self.n_states_ = n
+            self.components_ = comps
+            self.x_train_ = x
+            self.y_train_ = y[:, list(comps)]
+            self.x_offset_ = offset
+            self.x_scale_ = scale
+            self.amplitude_ = np.array([f["amplitude"] for f in fits])
+            self.noise_ = np.array([f["noise"] for f in fits])
+            self.mean_ = np.array([f["mean"] for f in fits])
+            self.lengthscale_std_ = np.array([f["lengthscale"] for f in fits])
+            self.lengthscale_ = self.lengthscale_std_ * scale
+            self.log_marginal_likelihood_ = np.array([f["lml"] for f in fits])
+            self.n_starts_ = len(fits[0]["start_lmls"])
+            self.start_log_marginal_likelihoods_ = np.array([f["start_lmls"] for f in fits])
+            self.n_iter_ = np.array([f["nit"] for f in fits], dtype=int)
+            self.converged_ = np.array([f["converged"] for f in fits], dtype=bool)
+            self.optimizer_status_ = tuple(f["message"] for f in fits)
+            self._condition()
+            self.loo_coverage_ = self._loo_coverage(rng)
+            for comp, cov in zip(comps, self.loo_coverage_, strict=True):
+                if cov < LOO_MIN_COVERAGE:
+                    warnings.warn(
+                        f"leave-one-out check of component {comp}: only {cov:.0%} of the training "
+                        "targets lie within 2 predictive standard deviations of the prediction "
+                        "from the other rows (0.954 expected): the model understates the noise "
+                        "or the function's variation; do not fix noise= below the sensor's noise, "
+                        "and check the band with conformal_beta",
+                        DataWarning,
+                        stacklevel=2,
+                    )
+            return self
 
     @classmethod
     def from_hyperparameters(
@@ -436,7 +498,7 @@ class GaussianProcessModel:
                     jitter=jitter)  # fmt: skip
         offset = x.mean(0)
         scale = x.std(0)
-        scale = np.where(scale > 0, scale, 1.0)
+        scale = np.where((scale > 0) & ~np.all(x == x[0], axis=0), scale, 1.0)
         model.n_states_ = n
         model.components_ = comps
         model.x_train_ = x
@@ -448,7 +510,8 @@ class GaussianProcessModel:
         model.mean_ = hyper["mean"]
         model.lengthscale_std_ = hyper["lengthscale"] / scale
         model.lengthscale_ = hyper["lengthscale"]
-        model._condition()
+        with fit_threads():
+            model._condition()
         # log p(y) = -1/2 (y - mu)^T alpha - sum log diag L - Q/2 log(2 pi)
         resid = model.y_train_ - model.mean_
         logdet = np.sum(np.log(np.diagonal(model.chol_, axis1=-2, axis2=-1)), -1)
@@ -460,7 +523,8 @@ class GaussianProcessModel:
         model.n_iter_ = np.zeros(k, dtype=int)
         model.converged_ = np.ones(k, dtype=bool)
         model.optimizer_status_ = ("hyperparameters given; no optimisation",) * k
-        model.loo_coverage_ = model._loo_coverage(np.random.default_rng(seed))
+        with fit_threads():
+            model.loo_coverage_ = model._loo_coverage(np.random.default_rng(seed))
         return model
 
     def _warn_about_data(self, x: np.ndarray, y: np.ndarray, comps: tuple[int, ...]) -> None:
@@ -661,7 +725,8 @@ class GaussianProcessModel:
             model.lengthscale_ = model.lengthscale_std_ * model.x_scale_
             model.log_marginal_likelihood_ = data["log_marginal_likelihood"]
             model.optimizer_status_ = tuple(meta.get("optimizer_status", ()))
-        model._condition()
+        with fit_threads():
+            model._condition()
         return model
 
 

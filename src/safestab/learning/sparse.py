@@ -37,8 +37,9 @@ from .._validation import check_finite, check_real, check_scalar_range
 from ..errors import DimensionError, ParameterError
 from ._checks import check_count, check_seed
 from ._posterior import kernel_error_coefficient
+from ._threads import fit_threads
 from .fast import InducingBand, inducing_inputs
-from .gp import GaussianProcessModel
+from .gp import DEFAULT_JITTER, GaussianProcessModel
 
 __all__ = ["SparseGP"]
 
@@ -53,6 +54,18 @@ class SparseGP(InducingBand):
         earlier once the prior is resolved at the data (``pivot_tol``; ``noise_tol``: once the
         largest residual prior std at the training inputs is below ``noise_tol`` noise stds).
     kernel : {"se", "matern52"}
+    mean : {"zero", "constant"}
+        Prior mean, as :class:`~safestab.learning.GaussianProcessModel`'s (``"constant"`` for
+        targets with a large offset, which the fit warns about).
+    noise : float or array of shape (k,), optional
+        Known noise standard deviation per learned component; fitted when omitted.
+    jitter : float
+        Relative diagonal jitter (:data:`~safestab.learning.gp.DEFAULT_JITTER`).
+    max_iter, n_restarts : int
+        The hyperparameter fit's L-BFGS-B iteration limit and seeded random starts (defaults
+        200 and 2). With ``mean``, ``noise`` and ``jitter`` these are the arguments of
+        :class:`~safestab.learning.GaussianProcessModel` that its fit's warnings advise;
+        checked as it checks them.
     hyper_subset : int
         Rows (drawn at random) on which the hyperparameters are fitted (default 500, as the
         ACC presets: the fit costs O(hyper_subset^3) per likelihood evaluation).
@@ -89,6 +102,11 @@ class SparseGP(InducingBand):
         n_inducing: int = 256,
         *,
         kernel: str = "se",
+        mean: str = "zero",
+        noise: Any = None,
+        jitter: float = DEFAULT_JITTER,
+        max_iter: int = 200,
+        n_restarts: int = 2,
         hyper_subset: int = 500,
         pivot_tol: float = 1e-10,
         noise_tol: float = 0.1,
@@ -98,6 +116,10 @@ class SparseGP(InducingBand):
         if kernel not in ("se", "matern52"):
             raise ParameterError(f"kernel must be 'se' or 'matern52', got {kernel!r}")
         self.kernel = kernel
+        # checked by the exact model's constructor, which names each argument
+        GaussianProcessModel(kernel, mean, noise, jitter, max_iter, n_restarts)  # type: ignore[arg-type]
+        self.mean, self.noise, self.jitter = mean, noise, float(jitter)
+        self.max_iter, self.n_restarts = int(max_iter), int(n_restarts)
         self.hyper_subset = check_count("hyper_subset", hyper_subset)
         if self.hyper_subset < 2:
             raise ParameterError(f"hyper_subset must be an integer >= 2, got {hyper_subset!r}")
@@ -133,48 +155,52 @@ class SparseGP(InducingBand):
         check_finite("x", x)
         check_finite("y", y)
         seed = check_seed("seed", seed)
-        q = x.shape[0]
-        rng = np.random.default_rng(seed)
-        sub = np.sort(rng.choice(q, size=min(self.hyper_subset, q), replace=False))
-        model = GaussianProcessModel(kernel=self.kernel)
-        model.fit(x[sub], y[sub], hyper_subset=len(sub), seed=seed)
-        self.model = model
-        self.n_states = model.n_states_
-        self.components_ = model.components_
-        self.n_samples_ = q
-        xs = (x - model.x_offset_) / model.x_scale_
-        zs, packed = [], []
-        for j, comp in enumerate(model.components_):
-            noise = float(model.noise_[j])
-            kfn, z, kzz, lj, _, _ = inducing_inputs(
-                model, j, xs, self.n_inducing, self.pivot_tol, self.noise_tol * noise
-            )
-            m = len(z)
-            target = y[:, comp] - float(model.mean_[j])
-            vvt, vy = np.zeros((m, m)), np.zeros(m)
-            for s in range(0, q, self.chunk):
-                v = scipy.linalg.solve_triangular(
-                    lj, np.asarray(kfn(z, xs[s : s + self.chunk])), lower=True
+        with fit_threads():  # one BLAS thread (learning/_threads.py)
+            q = x.shape[0]
+            rng = np.random.default_rng(seed)
+            sub = np.sort(rng.choice(q, size=min(self.hyper_subset, q), replace=False))
+            model = GaussianProcessModel(
+                kernel=self.kernel, mean=self.mean, noise=self.noise, jitter=self.jitter,  # type: ignore[arg-type]
+                max_iter=self.max_iter, n_restarts=self.n_restarts,
+            )  # fmt: skip
+            model.fit(x[sub], y[sub], hyper_subset=len(sub), seed=seed)
+            self.model = model
+            self.n_states = model.n_states_
+            self.components_ = model.components_
+            self.n_samples_ = q
+            xs = (x - model.x_offset_) / model.x_scale_
+            zs, packed = [], []
+            for j, comp in enumerate(model.components_):
+                noise = float(model.noise_[j])
+                kfn, z, kzz, lj, _, _ = inducing_inputs(
+                    model, j, xs, self.n_inducing, self.pivot_tol, self.noise_tol * noise
                 )
-                vvt += v @ v.T
-                vy += v @ target[s : s + self.chunk]
-            lb = np.linalg.cholesky(np.eye(m) + vvt / noise**2)
-            li = scipy.linalg.solve_triangular(lj, np.eye(m), lower=True)  # Lj^-1
-            w = scipy.linalg.cho_solve((lb, True), vy) / noise**2  # B^-1 V (y - mu) / s^2
-            # the DTC variance's second term |LB^-1 a|^2 with a = Lj^-1 k = Lj^T c
-            g = scipy.linalg.solve_triangular(lb, lj.T, lower=True)
-            b = li.T @ w
-            ls = np.asarray(model.lengthscale_std_[j])
-            packed.append({
-                "li": li, "kzz": kzz, "g": g, "cm": np.zeros((m, m)), "b": b,
-                "rho_b": np.zeros(m), "err": 0.0,
-                "ek": kernel_error_coefficient(model.kernel, np.max(np.abs(z), 0) / ls),
-                "gnorm": np.linalg.norm(g), "bnorm": np.sum(np.abs(b)), "rho_err": 0.0,
-                "rho": 0.0, "wnorm": 0.0, "cnorm": 0.0,
-            })  # fmt: skip
-            zs.append(z)
-        # no mean-error term: the DTC band itself (proven = False), with its rounding
-        self._pack(model, zs, packed)
+                m = len(z)
+                target = y[:, comp] - float(model.mean_[j])
+                vvt, vy = np.zeros((m, m)), np.zeros(m)
+                for s in range(0, q, self.chunk):
+                    v = scipy.linalg.solve_triangular(
+                        lj, np.asarray(kfn(z, xs[s : s + self.chunk])), lower=True
+                    )
+                    vvt += v @ v.T
+                    vy += v @ target[s : s + self.chunk]
+                lb = np.linalg.cholesky(np.eye(m) + vvt / noise**2)
+                li = scipy.linalg.solve_triangular(lj, np.eye(m), lower=True)  # Lj^-1
+                w = scipy.linalg.cho_solve((lb, True), vy) / noise**2  # B^-1 V (y - mu) / s^2
+                # the DTC variance's second term |LB^-1 a|^2 with a = Lj^-1 k = Lj^T c
+                g = scipy.linalg.solve_triangular(lb, lj.T, lower=True)
+                b = li.T @ w
+                ls = np.asarray(model.lengthscale_std_[j])
+                packed.append({
+                    "li": li, "kzz": kzz, "g": g, "cm": np.zeros((m, m)), "b": b,
+                    "rho_b": np.zeros(m), "err": 0.0,
+                    "ek": kernel_error_coefficient(model.kernel, np.max(np.abs(z), 0) / ls),
+                    "gnorm": np.linalg.norm(g), "bnorm": np.sum(np.abs(b)), "rho_err": 0.0,
+                    "rho": 0.0, "wnorm": 0.0, "cnorm": 0.0,
+                })  # fmt: skip
+                zs.append(z)
+            # no mean-error term: the DTC band itself (proven = False), with its rounding
+            self._pack(model, zs, packed)
         return self
 
     def mean_std(self, x: Any) -> tuple[Any, Any]:

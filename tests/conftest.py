@@ -60,3 +60,44 @@ def _release_compiled_functions():
     """
     yield
     jax.clear_caches()
+
+
+# -- the count of XLA programs a run needs (printed at the end of the run) ----------------
+# JAX's backend_compile event marks every program a process builds, compiled by XLA or
+# loaded from the persistent cache (its cache_hits event marks those). Each xdist worker
+# counts its own and hands them to the controller (workeroutput), which prints the sums: the
+# figure the compile-once work is measured by (with an empty cache, all are compiled).
+_PROGRAMS = {"built": 0, "loaded": 0}
+
+
+def _count_build(event: str, duration: float, **kw) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _PROGRAMS["built"] += 1
+
+
+def _count_hit(event: str, **kw) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _PROGRAMS["loaded"] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_build)
+jax.monitoring.register_event_listener(_count_hit)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:  # an xdist worker: report to the controller
+        workeroutput["safestab_programs"] = dict(_PROGRAMS)
+
+
+def pytest_testnodedown(node, error):
+    for key, value in getattr(node, "workeroutput", {}).get("safestab_programs", {}).items():
+        _PROGRAMS[key] += value
+
+
+def pytest_terminal_summary(terminalreporter):
+    built, loaded = _PROGRAMS["built"], _PROGRAMS["loaded"]
+    terminalreporter.write_line(
+        f"XLA programs: {built} built, {built - loaded} compiled by XLA and {loaded} loaded "
+        "from the persistent compilation cache (counted by tests/conftest.py)"
+    )

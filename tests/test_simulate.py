@@ -191,12 +191,10 @@ class _SmallBand:
 
 
 def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
-    """Two controllers built alike (equal structure, the same system and certificates, equal
-    parameters) share one compiled loop: the second controller's runs are not traced, and
-    with equal params they record exactly what the first's did. Other parameter values, or a
-    controller traced under a user's jit, get their own program."""
-    from safestab import simulation
-
+    """The loop takes the controller as its argument: controllers of one tree structure
+    (built alike, or replace() with new numbers, or another uncertainty model of the same
+    kind) run one compiled program, with the same bits as a run of their own; another
+    step, another plant object, or a controller traced under a user's jit trace again."""
     calls = {"f": 0}
 
     def f(x, p):
@@ -222,31 +220,58 @@ def test_simulate_reuses_the_loop_of_an_equal_controller_and_only_that():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert not np.array_equal(np.asarray(first.x), np.asarray(reused.x))  # the params count
 
-    traced = calls["f"]
     other = simulate(ctrl.replace(kappa=2.0), x0, params={"a": -0.3}, **run)
-    assert calls["f"] > traced  # another kappa: another program
+    assert calls["f"] == traced  # another kappa: the same program, other numbers
     assert not np.array_equal(np.asarray(other.u), np.asarray(alone.u))
 
-    # another step, another plant object (the same functions), or a cleared store: traced
+    # another step or another plant object (the same functions): traced
     twin_plant = ss.ControlAffineSystem(f, lambda x, p: jnp.eye(2), 2, params={"a": 0.0})
-    for kwargs in ({"t_final": 0.5, "dt": 0.02}, {**run, "plant": twin_plant}, run):
-        if kwargs is run:
-            simulation.clear_programs()
+    for kwargs in ({"t_final": 0.5, "dt": 0.02}, {**run, "plant": twin_plant}):
         traced = calls["f"]
-        again = simulate(ctrl, x0, params={"a": -0.3}, **kwargs)
+        simulate(ctrl, x0, params={"a": -0.3}, **kwargs)
         assert calls["f"] > traced, kwargs
-        if kwargs is not run:
-            continue
-        np.testing.assert_array_equal(np.asarray(again.x), np.asarray(alone.x))
 
-    # a controller with an uncertainty model is not kept (its data would stay alive): traced
-    # at each call
+    # an uncertainty model that is not a pytree is the controller's static part: one
+    # program for that model object, reused
     gp_ctrl = ctrl.replace(uncertainty=_SmallBand(), gp_beta=1.0)
-    for _ in range(2):
-        traced = calls["f"]
-        simulate(gp_ctrl, x0, params={"a": -0.3}, **run)
-        assert calls["f"] > traced
+    traced = calls["f"]
+    simulate(gp_ctrl, x0, params={"a": -0.3}, **run)
+    assert calls["f"] > traced
+    traced = calls["f"]
+    simulate(gp_ctrl.replace(gp_beta=2.0), x0, params={"a": -0.3}, **run)
+    assert calls["f"] == traced
 
     # a controller that is an argument of a user's jit: traced leaves, a program of its own
     xs = jax.jit(lambda c: simulate(c, x0, params={"a": -0.3}, **run).x)(twin)
     np.testing.assert_allclose(np.asarray(xs), np.asarray(alone.x), rtol=1e-12, atol=1e-14)
+
+
+def test_twenty_controllers_that_differ_in_numbers_compile_one_loop():
+    """The issue's count: simulate of 20 controllers that differ only in their numbers (and
+    a filter's) compiles one closed loop, counted from JAX's compilation events."""
+    events = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(event)
+
+    system = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    clf = ss.CLF(lambda x: jnp.sum((x - jnp.array([1.0, 0.5])) ** 2), lam=1.0)
+    cbf = ss.CBF(lambda x: 4.0 - jnp.sum(x**2), beta=1.0)
+    base = ss.UniversalController(
+        system, clf, cbf, kappa=0.1, rho=0.0, phi=1.0, varphi=0.0, slack_weight=10.0
+    )
+    filt = ss.SafetyFilter(system, cbf, clfs=clf, slack_weight=10.0, u_min=-1.0, u_max=1.0)
+    x0 = np.array([0.2, -0.1])
+    for first in (base, filt):
+        simulate(first, x0, t_final=0.3, dt=0.01)  # compiled here (or cached)
+        jax.monitoring.register_event_duration_secs_listener(listen)
+        try:
+            runs = [
+                simulate(first.replace(kappa=0.05 * k, rho=0.01 * k), x0, t_final=0.3, dt=0.01)
+                for k in range(20)
+            ]
+        finally:
+            jax.monitoring.unregister_event_duration_listener(listen)
+        assert events == []  # no compilation at all for the 20
+        assert len({np.asarray(r.u).tobytes() for r in runs}) == 20  # 20 different runs

@@ -152,7 +152,8 @@ class ControllerValue(PytreeValue):
     Subclasses call :meth:`_remember` at the end of ``__init__`` with the constructor's
     arguments, list their parameters in :meth:`_leaf_names` (those present; read and written
     in their ``params`` dict or as attributes) and their certificates in ``_CHILDREN``;
-    :meth:`_rebuild` makes the jitted functions of a new value.
+    nothing jitted is kept on a value (the step is a module-level jitted function that takes
+    the controller as its argument).
     """
 
     _init: type
@@ -172,6 +173,9 @@ class ControllerValue(PytreeValue):
         """
         self._init = init
         self._kwargs = {name: _frozen(value) for name, value in kwargs.items()}
+        # the certificates as the value holds them (a filter's ``clfs=clf`` as the tuple
+        # ``(clf,)``, which replace() passes on): one tree structure for both spellings
+        self._kwargs.update({name: getattr(self, name) for name in self._CHILDREN})
         for name in self._leaf_names():
             self._set_leaf(name, _frozen(self._get_leaf(name)))
         if not type(self).__module__.startswith("safestab."):
@@ -199,9 +203,6 @@ class ControllerValue(PytreeValue):
             self.params[name] = value
         else:
             setattr(self, name, value)
-
-    def _rebuild(self) -> None:
-        raise NotImplementedError
 
     # -- public -------------------------------------------------------------------------
     def tunables(self) -> dict[str, Any]:
@@ -239,5 +240,4 @@ class ControllerValue(PytreeValue):
         new.params = dict(template.obj.params)
         for name, value in zip(names, leaves, strict=True):
             new._set_leaf(name, _frozen(value))
-        new._rebuild()
         return new

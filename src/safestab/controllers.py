@@ -7,7 +7,6 @@ Data flows one way: system + certificates -> Lie terms ``(a, b, c, d)`` -> (GP-r
 from __future__ import annotations
 
 import dataclasses
-import functools
 from enum import IntEnum
 from typing import Any, Literal
 
@@ -50,6 +49,8 @@ __all__ = [
     "Controller",
     "StepStatus",
     "INPUT_STATUSES",
+    "controller_step",
+    "controller_input",
     "has_input",
     "UniversalController",
     "SontagController",
@@ -210,43 +211,27 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
     return ok
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _checked_call(treedef: Any, leaves: tuple[Any, ...], x: jax.Array, p: Any) -> Any:
-    """``ctrl.step_fn`` with the controller's leaves as arguments: an eager ``step``.
+@jax.jit
+def controller_step(ctrl: Controller, x: jax.Array, p: Any = None, u_nom: Any = None) -> Any:
+    """The fused step of ``ctrl`` at states ``x`` (..., n), unchecked: ``ctrl.step_fn``.
 
-    One program serves every controller of one tree structure (:meth:`Controller.replace`
-    with new numbers, controllers built alike): their numeric parameters are arguments of
-    the program, not constants in it. (``ctrl.step_fn`` on its own holds them as constants,
-    so each new value of a parameter traced and compiled the whole step again: 13 of the 17
-    compilations of one test that steps a filter at parameters ``+-1e-6`` apart.)
+    One jitted function of the package, with the controller as its argument (as
+    ``diffrax.diffeqsolve`` takes its solver): its numeric parameters are arguments of the
+    compiled program, so every controller of one tree structure (built alike, or
+    :meth:`~safestab.Controller.replace` with new numbers) runs the program compiled for the
+    first, and nothing jitted is kept on a controller. ``p``: the run-time parameters;
+    ``u_nom`` (a :class:`~safestab.SafetyFilter` only): this call's nominal input, (m,) or
+    (..., m).
     """
-    ctrl = jax.tree_util.tree_unflatten(treedef, leaves)
-    return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
+    if u_nom is None:
+        return ctrl._step(x, p)
+    return ctrl._step(x, p, u_nom=u_nom)
 
 
-def _any_tracer(*trees: Any) -> bool:
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
-
-
-def _eager_arguments(ctrl: Controller) -> tuple[Any, tuple[Any, ...]] | None:
-    """``(treedef, leaves on the device)`` of ``ctrl`` for :func:`_checked_call`, or None.
-
-    None where a leaf is traced (the controller lives inside a trace). Kept on the
-    controller with the leaves they were made from, and reused while its leaves are those
-    same objects: flattening and moving its parameters to the device at every call cost
-    more than the step (about 150 us of 350). A copy of a controller (``replace``, JAX's
-    unflatten) holds other leaves, so it never reuses another's.
-    """
-    leaves, treedef = jax.tree_util.tree_flatten(ctrl)
-    kept = ctrl.__dict__.get("_eager_args")
-    if kept is not None and len(kept[0]) == len(leaves):
-        if all(a is b for a, b in zip(kept[0], leaves, strict=True)):
-            return kept[1]
-    if _any_tracer(leaves):
-        return None
-    args = (treedef, tuple(jax.device_put(leaf) for leaf in leaves))
-    ctrl.__dict__["_eager_args"] = (tuple(leaves), args)
-    return args
+@jax.jit
+def controller_input(ctrl: Controller, x: jax.Array, p: Any = None) -> jax.Array:
+    """``controller_step(ctrl, x, p).u`` alone, so XLA drops the diagnostics: ``ctrl.input_fn``."""
+    return ctrl._step(x, p).u
 
 
 class Controller(ControllerValue):
@@ -270,7 +255,6 @@ class Controller(ControllerValue):
     system: ControlAffineSystem
     formula: Formula
     params_spec: ParamSpec | None
-    step_fn: Any
     clfs: tuple[CLF, ...]  #: every CLF (a UniversalController: its one)
     cbfs: tuple[CBF, ...]  #: every CBF
     uncertainty: Any  #: the GP-robust terms' model (None: none)
@@ -350,20 +334,27 @@ class Controller(ControllerValue):
         check_real("x", x)
         x = self.system.check_state(x)
         p = resolve(self.params_spec, params, f"the {self._owner}")
-        # an eager call runs one program per tree structure, the controller its argument:
-        # new numbers (``replace``) are not traced and compiled again. Inside a trace (a
-        # user's jit, vmap or grad; a study's loop) the step is ``step_fn``, as before, so
-        # what a traced program computes is unchanged. Not shared: a controller with an
-        # uncertainty model or of a class defined outside safestab (its structure is the
-        # object itself), whose data the shared program's cache would keep alive.
-        shared = self.uncertainty is None and self._template.key is not None
-        args = _eager_arguments(self) if shared and not _any_tracer(x, p) else None
-        if args is not None:
-            out = _checked_call(*args, x, p)
-        else:
-            out = self.step_fn(x) if p is None else self.step_fn(x, p)
+        out = controller_step(self, x, p)
         self._check_step(x, out, strict, p)
         return out
+
+    @property
+    def step_fn(self) -> Any:
+        """The fused, jitted step without argument checks: ``step_fn(x)``, ``step_fn(x, p)``.
+
+        For one state (n,) or a batch (..., n), with the run-time parameters ``p`` (shared by
+        the batch) where the controller takes them; for loops and benchmarks.
+        :func:`controller_step` with this controller as its argument: controllers of one
+        tree structure share its compiled program.
+        """
+        # p always passed (None by default): one cache entry of the jitted function, which a
+        # loop calling controller_step(ctrl, x, p) reuses
+        return lambda x, p=None: controller_step(self, x, p)
+
+    @property
+    def input_fn(self) -> Any:
+        """Like :attr:`step_fn`, returning only ``u`` (:func:`controller_input`)."""
+        return lambda x, p=None: controller_input(self, x, p)
 
     def step_with_uncertainty(
         self, x: jax.Array, mean: jax.Array, std: jax.Array, p: Any = None
@@ -625,15 +616,6 @@ class UniversalController(Controller):
         self.sample_time = None if sample_time is None else as_scalar(sample_time)
         self.ddh_bound = None if ddh_bound is None else as_scalar(ddh_bound)
         self._remember(UniversalController, init_args)
-        self._rebuild()
-
-    def _rebuild(self) -> None:
-        #: The fused, jitted step (terms, GP, formula, limits, flags) without argument checks,
-        #: for one state (n,) or a batch (..., n); for loops and benchmarks. With run-time
-        #: parameters: ``step_fn(x, p)`` (``p`` shared by the batch).
-        self.step_fn = jax.jit(self._step)
-        #: Like ``step_fn`` but returning only ``u``, so XLA drops the diagnostics.
-        self.input_fn = jax.jit(lambda x, p=None: self._step(x, p).u)
 
     _CHILDREN = ("clf", "cbf")
 

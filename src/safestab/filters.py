@@ -19,10 +19,10 @@ import numpy as np
 
 from ._batching import over_batch
 from ._numerics import as_scalar
-from ._params import ParamSpec, bind, make_spec, merge_specs, trace_shape
+from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
 from .certificates import CBF, CLF, check_actuated
-from .controllers import Controller, StepStatus, barrier_message, has_input
+from .controllers import Controller, StepStatus, barrier_message, controller_step, has_input
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
@@ -332,12 +332,6 @@ class SafetyFilter(Controller):
         #: The several-row formula object that solves each step's problem.
         self.formula = MultiFormula(max_iter)
         self._remember(SafetyFilter, init_args)
-        self._rebuild()
-
-    def _rebuild(self) -> None:
-        #: The fused, jitted step without argument checks, for one state or a batch;
-        #: ``step_fn(x, p)`` with run-time parameters (``p`` shared by the batch).
-        self.step_fn = jax.jit(self._step)
 
     _CHILDREN = ("clfs", "cbfs")
 
@@ -404,10 +398,18 @@ class SafetyFilter(Controller):
         """
         return self._u_nom_of(x, p) if self._u_nom_of is not None else None
 
-    def _step(self, x: jax.Array, p: Any = None, given: tuple | None = None) -> FilterOutput:
-        (a, b, c, d, u_nom), status = over_batch(lambda s: self._point(s, p, given), x)
+    def _step(
+        self, x: jax.Array, p: Any = None, given: tuple | None = None, u_nom: Any = None
+    ) -> FilterOutput:
+        (a, b, c, d, own), status = over_batch(lambda s: self._point(s, p, given), x)
         p = self.params
         batch = x.shape[:-1]
+        if u_nom is not None:  # the caller's nominal input, for this call
+            u_nom = jnp.broadcast_to(
+                jnp.asarray(u_nom, dtype=float), batch + (self.system.n_inputs,)
+            )
+        else:
+            u_nom = own
         lo = hi = None
         if self.u_min is not None:
             m = self.system.n_inputs
@@ -440,7 +442,9 @@ class SafetyFilter(Controller):
             clf_satisfied=ok[..., None] & clf_ok,
         )
 
-    def step(self, x: Any, *, params: Any = None, strict: bool = False) -> FilterOutput:
+    def step(
+        self, x: Any, *, params: Any = None, strict: bool = False, u_nom: Any = None
+    ) -> FilterOutput:
         """The filtered input and diagnostics at states ``x`` of shape (..., n).
 
         Parameters
@@ -451,6 +455,10 @@ class SafetyFilter(Controller):
             declared ``params=example`` (shared by every state of the batch).
         strict : bool
             Raise where a step failed, a fallback was used or a CBF condition is violated.
+        u_nom : array of shape (m,) or (..., m), optional
+            The nominal input of this call (another policy's action, say), in place of the
+            filter's own ``u_nom``; broadcast over the batch of ``x``. Jitted code passes it as
+            ``controller_step(filter, x, p, u_nom)``.
 
         Returns
         -------
@@ -470,7 +478,23 @@ class SafetyFilter(Controller):
             With ``strict=True``, where a fallback was used, the solver stopped uncertified
             (``ITERATION_LIMIT``, ``UNCERTIFIED``) or a CBF condition is violated.
         """
-        return super().step(x, params=params, strict=strict)
+        if u_nom is None:
+            return super().step(x, params=params, strict=strict)
+        check_real("x", x)
+        x = self.system.check_state(x)
+        m = self.system.n_inputs
+        check_real("u_nom", u_nom)
+        check_finite("u_nom", u_nom)
+        shape = np.shape(u_nom)
+        if not shape or shape[-1] != m or len(shape) > 1 and shape[:-1] != x.shape[:-1]:
+            raise DimensionError(
+                f"u_nom must have shape ({m},) or the batch of x plus ({m},) = "
+                f"{x.shape[:-1] + (m,)}, got {shape}"
+            )
+        p = resolve(self.params_spec, params, f"the {self._owner}")
+        out = controller_step(self, x, p, jnp.asarray(u_nom, dtype=float))
+        self._check_step(x, out, strict, p)
+        return out
 
     _owner = "filter"
 

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import collections
 import dataclasses
-import inspect
-import threading
+import functools
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -16,7 +14,7 @@ import numpy as np
 from ._numerics import tied
 from ._params import ParamSpec, merge_specs, resolve
 from ._validation import check_real, check_scalar_range, traced_results
-from .controllers import Controller, StepStatus, has_input
+from .controllers import Controller, StepStatus, controller_step, has_input
 from .errors import (
     DimensionError,
     InfeasibleError,
@@ -31,11 +29,9 @@ from .systems import ControlAffineSystem
 
 __all__ = [
     "MAX_STEPS",
-    "PROGRAMS_KEPT",
     "Recorder",
     "Trajectory",
     "TrajectoryRecorder",
-    "clear_programs",
     "closed_loop",
     "rk4_step",
     "simulate",
@@ -407,15 +403,15 @@ class TrajectoryRecorder:
         return tuple(jnp.concatenate([a, b[None]], 0) for a, b in zip(ys, last, strict=True))
 
 
-def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]:
-    """Check ``params`` (a pytree or a function of time) and return it with ``params_at``.
+def _params_of_time(spec: ParamSpec | None, params: Any) -> Any:
+    """Check ``params`` (a pytree or a function of time); the pytree (``None`` for a function).
 
-    ``params_at(t, params)`` is the pytree at time ``t`` (``None`` without parameters).
+    A function's output is checked symbolically against the declared example;
+    :func:`_params_at` evaluates it in the loop.
     """
     owner = "the closed loop (controller and plant)"
     if not callable(params):
-        p = resolve(spec, params, owner)
-        return p, lambda t, params: params
+        return resolve(spec, params, owner)
     if spec is None:
         resolve(spec, params, owner)  # raises: given where none is declared
     assert spec is not None
@@ -427,123 +423,59 @@ def _params_of_time(spec: ParamSpec | None, params: Any) -> tuple[Any, Callable]
         ) from None
     # check the structure and leaf shapes of params(t) against the example, symbolically
     spec.check(_zeros_of(out), "params(t)")
-    fn = params
+    return None
+
+
+def _params_at(params_fn: Callable | None) -> Callable[[Any, Any], Any]:
+    """``params_at(t, data)``: the run's constant pytree, or ``params_fn(t)`` (a function)."""
+    if params_fn is None:
+        return lambda t, params: params
 
     def params_at(t: Any, _: Any) -> Any:
-        return jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), fn(t))
+        return jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params_fn(t))
 
-    return None, params_at
-
-
-def _model_as_data(model: Any) -> Any:
-    """``model`` if it is a pytree with array leaves (a fitted GP or cache), else ``None``."""
-    if model is None or jax.tree_util.treedef_is_leaf(jax.tree_util.tree_structure(model)):
-        return None
-    return model if jax.tree_util.tree_leaves(model) else None
+    return params_at
 
 
-#: How many compiled closed loops :func:`simulate` keeps for reuse in this process.
-PROGRAMS_KEPT = 16
-_programs: collections.OrderedDict[Any, tuple[Callable[..., Any], tuple]]
-_programs = collections.OrderedDict()
-_programs_lock = threading.Lock()
+@functools.partial(
+    jax.jit,
+    static_argnames=("plant", "exogenous", "params_fn", "n_steps", "dt", "batched", "substeps"),
+)
+def _simulation(
+    controller, x0, params, *, plant, exogenous, params_fn, n_steps, dt, batched, substeps
+) -> tuple:
+    """The closed loop of :func:`simulate`, the controller an argument of the program.
 
-
-def _identity(obj: Any) -> Any:
-    """A key naming ``obj`` by identity (a bound method: its object's and function's)."""
-    if obj is None:
-        return None
-    if inspect.ismethod(obj):  # a new bound-method object at every attribute access
-        return ("method", id(obj.__self__), id(obj.__func__))
-    return ("id", id(obj))
-
-
-def clear_programs() -> None:
-    """Forget the compiled closed loops :func:`simulate` keeps for reuse (and what they hold)."""
-    with _programs_lock:
-        _programs.clear()
-
-
-def _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched, substeps) -> Any:
-    """What a closed loop of :func:`simulate` is compiled from, or None (do not reuse).
-
-    The controller by its pytree structure (its class, options, system and certificates;
-    the objects among them by identity) and the values of its numeric leaves, which the
-    program holds as constants; the plant, ``exogenous`` and a ``params(t)`` function by
-    identity; the horizon, step and batching. Not reused: a controller with a traced leaf
-    (under a user's ``jit``), and one with an uncertainty model (kept, its data would stay
-    alive with it).
+    One jitted function: a controller of a tree structure seen before (built alike, or
+    :meth:`~safestab.Controller.replace` with new numbers, a new fitted GP of the same
+    shapes) runs the program compiled for the first, with the same plant, ``exogenous`` and
+    ``params(t)`` objects (compared as static arguments: a bound method by its object and
+    function), horizon, step, batching and substeps.
     """
-    if getattr(controller, "uncertainty", None) is not None:
-        return None
-    leaves, treedef = jax.tree_util.tree_flatten(controller)
-    values = []
-    for leaf in leaves:
-        if isinstance(leaf, jax.core.Tracer):
-            return None
-        a = np.asarray(leaf)
-        values.append((type(leaf), a.dtype.str, a.shape, a.tobytes()))
-    ids = tuple(_identity(o) for o in (plant, exogenous, params_fn))
-    return (treedef, tuple(values), ids, n_steps, dt, batched, substeps)
-
-
-def _simulation_program(
-    controller, plant, exogenous, params_at, params_fn, n_steps, dt, batched, substeps=1
-) -> Callable[[jax.Array, Any, Any], Any]:
-    """The jitted closed loop ``loop(x0, params, model)`` of :func:`simulate`.
-
-    An equal earlier request (:func:`_program_key`) gets the function built for it, so it
-    is neither traced nor lowered again: the true-model and mismatched-model loops of a
-    study, which share a parametric model and differ in ``params`` only, are one program
-    in one process. The last :data:`PROGRAMS_KEPT` are kept.
-    """
-    key = _program_key(controller, plant, exogenous, params_fn, n_steps, dt, batched, substeps)
-    if key is not None:
-        with _programs_lock:
-            found = _programs.get(key)
-            if found is not None:
-                _programs.move_to_end(key)
-                return found[0]
+    params_at = _params_at(params_fn)
 
     def rhs(t, x, out, data):
         p = params_at(t, data)
         xdot = plant.f_of(x, p) + plant.g_of(x, p) @ out.u
         return xdot if exogenous is None else xdot + exogenous(t)
 
-    def loop(ctrl: Any) -> Callable[[jax.Array, Any], Any]:
-        def step(t, x, data):
+    def step(t, x, data):
+        # through the controller's own jitted step: its trace (by step_fn, eval_shape or an
+        # earlier loop of the same structure) is reused
+        return controller_step(controller, x, params_at(t, data))
+
+    watch = None
+    if substeps > 1:  # the barriers' least value over each hold interval
+
+        def watch(t, x, data):
             p = params_at(t, data)
-            return ctrl.step_fn(x) if p is None else ctrl.step_fn(x, p)
+            if _records_rows(controller):
+                return jnp.stack([c.fn_of(x, p) for c in controller.cbfs])
+            return controller.cbf.fn_of(x, p)
 
-        watch = None
-        if substeps > 1:  # the barriers' least value over each hold interval
-
-            def watch(t, x, data):
-                p = params_at(t, data)
-                if _records_rows(ctrl):
-                    return jnp.stack([c.fn_of(x, p) for c in ctrl.cbfs])
-                return ctrl.cbf.fn_of(x, p)
-
-        recorder = TrajectoryRecorder(ctrl, params_at)
-        return closed_loop(
-            step, rhs, recorder, n_steps=n_steps, dt=dt, substeps=substeps, watch=watch
-        )
-
-    def run(x0: jax.Array, params: Any, model: Any) -> Any:
-        # the uncertainty model's arrays are arguments of the compiled loop, not constants
-        # baked into it (a GP's Q x Q factor made the program, and its compilation, as large as
-        # the data); a model that is not a pytree stays where the controller holds it
-        ctrl = controller if model is None else controller.replace(uncertainty=model)
-        return loop(ctrl)(x0, params)
-
-    fn = jax.jit(jax.vmap(run, in_axes=(0, None, None)) if batched else run)
-    if key is not None:
-        with _programs_lock:
-            # the objects named by identity in the key are kept alive with it
-            _programs[key] = (fn, (controller, plant, exogenous, params_fn))
-            while len(_programs) > PROGRAMS_KEPT:
-                _programs.popitem(last=False)
-    return fn
+    recorder = TrajectoryRecorder(controller, params_at)
+    run = closed_loop(step, rhs, recorder, n_steps=n_steps, dt=dt, substeps=substeps, watch=watch)
+    return jax.vmap(run, in_axes=(0, None))(x0, params) if batched else run(x0, params)
 
 
 def simulate(
@@ -624,16 +556,14 @@ def simulate(
     records status ``NONFINITE_STATE`` from that step on, and :meth:`Trajectory.failure_summary`
     names the first one.
 
-    The compiled loop is reused by a later call with an equal request: a controller of the
-    same structure (class, options, and the same system and certificate objects) with equal
-    parameter values and no uncertainty model, the same ``plant``, ``exogenous`` and
-    ``params(t)`` objects, horizon, step and batching (the last :data:`PROGRAMS_KEPT`
-    requests; :func:`clear_programs` forgets them). It is not traced again unless the batch
-    size or the structure of ``params`` is new (as with ``jax.jit``). So two controllers on
-    one parametric model that differ in ``params`` only run one program. As with
-    ``jax.jit``, a reused loop does not see a change made since to those objects in place
-    (an attribute of the object behind a bound method ``exogenous``, say) or to a global
-    variable their functions read: pass new objects, or call :func:`clear_programs`.
+    The loop is one jitted function with the controller as its argument: a later call with
+    a controller of the same tree structure (class, options, and the same system and
+    certificate objects; any parameter values, any fitted GP of the same shapes) and the same
+    ``plant``, ``exogenous`` and ``params(t)`` objects, horizon, step, batching and substeps
+    runs the compiled program (20 controllers that differ in their numbers: one
+    compilation). As with ``jax.jit``, a reused program does not see a change made since to
+    those objects in place (an attribute of the object behind a bound method ``exogenous``,
+    say) or to a global variable their functions read: pass new objects.
     """
     if not isinstance(controller, Controller):
         raise InputTypeError(
@@ -688,14 +618,11 @@ def simulate(
         )
     spec = merge_specs([getattr(controller, "params_spec", None), plant.params_spec])
     params_fn = params if callable(params) else None
-    params, params_at = _params_of_time(spec, params)
-
-    model = _model_as_data(getattr(controller, "uncertainty", None))
-    loop = _simulation_program(
-        controller, plant, exogenous, params_at, params_fn, n_steps, float(dt), x0.ndim == 2,
-        int(substeps),
+    params = _params_of_time(spec, params)
+    xs, us, Vs, hs, regions, comps, sats, stats, *between = _simulation(
+        controller, x0, params, plant=plant, exogenous=exogenous, params_fn=params_fn,
+        n_steps=n_steps, dt=float(dt), batched=x0.ndim == 2, substeps=int(substeps),
     )  # fmt: skip
-    xs, us, Vs, hs, regions, comps, sats, stats, *between = loop(x0, params, model)
     traj = Trajectory(
         t=jnp.asarray(np.arange(n_steps + 1) * dt),
         x=xs,

@@ -95,9 +95,11 @@ def _check_design(x: np.ndarray) -> None:
     Warns
     -----
     DataWarning
-        If the centred inputs have rank below ``n`` (a constant coordinate, or one that is a
+        If the centred varying coordinates have a lower rank than their count (one is a
         linear combination of the others): the lengthscales along the missing directions are
-        not identified and the prediction off the data's subspace is the prior's.
+        not identified and the prediction off the data's subspace is the prior's. An exactly
+        constant coordinate (held fixed while the data were taken) is not warned about: the
+        data say nothing along it, and the prediction there is the prior's.
     """
     q, n = x.shape
     if q > 1 and np.all(x == x[0]):
@@ -106,20 +108,20 @@ def _check_design(x: np.ndarray) -> None:
             "cannot learn how omega varies with x from them (it would report a near-zero "
             "std wherever it is asked); collect data at distinct states"
         )
-    fixed = np.all(x == x[0], axis=0)  # exactly constant (its std may round above 0)
-    const = np.flatnonzero(fixed).tolist()
-    centred = np.where(fixed, 0.0, x - x.mean(0))
+    # an exactly constant coordinate (a quantity held fixed while the data were taken: the
+    # ACC's lead speed) is left out of the check: it is scaled by 1, its lengthscale is the
+    # fit's bound, and the prediction along it is the prior's (documented, not warned)
+    varying = ~np.all(x == x[0], axis=0)
+    xs = x[:, varying]
+    centred = xs - xs.mean(0)
     scale = np.sqrt(np.mean(centred**2, 0))
     sv = np.linalg.svd(centred / np.where(scale > 0, scale, 1.0), compute_uv=False)
     rank = int(np.sum(sv > DESIGN_RANK_TOL * sv[0]))
-    if rank < n:
-        if const:
-            what = f"coordinate(s) {const} of x are constant"
-        else:
-            what = "x's coordinates are linearly dependent"
+    if rank < xs.shape[1]:
         warnings.warn(
-            f"the training inputs are rank-deficient: {what} (rank {rank} of {n} after "
-            "centring): the data lie in a lower-dimensional set, the "
+            f"the training inputs are rank-deficient: x's varying coordinates "
+            f"{np.flatnonzero(varying).tolist()} are linearly dependent (rank {rank} of "
+            f"{xs.shape[1]} after centring): the data lie in a lower-dimensional set, the "
             "lengthscales across it are not identified and the GP predicts its prior off it; "
             "collect data that vary every coordinate independently, or fit on independent "
             "coordinates",

@@ -134,3 +134,16 @@ def test_the_filter_takes_a_law_and_the_explicit_one_is_the_qp():
         SontagFilter(-1)
     with pytest.raises(ss.ParameterError, match="epsilon must be a number > 0"):
         SoftplusFilter(0.1, epsilon=0.0)
+
+
+def test_eq_6_is_the_sontag_filter_without_a_nominal_input():
+    """docs/theory.md's relation: eq. (6) with rho = 1 and varphi = sigma is SontagFilter."""
+    plane = ss.ControlAffineSystem(lambda x: jnp.array([x[1], -x[0]]), lambda x: jnp.eye(2), 2)
+    disc = ss.CBF(lambda x: 1.0 - x @ x, beta=2.0)
+    x = np.random.default_rng(1).uniform(-1.2, 1.2, size=(300, 2))
+    eq6 = ss.UniversalController(plane, None, disc, formula="cbf", kappa=0.0, rho=1.0, phi=0.0,
+                                 varphi=0.3)  # fmt: skip
+    sontag = ss.SafetyFilter(plane, disc, formula=SontagFilter(0.3))
+    np.testing.assert_allclose(
+        np.asarray(sontag.step(x).u), np.asarray(eq6.step(x).u), rtol=1e-12, atol=1e-14
+    )

@@ -14,6 +14,10 @@ in 20 RK4 substeps per hold and checked at every substep (``simulate(..., subste
   ``|u| <= 0.3 M g``, the universal controller with safety-first saturation; the lead's
   profile of the preset, 60 s.
 
+* ``mc``: the stress preset's Monte Carlo study at 10 Hz under the same limit, every
+  compared controller (the GP ones learn ``omega`` from each of ``--datasets`` fresh data
+  sets), ``--trials-per-dataset`` random leads and starts per data set.
+
 Each runs without the sampled-data margin and with it (``sample_time``, ``ddh_bound``): the
 bound ``M`` from the hand derivation (disc: ``-h'' = 2 |u|^2 <= 4``) or estimated by
 ``safestab.sampled.ddh_bound`` over the stated box (ACC). docs/deployed.md's table comes from
@@ -138,9 +142,56 @@ def acc_rows() -> list[dict]:
     return rows
 
 
+def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
+    """The stress preset's Monte Carlo at 10 Hz under |u| <= 0.3 M g, without and with the
+    margin: every controller, trials over fresh data sets, h checked at 10 substeps a hold."""
+    from safestab.montecarlo import run_montecarlo
+
+    sc = load_scenario("stress").replace(dt=0.1, input_limit=0.3)
+    system = sc.system("true")
+    _, cbf = sc.certificates()
+    lim = 0.3 * sc.mass * sc.gravity / sc.input_scale
+    spec = sc.montecarlo.replace(substeps=10)
+    g = sc.gravity
+    # the operating region and every lead acceleration the trials draw
+    a_range = (-spec.lead_decel_max * g, spec.lead_accel_max * g)
+    M = float(
+        ddh_bound(
+            system,
+            cbf,
+            [0.0, 0.0, 0.0],
+            [35.0, 35.0, 150.0],
+            u_min=-lim,
+            u_max=lim,
+            disturbance=([0, a_range[0], 0], [0, a_range[1], 0]),
+        )[0]
+    )
+    rows = []
+    for margin, bound in (("none", None), ("estimated bound", M)):
+        run = run_montecarlo(sc, trials=datasets * trials_per_dataset, datasets=datasets,
+                             spec=spec.replace(ddh_bound=bound))  # fmt: skip
+        rec = run.records
+        for c, name in enumerate(run.controllers):
+            h, hb = rec["min_h"][:, c], rec["min_h_between"][:, c]
+            rows.append({
+                "controller": name, "margin": margin, "ddh_bound": bound,
+                "datasets": datasets, "trials": int(h.size),
+                "left_at_samples": int(np.sum(h < 0)),
+                "left_between_samples": int(np.sum(hb < 0)),
+                "min_h_samples": float(np.min(h)), "min_h_between": float(np.min(hb)),
+                "trials_with_unmet_steps": int(np.sum(rec["barrier_unmet_steps"][:, c] > 0)),
+                "unmet_steps": int(np.sum(rec["barrier_unmet_steps"][:, c])),
+                "median_min_h": float(np.median(h)),
+            })  # fmt: skip
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the rows to this file")
+    parser.add_argument("--datasets", type=int, default=10,
+                        help="data sets of the Monte Carlo part (0: skip it)")  # fmt: skip
+    parser.add_argument("--trials-per-dataset", type=int, default=10)
     args = parser.parse_args(argv)
     rows = disc_rows() + pass_by_rows() + acc_rows()
     for r in rows:
@@ -150,9 +201,17 @@ def main(argv: list[str] | None = None) -> int:
             f"  min h {r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};"
             f"  not OK {r['steps_not_ok']} of {r['steps']} {r['statuses']}"
         )
+    mc = mc_rows(args.datasets, args.trials_per_dataset) if args.datasets else []
+    for r in mc:
+        print(
+            f"mc {r['controller']:20s} margin {r['margin']:16s} left: {r['left_at_samples']} "
+            f"at samples, {r['left_between_samples']} between, of {r['trials']};  min h "
+            f"{r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};  trials with unmet steps "
+            f"{r['trials_with_unmet_steps']}"
+        )
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(rows, fh, indent=1, allow_nan=False)
+            json.dump({"loops": rows, "montecarlo": mc}, fh, indent=1, allow_nan=False)
     return 0
 
 

@@ -308,6 +308,26 @@ def _signed(x: float) -> str:
     return f"{x:+.4f}" if abs(x) >= 1e-3 or x == 0 else f"{x:+.1e}"
 
 
+def deployed_mc_table(rows: list[dict]) -> str:
+    """docs/deployed.md's Monte Carlo table from benchmarks/deployed.py's --json rows."""
+    body = []
+    for r in rows:
+        body.append([
+            r["controller"],
+            r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})"),
+            f"{r['left_at_samples']} / {r['trials']}",
+            f"{r['left_between_samples']} / {r['trials']}",
+            _signed(r["min_h_samples"]), _signed(r["min_h_between"]),
+            f"{r['median_min_h']:.3f}",
+            f"{r['trials_with_unmet_steps']} ({r['unmet_steps']} steps)",
+        ])  # fmt: skip
+    header = ["controller", "sampled-data margin", "trials below h = 0 at the samples",
+              "trials below h = 0 between the samples", "min h at the samples (m)",
+              "min h between the samples (m)", "median of each trial's min h (m)",
+              "trials with steps the limits could not make safe"]  # fmt: skip
+    return _table(header, ["---", "---", "---:", "---:", "---:", "---:", "---:", "---:"], body)
+
+
 def deployed_table(rows: list[dict]) -> str:
     """docs/deployed.md's table from benchmarks/deployed.py's --json rows."""
     body = []
@@ -649,7 +669,11 @@ def step_deployed(out: Path) -> dict[str, tuple[str, str]]:
     out.mkdir(parents=True, exist_ok=True)
     rows = out / "deployed.json"
     _run([sys.executable, "benchmarks/deployed.py", "--json", str(rows)])
-    return {"deployed": ("docs/deployed.md", deployed_table(_load(rows)))}
+    doc = _load(rows)
+    return {
+        "deployed": ("docs/deployed.md", deployed_table(doc["loops"])),
+        "deployed-mc": ("docs/deployed.md", deployed_mc_table(doc["montecarlo"])),
+    }
 
 
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
@@ -684,7 +708,7 @@ PRODUCES = {
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],
     "fast-band": ["fastgp-width"],
-    "deployed": ["deployed"],
+    "deployed": ["deployed", "deployed-mc"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "price": ["price-stress", "price-obstacle"],

@@ -178,3 +178,27 @@ def test_the_margin_and_the_statuses_export_to_c():
     np.testing.assert_array_equal(got.status, status)
     # C and XLA round the same operations in another order: a few units of the last place
     np.testing.assert_allclose(got.u, np.asarray(want.u), rtol=0, atol=1e-13)
+
+
+def test_the_monte_carlo_loop_records_the_least_h_between_samples():
+    """trial_function(substeps=N)'s min_h_between against simulate's full history of the same
+    loop (h_between, checked against the exact flow above), on a coarse pass-by."""
+    from safestab.montecarlo import trial_function
+
+    centre = jnp.array([1.0, 0.2])
+    obstacle = ss.CBF(lambda x: (x - centre) @ (x - centre) - 0.0625, beta=50.0)
+    goal = ss.CLF(lambda x: (x - jnp.array([3.0, 0.0])) @ (x - jnp.array([3.0, 0.0])), lam=1.0)
+    ctrl = ss.UniversalController(PLANE, goal, obstacle, kappa=0.0, rho=0.0, phi=0.0,
+                                  varphi=0.0, slack_weight=1e3, u_min=-1.0, u_max=1.0)  # fmt: skip
+    x0 = np.array([0.0, 0.0])
+    for n_sub in (1, 16):
+        run = trial_function([ctrl], plant=PLANE, n_steps=8, dt=0.4, substeps=n_sub)
+        rec = {k: float(np.asarray(v)[0]) for k, v in jax.jit(run)(x0, {}).items()}
+        traj = ss.simulate(ctrl, x0, t_final=3.2, dt=0.4, substeps=n_sub)
+        assert rec["min_h"] == pytest.approx(float(np.min(traj.h)), rel=1e-12)
+        if n_sub == 1:  # the samples alone
+            assert rec["min_h_between"] == rec["min_h"]
+        else:
+            want = float(np.nanmin(traj.h_between))
+            assert rec["min_h_between"] == pytest.approx(want, rel=1e-12)
+            assert rec["min_h_between"] < 0.0 < rec["min_h"]  # a dip the samples miss

@@ -554,15 +554,17 @@ def _lg_h(
 
 
 def lie_terms(
-    system: ControlAffineSystem, clf: CLF, cbf: CBF, x: Any, *, params: Any = None
+    system: ControlAffineSystem, clf: CLF | None, cbf: CBF | None, x: Any, *, params: Any = None
 ) -> LieTerms:
     """Compute ``(a, b, c, d)`` at states ``x`` of shape (..., n).
 
     Parameters
     ----------
     system : ControlAffineSystem
-    clf : CLF
-    cbf : CBF
+    clf : CLF or None
+        None: ``a = 0`` and ``b = 0`` (no CLF condition).
+    cbf : CBF or None
+        None: ``c = 0`` and ``d = 0`` (no CBF condition).
     x : array of shape (..., n)
     params : pytree, optional
         The run-time parameters, when the system or a certificate declared them (the same
@@ -590,9 +592,13 @@ def lie_terms(
     """
     check_real("x", x)
     x = system.check_state(x)
-    clf.check(system.n_states)
-    cbf.check(system.n_states)
-    spec = merge_specs([system.params_spec, clf.params_spec, cbf.params_spec])
+    for name, cert, kind in (("clf", clf, CLF), ("cbf", cbf, CBF)):
+        if cert is not None and not isinstance(cert, kind):
+            raise TypeError(f"{name} must be a {kind.__name__} or None, got {type(cert).__name__}")
+    certs = [c for c in (clf, cbf) if c is not None]
+    for cert in certs:
+        cert.check(system.n_states)
+    spec = merge_specs([system.params_spec, *(c.params_spec for c in certs)])
     p = resolve(spec, params, "lie_terms' system and certificates")
     terms = over_batch(lambda s: lie_terms_point(system, clf, cbf, s, p), x)
     if is_concrete(*terms):
@@ -610,12 +616,15 @@ def lie_terms(
 
 
 def lie_terms_point(
-    system: ControlAffineSystem, clf: CLF, cbf: CBF, x: jax.Array, p: Any = None
+    system: ControlAffineSystem, clf: CLF | None, cbf: CBF | None, x: jax.Array, p: Any = None
 ) -> LieTerms:
     """``(a, b, c, d)`` at one state of shape (n,), unchecked and jittable.
 
     ``p``: the run-time parameters (unchecked), when the system or a certificate takes them.
+    A missing certificate (``None``) gives zero terms: ``a = 0, b = 0`` without a CLF (every
+    input meets ``b.u <= -a``), ``c = 0, d = 0`` without a CBF.
     """
-    a, b = clf.lie_point(system, x, p)
-    c, d = cbf.lie_point(system, x, p)
+    zeros = (jnp.zeros(()), jnp.zeros(system.n_inputs))
+    a, b = zeros if clf is None else clf.lie_point(system, x, p)
+    c, d = zeros if cbf is None else cbf.lie_point(system, x, p)
     return LieTerms(a, b, c, d)

@@ -412,8 +412,11 @@ class UniversalController(Controller):
     ----------
     system : ControlAffineSystem
         The (nominal) model ``f``, ``g``.
-    clf : CLF
-    cbf : CBF
+    clf : CLF or None
+        None with ``formula="cbf"``: the CBF formula alone, eq. (6), with no CLF (its terms
+        ``a = b = 0``; ``clf_satisfied`` is then True).
+    cbf : CBF or None
+        None with ``formula="sontag"``: Sontag's CLF formula alone, eq. (3), with no CBF.
     kappa, rho : float
         >= 0 (see :func:`~safestab.formulas.clf_cbf`).
     phi, varphi : float or callable
@@ -535,14 +538,18 @@ class UniversalController(Controller):
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         formula_obj = self._formula_object(formula, slack_weight, parallel_rtol)
         sample_time, ddh_bound = check_sampled(sample_time, ddh_bound)
-        if not isinstance(clf, CLF):
+        if not (isinstance(clf, CLF) or clf is None and isinstance(formula_obj, CBFFormula)):
             raise InputTypeError(
-                f"clf must be a CLF, got {type(clf).__name__}; for a controller with barriers "
-                "only, use SafetyFilter(system, cbfs) (no CLF, any number of CBFs)"
+                f"clf must be a CLF, got {type(clf).__name__}; without a CLF, use "
+                "formula='cbf' (the CBF formula, eq. (6)), or SafetyFilter(system, cbfs) for "
+                "the minimal change of a nominal input"
+                if clf is None
+                else f"clf must be a CLF (or None with formula='cbf'), got {type(clf).__name__}"
             )
-        if not isinstance(cbf, CBF):
+        if not (isinstance(cbf, CBF) or cbf is None and isinstance(formula_obj, SontagFormula)):
             raise InputTypeError(
-                f"cbf must be a CBF, got {type(cbf).__name__} (several: SafetyFilter)"
+                f"cbf must be a CBF (or None with formula='sontag'), got {type(cbf).__name__} "
+                "(several: SafetyFilter)"
             )
         check_params((), kappa=kappa, rho=rho, parallel_rtol=parallel_rtol)
         own_spec = make_spec(params, "the controller")
@@ -562,12 +569,13 @@ class UniversalController(Controller):
         if cbf_margin is not None:
             self._check_nonnegative_scalar("cbf_margin", cbf_margin)
         self._check_robust_clf_layer(robust_clf_layer, uncertainty)
-        clf.check(system.n_states)
-        cbf.check(system.n_states)
+        certs = [c for c in (clf, cbf) if c is not None]
+        for cert in certs:
+            cert.check(system.n_states)
         self.params_spec: ParamSpec | None = merge_specs(
-            [system.params_spec, clf.params_spec, cbf.params_spec, own_spec]
+            [system.params_spec, *(c.params_spec for c in certs), own_spec]
         )
-        if not isinstance(formula_obj, SontagFormula):  # a formula that enforces the CBF
+        if cbf is not None and not isinstance(formula_obj, SontagFormula):  # enforced
             check_actuated(system, cbf, "cbf", getattr(self.params_spec, "example", None))
         m = system.n_inputs
         u_min, u_max = self._check_limits(u_min, u_max, m)
@@ -620,14 +628,14 @@ class UniversalController(Controller):
     _CHILDREN = ("clf", "cbf")
 
     @property
-    def clfs(self) -> tuple[CLF]:
-        """The controller's CLFs, ``(clf,)``: the same view as a filter's."""
-        return (self.clf,)
+    def clfs(self) -> tuple[CLF, ...]:
+        """The controller's CLFs, ``(clf,)`` or ``()``: the same view as a filter's."""
+        return () if self.clf is None else (self.clf,)
 
     @property
-    def cbfs(self) -> tuple[CBF]:
-        """The controller's CBFs, ``(cbf,)``: the same view as a filter's."""
-        return (self.cbf,)
+    def cbfs(self) -> tuple[CBF, ...]:
+        """The controller's CBFs, ``(cbf,)`` or ``()``: the same view as a filter's."""
+        return () if self.cbf is None else (self.cbf,)
 
     def _leaf_names(self) -> tuple[str, ...]:
         names = ["kappa", "rho"]
@@ -713,16 +721,20 @@ class UniversalController(Controller):
             jnp.where((weights[0] < 0) | (weights[1] < 0), S.NEGATIVE_WEIGHT, S.OK),
             S.NONFINITE_MODEL,
         )
-        model_ok = jnp.where(
-            (model_ok == S.OK) & ~self.cbf.relative_degree_holds(self.system, x, p),
-            S.RELATIVE_DEGREE,
-            model_ok,
-        )
+        if self.cbf is not None:
+            model_ok = jnp.where(
+                (model_ok == S.OK) & ~self.cbf.relative_degree_holds(self.system, x, p),
+                S.RELATIVE_DEGREE,
+                model_ok,
+            )
         status = jnp.where(~_all_finite(x), S.NONFINITE_STATE, model_ok)
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x) if given is None else given
             beta = jnp.asarray(self.gp_beta)
-            grads = self.clf.grad_of(x, p), self.cbf.grad_of(x, p)
+            grads = tuple(
+                jnp.zeros(self.system.n_states) if c is None else c.grad_of(x, p)
+                for c in (self.clf, self.cbf)
+            )
             terms = robust_lie_terms(terms, *grads, mean, std, beta, self._clf_layer)
             status = jnp.where(
                 status != S.OK,
@@ -733,7 +745,7 @@ class UniversalController(Controller):
                     jnp.where(jnp.any(std < 0), S.NEGATIVE_STD, S.OK),
                 ),
             )
-        if self.sample_time is not None:  # the sampled-data margin: a shift of c
+        if self.sample_time is not None and self.cbf is not None:  # a shift of c
             h = self.cbf.fn_of(x, p)
             shift = sampled_shift(h, self.cbf.rate_term(h), self.sample_time, self.ddh_bound)
             terms = terms._replace(c=terms.c - shift)
@@ -828,11 +840,11 @@ class UniversalController(Controller):
             "x": x,
             "f(x)": self.system.f_of(x, p),
             "g(x)": self.system.g_of(x, p),
-            "V(x)": self.clf.fn_of(x, p),
-            "grad V(x)": self.clf.grad_of(x, p),
-            "h(x)": self.cbf.fn_of(x, p),
-            "grad h(x)": self.cbf.grad_of(x, p),
         }
+        for sym, cert in (("V", self.clf), ("h", self.cbf)):
+            if cert is not None:
+                parts[f"{sym}(x)"] = cert.fn_of(x, p)
+                parts[f"grad {sym}(x)"] = cert.grad_of(x, p)
         if self.uncertainty is not None:
             mean, std = self.uncertainty.mean_std(x)
             parts["uncertainty mean"] = mean

@@ -28,6 +28,7 @@ from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
 from .formulas.problem import MultiFormula, Problem
+from .formulas.smooth import SmoothFilter
 from .robust import UncertaintyModel, robust_margins
 from .sampled import check_sampled, sampled_shift
 from .systems import ControlAffineSystem
@@ -230,6 +231,12 @@ class SafetyFilter(Controller):
         (k,)); every CBF condition is shifted by ``M T / 2 + max(0, alpha(h) - h / T)``, which
         keeps each ``h >= 0`` over the hold intervals (as for
         :class:`~safestab.UniversalController`; :mod:`safestab.sampled`, docs/deployed.md).
+    formula : SmoothFilter, optional
+        A smooth closed-form filter of one CBF around ``u_nom`` instead of the exact QP
+        (:mod:`safestab.formulas.smooth`: ``ExplicitFilter()``, ``SontagFilter(sigma)``,
+        ``HalfSontagFilter(sigma)``, ``SoftplusFilter(sigma)``, each with the
+        input-to-state-safe ``epsilon``); then one CBF, no CLF, no limits, no ``H``, no slack
+        and ``rho = 0``. Default: the exact QP.
     max_iter : int, optional
         Iteration bound of the solver per phase (default: as
         :func:`~safestab.formulas.clf_cbf_multi`); where it is reached, ``formula_status`` is
@@ -263,12 +270,15 @@ class SafetyFilter(Controller):
         max_iter: int | None = None,
         sample_time: float | None = None,
         ddh_bound: Any = None,
+        formula: SmoothFilter | None = None,
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
         if not self.cbfs:
             raise ParameterError("give at least one CBF")
+        if formula is not None:
+            self._check_smooth(formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H)
         max_iter = check_max_iter(max_iter)
         sample_time, ddh_bound = check_sampled(sample_time, ddh_bound, len(self.cbfs))
         check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
@@ -329,8 +339,9 @@ class SafetyFilter(Controller):
         #: The hold time ``T`` (s) and the bound(s) ``M`` of the sampled-data margin (None).
         self.sample_time = None if sample_time is None else as_scalar(sample_time)
         self.ddh_bound = ddh_bound
-        #: The several-row formula object that solves each step's problem.
-        self.formula = MultiFormula(max_iter)
+        #: The formula object that solves each step's problem: the several-row QP
+        #: (:class:`~safestab.formulas.problem.MultiFormula`), or a smooth one-barrier filter.
+        self.formula = MultiFormula(max_iter) if formula is None else formula
         self._remember(SafetyFilter, init_args)
 
     _CHILDREN = ("clfs", "cbfs")
@@ -389,7 +400,34 @@ class SafetyFilter(Controller):
     @property
     def max_iter(self) -> int | None:
         """The solver's iteration bound per phase (the formula's; None: from the size)."""
-        return self.formula.max_iter
+        return getattr(self.formula, "max_iter", None)
+
+    @staticmethod
+    def _check_smooth(formula, clfs, cbfs, rho, slack_weight, u_min, u_max, H) -> None:
+        """A smooth filter formula: one CBF, no CLF, limits, weight, slack or ``rho``."""
+        if not isinstance(formula, SmoothFilter):
+            raise ParameterError(
+                "formula must be None (the exact QP) or a smooth filter of "
+                "safestab.formulas (ExplicitFilter, SontagFilter, HalfSontagFilter, "
+                f"SoftplusFilter), got {formula!r}"
+            )
+        extra = [
+            name
+            for name, given in (
+                ("a CLF", bool(clfs)),
+                (f"{len(cbfs)} CBFs", len(cbfs) > 1),
+                ("u_min/u_max", u_min is not None or u_max is not None),
+                ("H", H is not None),
+                ("slack_weight", slack_weight is not None),
+                ("rho > 0", is_concrete(rho) and float(rho) != 0.0),
+            )
+            if given
+        ]
+        if extra:
+            raise ParameterError(
+                f"{type(formula).__name__} filters one CBF around u_nom; it takes no "
+                f"{', '.join(extra)} (the exact QP, formula=None, does)"
+            )
 
     def nominal_input(self, x: jax.Array, p: Any = None) -> jax.Array | None:
         """The nominal input ``u_nom`` at one state ``x`` (n,), shape (m,); None without one.

@@ -71,8 +71,9 @@ class Trajectory:
         Inputs held on ``[t_k, t_k + dt)`` (the last one is the input the controller would
         apply at the final state).
     V, h : arrays of shape (..., T)
-        CLF and CBF values at ``x``; for a :class:`~safestab.SafetyFilter`, shapes
-        (..., T, p) and (..., T, k): one value per CLF and per CBF.
+        CLF and CBF values at ``x`` (NaN where a controller has no CLF, or no CBF); for a
+        :class:`~safestab.SafetyFilter`, shapes (..., T, p) and (..., T, k): one value per
+        CLF and per CBF.
     region : int array of shape (..., T)
         :class:`~safestab.formulas.Region` per step; for a filter its
         :class:`~safestab.formulas.MultiStatus` (``SOLVED`` or the fallback used).
@@ -381,8 +382,9 @@ class TrajectoryRecorder:
             region = out.formula_status
             compatible = ok & (out.formula_status == MultiStatus.SOLVED)
             sat = jnp.all(out.cbf_satisfied)
-        else:
-            V, h = ctrl.clf.fn_of(x, p), ctrl.cbf.fn_of(x, p)
+        else:  # NaN for a certificate the controller has not
+            V, h = (jnp.nan if c is None else c.fn_of(x, p) for c in (ctrl.clf, ctrl.cbf))
+            V, h = jnp.asarray(V, float), jnp.asarray(h, float)
             region, compatible, sat = out.region, out.compatible, out.cbf_satisfied
         return (x, out.u, V, h, region, compatible, sat, out.status)
 
@@ -471,7 +473,7 @@ def _simulation(
             p = params_at(t, data)
             if _records_rows(controller):
                 return jnp.stack([c.fn_of(x, p) for c in controller.cbfs])
-            return controller.cbf.fn_of(x, p)
+            return jnp.asarray(jnp.nan if controller.cbf is None else controller.cbf.fn_of(x, p))
 
     recorder = TrajectoryRecorder(controller, params_at)
     run = closed_loop(step, rhs, recorder, n_steps=n_steps, dt=dt, substeps=substeps, watch=watch)

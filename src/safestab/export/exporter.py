@@ -297,19 +297,35 @@ def _version() -> str:
 def _describe_controller(controller: Any) -> str:
     """The exact formula variant of a UniversalController, for the header."""
     p = controller.params
-    kind = (
+    names = {"SontagFormula": "Sontag's CLF formula (eq. (3))",
+             "CBFFormula": "the CBF formula (eq. (6))"}  # fmt: skip
+    kind = names.get(
+        type(controller.formula).__name__,
         f"relaxed formula (Theorem 3), slack_weight = {controller.slack_weight!r}"
         if controller.slack_weight is not None
-        else "combined hard-constraint formula (Theorem 1)"
+        else "combined hard-constraint formula (Theorem 1)",
     )
+    rates = [
+        f"{what} = {'none (no ' + cert_kind + ')' if cert is None else repr(cert.rate)}"
+        for what, cert, cert_kind in (
+            ("CLF rate lambda", controller.clf, "CLF"),
+            ("CBF rate beta", controller.cbf, "CBF"),
+        )
+    ]
     lines = [
         f"Controller: {controller!r}",
         f"System '{controller.system.name}': n_states = {controller.system.n_states}, "
         f"n_inputs = {controller.system.n_inputs}.",
         f"Formula: {kind}; kappa = {p['kappa']!r}, rho = {p['rho']!r}, phi = {p['phi']!r}, "
         f"varphi = {p['varphi']!r}, parallel_rtol = {controller.parallel_rtol!r}.",
-        f"CLF rate lambda = {controller.clf.rate!r}; CBF rate beta = {controller.cbf.rate!r}.",
+        "; ".join(rates) + ".",
     ]
+    if getattr(controller, "sample_time", None) is not None:
+        lines.append(
+            f"Sampled-data margin: sample_time = {float(controller.sample_time)!r} s, ddh_bound "
+            f"= {float(controller.ddh_bound)!r}: the CBF condition is shifted by "
+            "M T / 2 + max(0, alpha(h) - h / T) (docs/deployed.md)."
+        )
     if getattr(controller, "cbf_margin", None) is not None:
         lines.append(
             f"CBF margin {float(controller.cbf_margin)!r}: the formula enforces c + d.u >= "

@@ -52,6 +52,13 @@ from .results import (
     Region,
 )
 from .single import cbf_universal, clf_sontag, zeta
+from .smooth import (
+    ExplicitFilter,
+    HalfSontagFilter,
+    SmoothFilter,
+    SoftplusFilter,
+    SontagFilter,
+)
 from .two_constraint import clf_cbf, clf_cbf_relaxed
 
 __all__ = [
@@ -83,4 +90,9 @@ __all__ = [
     "CombinedFormula",
     "RelaxedFormula",
     "MultiFormula",
+    "SmoothFilter",
+    "ExplicitFilter",
+    "SontagFilter",
+    "HalfSontagFilter",
+    "SoftplusFilter",
 ]

@@ -28,6 +28,8 @@ __all__ = ["RECORD_FIELDS", "StatisticsRecorder", "trial_function"]
 #: The per-trial, per-controller records, with their meaning (docs/montecarlo.md).
 RECORD_FIELDS: dict[str, str] = {
     "min_h": "smallest h over the visited states t_0 .. t_K (m for the ACC)",
+    "min_h_between": "smallest h over every hold interval, at its start and after each of "
+    "the spec's substeps (equal to min_h with one substep: the samples alone)",
     "time_h_negative": "time with h < 0 (s): steps k < K with h(x_k) < 0, times dt",
     "cbf_true_violations": "steps where the applied u broke the CBF condition on the TRUE "
     "dynamics, L_f h + L_g h u + dh/dx e(t) + beta h >= 0 (relative tolerance SATISFIED_RTOL)",
@@ -82,6 +84,7 @@ class StatisticsRecorder:
         zero_i = jnp.asarray(0, jnp.int64)
         return {
             "min_h": jnp.asarray(jnp.inf),
+            "min_h_between": jnp.asarray(jnp.inf),
             "h_negative_steps": zero_i,
             "cbf_true_violations": zero_i,
             "min_cbf_true_margin": jnp.asarray(jnp.inf),
@@ -107,8 +110,11 @@ class StatisticsRecorder:
             return jnp.asarray(False)
         return jnp.any(jnp.abs(self.omega(x, data) - ev["mean"]) > self.beta * ev["std"])
 
-    def update(self, s, k, t, x, ev, data):
-        """The statistics after step ``k`` (the true dynamics' conditions at ``x``)."""
+    def update(self, s, k, t, x, ev, data, between=None):
+        """The statistics after step ``k`` (the true dynamics' conditions at ``x``).
+
+        ``between``: the least ``h`` over the hold interval after ``x`` (substeps), if any.
+        """
         plant, clf, cbf = self.plant, self.clf, self.cbf
         u = ev["u"]
         a, b, c, d = lie_terms_point(plant, clf, cbf, x)
@@ -121,8 +127,10 @@ class StatisticsRecorder:
         h, status = cbf.fn(x), ev["status"]
         bad = ~has_input(status)
         first = (s["first_bad_status"] == 0) & bad
+        least = h if between is None else jnp.minimum(h, between)
         new = {
             "min_h": jnp.minimum(s["min_h"], h),
+            "min_h_between": jnp.minimum(s["min_h_between"], least),
             "h_negative_steps": s["h_negative_steps"] + (h < 0),
             "cbf_true_violations": s["cbf_true_violations"] + cbf_bad,
             "min_cbf_true_margin": jnp.minimum(s["min_cbf_true_margin"], c_true),
@@ -148,8 +156,10 @@ class StatisticsRecorder:
         final_bad = ~jnp.all(jnp.isfinite(x_final)) & (s["first_bad_status"] == 0)
         l2 = s["lemma2_violations"] + self._lemma2_bad(x_final, data, ev_final)
         v_final = self.clf.fn(x_final)
+        h_final = self.cbf.fn(x_final)
         return {
-            "min_h": jnp.minimum(s["min_h"], self.cbf.fn(x_final)),
+            "min_h": jnp.minimum(s["min_h"], h_final),
+            "min_h_between": jnp.minimum(s["min_h_between"], h_final),
             "time_h_negative": s["h_negative_steps"] * self.dt,
             "cbf_true_violations": s["cbf_true_violations"],
             "min_cbf_true_margin": s["min_cbf_true_margin"],
@@ -185,6 +195,7 @@ def trial_function(
     omega: Omega | None = None,
     lemma2: Sequence[tuple[Any, jax.Array] | None] | None = None,
     reference: UniversalController | SafetyFilter | None = None,
+    substeps: int = 1,
 ) -> Callable[[jax.Array, Any], dict[str, jax.Array]]:
     """Build ``run(x0, params) -> records`` for one trial and every controller.
 
@@ -218,6 +229,9 @@ def trial_function(
         With it, every controller's trial also records ``mean_input_gap`` (its input against
         this controller's input at the same state, one more step per step) and
         ``settle_time``; without, both are -1.
+    substeps : int
+        RK4 steps per hold interval (default 1); with more, ``min_h_between`` records the
+        least ``h`` at every substep (what the samples alone can miss).
 
     Returns
     -------
@@ -287,6 +301,8 @@ def trial_function(
             ),
             n_steps=n_steps,
             dt=dt,
+            substeps=substeps,
+            watch=None if substeps == 1 else (lambda t, x, p: cbf.fn(x)),
         )
         for ctrl, check in zip(ctrls, checks, strict=True)
     ]

@@ -95,14 +95,18 @@ def empirical_bernstein(values: Any, confidence: float = 0.95) -> tuple[float, f
 
 
 def safe_mask(records: dict[str, np.ndarray]) -> np.ndarray:
-    """Trials (rows) x controllers where every step gave an input and ``min h >= 0``.
+    """Trials (rows) x controllers where every step gave an input and ``h >= 0`` throughout.
+
+    ``h`` at the samples (``min_h``) and, with substeps, between them (``min_h_between``).
 
     A trial whose run stopped being finite counts as not safe (its ``min_h`` is NaN). Steps
     whose input could not meet a CBF condition (``barrier_unmet_steps``) are counted apart.
     """
     ok = records["first_bad_status"] == StepStatus.OK
+    # between the samples too, where the records have it (min_h with one substep)
+    least = records.get("min_h_between", records["min_h"])
     with np.errstate(invalid="ignore"):
-        return ok & (records["min_h"] >= 0)
+        return ok & (records["min_h"] >= 0) & (least >= 0)
 
 
 #: The controllers whose beta carries a probability guarantee, what it claims and on what
@@ -268,6 +272,11 @@ def summarize(run: MonteCarloRun) -> dict[str, Any]:
             "mean_final_V": float(np.mean(rec["final_V"][:, c])),
             "incompatible_steps_total": int(np.sum(rec["incompatible_steps"][:, c])),
         }
+        if "min_h_between" in rec:
+            between = rec["min_h_between"][:, c]
+            entry["left_between_samples_trials"] = int(
+                np.sum((between < 0) & ~(min_h < 0) & finite)
+            )
         if "barrier_unmet_steps" in rec:  # records written before the count existed lack it
             unmet = rec["barrier_unmet_steps"][:, c]
             entry["barrier_unmet_steps_total"] = int(np.sum(unmet))

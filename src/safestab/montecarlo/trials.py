@@ -267,6 +267,7 @@ def _compiled_chunk(study: TrialStudy) -> Any:
         run = trial_function(
             ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
             exogenous=study.exogenous, omega=omega, lemma2=checks, reference=ref,
+            substeps=spec.substeps,
         )  # fmt: skip
         return jax.vmap(run)(x0, params)
 

@@ -84,6 +84,8 @@ MC_FIELDS: dict[str, tuple[Any, Any]] = {
     "delta": (real(_SMALL, 1.0 - 1e-12), 0.01),
     "rkhs_norm": (real(0.0), 1.0),
     "price_metrics": (_boolean, False),
+    "substeps": (integer(1, 1000), 1),
+    "ddh_bound": (_optional_real(0.0), None),
     "initial.distribution": (choice(("fixed", "box", "normal")), "fixed"),
     "initial.low": (_vector_or_none, None),
     "initial.high": (_vector_or_none, None),
@@ -133,6 +135,14 @@ class MonteCarloSpec:
         controller's input at the same state and the time to converge
         (:data:`~safestab.montecarlo.loop.RECORD_FIELDS` ``mean_input_gap``,
         ``settle_time``; -1 when off). Off by default: one more controller step per step.
+    substeps : int
+        RK4 steps per hold interval of ``simulation.dt`` (default 1): with more, each trial
+        also records the least ``h`` between the samples (``min_h_between``), and a trial is
+        safe only if it stays >= 0 there too.
+    ddh_bound : float or None
+        The sampled-data margin's bound ``M`` on ``-d^2h/dt^2`` (docs/deployed.md): every
+        compared controller then runs with ``sample_time = simulation.dt`` and this
+        ``ddh_bound``. None (default): no margin.
     initial_distribution : {"fixed", "box", "normal"}
         The scenario's own initial state, a uniform box ``[initial_low, initial_high]``, or
         independent normals ``N(initial_mean, initial_std^2)`` per component.
@@ -153,6 +163,8 @@ class MonteCarloSpec:
     delta: float = 0.01
     rkhs_norm: float = 1.0
     price_metrics: bool = False
+    substeps: int = 1
+    ddh_bound: float | None = None
     initial_distribution: str = "fixed"
     initial_low: tuple[float, ...] | None = None
     initial_high: tuple[float, ...] | None = None

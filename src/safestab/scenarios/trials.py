@@ -114,9 +114,14 @@ class ScenarioTrials:
         """Keyword arguments of every compared :class:`~safestab.UniversalController`."""
         sc = self.scenario
         u_min, u_max = sc.input_limits()
+        margin = (
+            {}
+            if self.spec.ddh_bound is None
+            else {"sample_time": sc.dt, "ddh_bound": self.spec.ddh_bound}
+        )
         return dict(
             kappa=sc.kappa, rho=sc.rho, phi=sc.phi, varphi=sc.varphi,
-            slack_weight=sc.slack_weight, u_min=u_min, u_max=u_max,
+            slack_weight=sc.slack_weight, u_min=u_min, u_max=u_max, **margin,
         )  # fmt: skip
 
     def controller_settings(self) -> dict[str, Any]:

@@ -105,6 +105,14 @@ def pass_by_rows() -> list[dict]:
     return rows
 
 
+def _acc_bound(system: ss.ControlAffineSystem, cbf: ss.CBF, lim: float, a_range) -> float:
+    """``ddh_bound`` of the ACC's barrier over speeds 0 to 35 m/s, gaps 0 to 150 m, inputs
+    within ``+-lim`` and lead accelerations in ``a_range`` (m/s^2)."""
+    lo, hi = [0.0, 0.0, 0.0], [35.0, 35.0, 150.0]
+    lead = ([0.0, a_range[0], 0.0], [0.0, a_range[1], 0.0])
+    return float(ddh_bound(system, cbf, lo, hi, u_min=-lim, u_max=lim, disturbance=lead)[0])
+
+
 def acc_rows() -> list[dict]:
     """The stress preset's true-model follower under |u| <= 0.3 M g at 10 and 5 Hz."""
     sc = load_scenario("stress")
@@ -117,18 +125,7 @@ def acc_rows() -> list[dict]:
     )  # fmt: skip
     profile = np.asarray(sc.lead_profile, dtype=float)
     a_range = (min(0.0, profile[:, 1].min()), max(0.0, profile[:, 1].max()))
-    # the operating region (speeds 0 to 35 m/s, gaps 0 to 150 m) and the lead's acceleration
-    M = float(
-        ddh_bound(
-            system,
-            cbf,
-            [0.0, 0.0, 0.0],
-            [35.0, 35.0, 150.0],
-            u_min=-lim,
-            u_max=lim,
-            disturbance=([0, a_range[0], 0], [0, a_range[1], 0]),
-        )[0]
-    )
+    M = _acc_bound(system, cbf, lim, a_range)
     rows = []
     for rate in (10.0, 5.0):
         dt = 1.0 / rate
@@ -153,19 +150,9 @@ def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
     lim = 0.3 * sc.mass * sc.gravity / sc.input_scale
     spec = sc.montecarlo.replace(substeps=10)
     g = sc.gravity
-    # the operating region and every lead acceleration the trials draw
+    # every lead acceleration the trials draw
     a_range = (-spec.lead_decel_max * g, spec.lead_accel_max * g)
-    M = float(
-        ddh_bound(
-            system,
-            cbf,
-            [0.0, 0.0, 0.0],
-            [35.0, 35.0, 150.0],
-            u_min=-lim,
-            u_max=lim,
-            disturbance=([0, a_range[0], 0], [0, a_range[1], 0]),
-        )[0]
-    )
+    M = _acc_bound(system, cbf, lim, a_range)
     rows = []
     for margin, bound in (("none", None), ("estimated bound", M)):
         run = run_montecarlo(sc, trials=datasets * trials_per_dataset, datasets=datasets,

@@ -318,7 +318,7 @@ def deployed_mc_table(rows: list[dict]) -> str:
             f"{r['left_at_samples']} / {r['trials']}",
             f"{r['left_between_samples']} / {r['trials']}",
             _signed(r["min_h_samples"]), _signed(r["min_h_between"]),
-            f"{r['median_min_h']:.3f}",
+            _signed(r["median_min_h"]),
             f"{r['trials_with_unmet_steps']} ({r['unmet_steps']} steps)",
         ])  # fmt: skip
     header = ["controller", "sampled-data margin", "trials below h = 0 at the samples",

@@ -49,6 +49,18 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 import pytest  # noqa: E402
 
 
+@pytest.fixture(scope="module")
+def tools():
+    """The Arm toolchain (arm-none-eabi-gcc, newlib, qemu-system-arm), or skip naming it."""
+    from safestab.errors import CompilationError
+    from safestab.export import embedded
+
+    try:
+        return embedded.find_toolchain(install=True)
+    except CompilationError as exc:
+        pytest.skip(str(exc))
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_functions():
     """Drop JAX's in-memory compiled functions after each test module.

@@ -19,14 +19,6 @@ from safestab.export import embedded
 from safestab.scenarios.export_study import export_scenario
 
 
-@pytest.fixture(scope="module")
-def tools():
-    try:
-        return embedded.find_toolchain(install=True)
-    except CompilationError as exc:
-        pytest.skip(str(exc))
-
-
 @pytest.mark.parametrize("target", ["cortex-m4", "cortex-m7"])
 def test_the_step_runs_on_the_core_and_agrees(tools, target, tmp_path):
     rep = export_scenario("paper", tmp_path, controller="true", cases=32, target=target)

@@ -16,19 +16,10 @@ from typer.testing import CliRunner
 
 import safestab as ss
 from safestab._io import ensure_writable_dir
-from safestab.errors import CompilationError
 from safestab.export import embedded, write_harness
 from safestab.export.harness import comparison_scales
 from safestab.scenarios import load_scenario
 from safestab.scenarios.export_study import export_scenario
-
-
-@pytest.fixture(scope="module")
-def tools():
-    try:
-        return embedded.find_toolchain(install=True)
-    except CompilationError as exc:
-        pytest.skip(str(exc))
 
 
 def _export(*args: str):

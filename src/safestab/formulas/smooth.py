@@ -117,16 +117,21 @@ class ExplicitFilter(SmoothFilter):
         return jnp.maximum(-a, 0.0) / bb
 
 
-@_register
 @dataclasses.dataclass(frozen=True)
-class SontagFilter(SmoothFilter):
-    """``lambda = (-c' + sqrt(c'^2 + sigma |d|^4)) / |d|^2`` (``sigma > 0``)."""
+class _Smoothed(SmoothFilter):
+    """A smooth law: its smoothing parameter ``sigma > 0`` (the QP as ``sigma -> 0``)."""
 
     sigma: float = 0.1
 
     def __post_init__(self) -> None:
         super().__post_init__()
         object.__setattr__(self, "sigma", _check("sigma", self.sigma, positive=True))
+
+
+@_register
+@dataclasses.dataclass(frozen=True)
+class SontagFilter(_Smoothed):
+    """``lambda = (-c' + sqrt(c'^2 + sigma |d|^4)) / |d|^2`` (``sigma > 0``)."""
 
     def lam(self, a: Any, bb: Any) -> Any:
         """Sontag's multiplier, written without cancellation where ``c' > 0``."""
@@ -147,14 +152,8 @@ class HalfSontagFilter(SontagFilter):
 
 @_register
 @dataclasses.dataclass(frozen=True)
-class SoftplusFilter(SmoothFilter):
+class SoftplusFilter(_Smoothed):
     """``lambda = sigma log(1 + exp(-c' / (sigma |d|^2)))`` (``sigma > 0``)."""
-
-    sigma: float = 0.1
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "sigma", _check("sigma", self.sigma, positive=True))
 
     def lam(self, a: Any, bb: Any) -> Any:
         """The softplus multiplier, by ``logaddexp`` (no overflow for large ``-c'``)."""

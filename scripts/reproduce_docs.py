@@ -303,6 +303,18 @@ def fast_band_table(rows: list[dict]) -> str:
     return _table(header, ["---", "---:", "---:", "---:", "---:", "---:", "---:", "---:"], body)
 
 
+def safe_rl_table(rows: list[dict]) -> str:
+    """docs/tutorials/safe-rl.md's table from benchmarks/gym_highway.py's --json rows."""
+    body = [[
+        r["variant"], f"{r['crashes']} / {r['episodes']}", f"{r['steps']:,}",
+        f"{r['steps_changed']:,}", f"{r['mean_intervention']:.3f}",
+        ", ".join(f"{k} {v:,}" for k, v in sorted(r["statuses"].items())) or "-",
+    ] for r in rows]  # fmt: skip
+    header = ["filter", "episodes that crashed", "steps", "steps whose action it changed",
+              "mean change of the action (of 1)", "statuses"]  # fmt: skip
+    return _table(header, ["---", "---:", "---:", "---:", "---:", "---"], body)
+
+
 def _signed(x: float) -> str:
     """A least ``h`` with its sign: four decimals, or two digits below 1e-3 (no ``+0.0000``)."""
     return f"{x:+.4f}" if abs(x) >= 1e-3 or x == 0 else f"{x:+.1e}"
@@ -676,6 +688,15 @@ def step_deployed(out: Path) -> dict[str, tuple[str, str]]:
     }
 
 
+def step_safe_rl(out: Path) -> dict[str, tuple[str, str]]:
+    """benchmarks/gym_highway.py: the safe-RL tutorial's table and figure (highway-env)."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows, fig = out / "safe_rl.json", out / "safe_rl.png"
+    _run([sys.executable, "benchmarks/gym_highway.py", "--json", str(rows), "--figure", str(fig)])
+    _copy(fig, "figures/safe_rl.png")
+    return {"safe-rl": ("docs/tutorials/safe-rl.md", safe_rl_table(_load(rows)))}
+
+
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "acc": step_acc,
     "swarm": step_swarm,
@@ -685,6 +706,7 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "gp-coverage": step_gp_coverage,
     "fast-band": step_fast_band,
     "deployed": step_deployed,
+    "safe-rl": step_safe_rl,
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
     "price": step_price,
@@ -709,6 +731,7 @@ PRODUCES = {
     "gp-coverage": ["gp-coverage"],
     "fast-band": ["fastgp-width"],
     "deployed": ["deployed", "deployed-mc"],
+    "safe-rl": ["safe-rl"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "price": ["price-stress", "price-obstacle"],

@@ -160,6 +160,9 @@ def _integrator(uncertainty):
 
 
 def test_simulate_passes_the_models_arrays_as_arguments():
+    # the step is one jitted function for every controller of a structure: forget the
+    # programs an earlier test traced, so this run traces its own
+    jax.clear_caches()
     _LinearModel.seen.clear()
     ctrl = _integrator(_LinearModel(jnp.array([[0.5]])))
     traj = simulate(ctrl, np.array([1.5]), t_final=0.5, dt=0.01)

@@ -24,7 +24,14 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["PytreeValue", "ControllerValue", "Template", "register_model", "static_key"]
+__all__ = [
+    "PytreeValue",
+    "ControllerValue",
+    "Template",
+    "model_is_data",
+    "register_model",
+    "static_key",
+]
 
 
 def static_key(value: Any) -> Any:
@@ -126,6 +133,13 @@ def register_model(
     jax.tree_util.register_pytree_node(cls, flatten, unflatten)
 
 
+def model_is_data(model: Any) -> bool:
+    """Whether an uncertainty model is a pytree with array leaves (a registered, fitted one)."""
+    if model is None or jax.tree_util.treedef_is_leaf(jax.tree_util.tree_structure(model)):
+        return False
+    return bool(jax.tree_util.tree_leaves(model))
+
+
 def _frozen(value: Any) -> Any:
     """A read-only copy of a NumPy array (the caller's array may change later); else as is."""
     if not isinstance(value, np.ndarray):
@@ -176,6 +190,7 @@ class ControllerValue(PytreeValue):
         # the certificates as the value holds them (a filter's ``clfs=clf`` as the tuple
         # ``(clf,)``, which replace() passes on): one tree structure for both spellings
         self._kwargs.update({name: getattr(self, name) for name in self._CHILDREN})
+        children = self._children()
         for name in self._leaf_names():
             self._set_leaf(name, _frozen(self._get_leaf(name)))
         if not type(self).__module__.startswith("safestab."):
@@ -183,10 +198,12 @@ class ControllerValue(PytreeValue):
             self._template = Template(self)
             return
         leaves = self._leaf_names()
+        # a fitted uncertainty model is a child (its arrays are leaves, its kind and shapes
+        # its structure), not a static argument compared by identity
         statics = tuple(
             (name, static_key(value))
             for name, value in sorted(self._kwargs.items())
-            if name not in leaves
+            if name not in leaves and not (name == "uncertainty" and name in children)
         )
         self._template = Template(self, (type(self), leaves, statics))
 
@@ -220,7 +237,7 @@ class ControllerValue(PytreeValue):
         # the current leaves and certificates, not the constructor's arguments: a value that
         # JAX rebuilt (from a jitted function, a tree_map or a vmap) carries the arguments of
         # the controller its tree structure was first made from
-        current = {**self.tunables(), **{name: getattr(self, name) for name in self._CHILDREN}}
+        current = {**self.tunables(), **{name: getattr(self, name) for name in self._children()}}
         new = object.__new__(type(self))
         self._init.__init__(new, **{**self._kwargs, **current, **changes})
         return new
@@ -229,8 +246,18 @@ class ControllerValue(PytreeValue):
     #: Attributes holding certificates (pytrees themselves: their rates are leaves too).
     _CHILDREN: tuple[str, ...] = ()
 
+    def _children(self) -> tuple[str, ...]:
+        """The attributes that are pytree children: ``_CHILDREN``, and the model.
+
+        ``"uncertainty"`` is one where the model is data (a pytree of arrays: a fitted GP or
+        cache), so its arrays are arguments of a compiled step or loop and another model of
+        the same kind and shapes runs the same program.
+        """
+        model = getattr(self, "uncertainty", None)
+        return self._CHILDREN + (("uncertainty",) if model_is_data(model) else ())
+
     def _flatten(self) -> tuple[tuple[Any, ...], tuple[Template, tuple[str, ...]]]:
-        names = self._leaf_names() + self._CHILDREN
+        names = self._leaf_names() + self._children()
         return tuple(self._get_leaf(n) for n in names), (self._template, names)
 
     @classmethod

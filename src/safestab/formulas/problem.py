@@ -52,6 +52,7 @@ __all__ = [
     "CombinedFormula",
     "RelaxedFormula",
     "MultiFormula",
+    "register_formula",
 ]
 
 
@@ -135,7 +136,7 @@ class Formula:
             )
 
 
-def _register(cls: type) -> type:
+def register_formula(cls: type) -> type:
     """A frozen dataclass formula as a pytree without leaves (its settings are static)."""
     fields = [f.name for f in dataclasses.fields(cls)]
     jax.tree_util.register_dataclass(cls, data_fields=[], meta_fields=fields)
@@ -171,7 +172,7 @@ def _result(sol: Any) -> FormulaResult:
     return FormulaResult(u=sol.u, region=sol.region, multipliers=sol.multipliers, slack=sol.slack)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class SontagFormula(Formula):
     """Sontag's CLF formula, eq. (3): ``u = -A / |b|^2 b`` (region P1; P4 where ``b = 0``).
@@ -188,7 +189,7 @@ class SontagFormula(Formula):
         return _one_condition(sontag(mg.A, problem.b, mg.nb), mg.A, mg.nb, Region.P1, 0)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class CBFFormula(Formula):
     """The CBF formula, eq. (6): ``u = B / |d|^2 d`` (region P2; P4 where ``d = 0``).
@@ -205,7 +206,7 @@ class CBFFormula(Formula):
         return _one_condition(cbf_only(mg.B, problem.d, mg.nd), mg.B, mg.nd, Region.P2, 1)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class CombinedFormula(Formula):
     """The combined CLF-CBF formula, Theorem 1 (the exact QP optimum, with its fallback).
@@ -241,7 +242,7 @@ class CombinedFormula(Formula):
         )
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class RelaxedFormula(Formula):
     """The relaxed formula, Theorem 3: the CLF condition softened by a slack of weight m.
@@ -267,7 +268,7 @@ class RelaxedFormula(Formula):
         return _residuals(problem, result, problem.slack_weight)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class MultiFormula(Formula):
     """Several CLFs and CBFs, limits inside the problem, a nominal input and a weight.

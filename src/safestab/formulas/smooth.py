@@ -38,7 +38,7 @@ import jax.numpy as jnp
 
 from ..errors import ParameterError
 from .multi import MultiResult, MultiStatus
-from .problem import Formula, Problem, _register
+from .problem import Formula, Problem, register_formula
 
 __all__ = [
     "SmoothFilter",
@@ -107,7 +107,7 @@ class SmoothFilter(Formula):
         )
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class ExplicitFilter(SmoothFilter):
     """``lambda = max(0, -c') / |d|^2``: the CBF-QP's optimum in closed form."""
@@ -128,7 +128,7 @@ class _Smoothed(SmoothFilter):
         object.__setattr__(self, "sigma", _check("sigma", self.sigma, positive=True))
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class SontagFilter(_Smoothed):
     """``lambda = (-c' + sqrt(c'^2 + sigma |d|^4)) / |d|^2`` (``sigma > 0``)."""
@@ -140,7 +140,7 @@ class SontagFilter(_Smoothed):
         return jnp.where(a > 0, self.sigma * bb / (a + root), (root - a) / bb)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class HalfSontagFilter(SontagFilter):
     """Half of Sontag's multiplier (``sigma > 0``)."""
@@ -150,7 +150,7 @@ class HalfSontagFilter(SontagFilter):
         return 0.5 * super().lam(a, bb)
 
 
-@_register
+@register_formula
 @dataclasses.dataclass(frozen=True)
 class SoftplusFilter(_Smoothed):
     """``lambda = sigma log(1 + exp(-c' / (sigma |d|^2)))`` (``sigma > 0``)."""

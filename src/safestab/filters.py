@@ -1,6 +1,6 @@
 """Safety filters: several CBFs and CLFs, limits, a nominal input, in closed form.
 
-Limits are inside the problem, and the objective may be weighted (issue 10).
+Limits are inside the problem, and the objective may be weighted.
 
 :class:`SafetyFilter` is to :func:`~safestab.formulas.clf_cbf_multi` what
 :class:`~safestab.controllers.UniversalController` is to :func:`~safestab.formulas.clf_cbf`:

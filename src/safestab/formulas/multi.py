@@ -1,4 +1,4 @@
-"""Several CLFs and CBFs, input limits inside the problem, and weighted objectives (issue 10).
+"""Several CLFs and CBFs, input limits inside the problem, and weighted objectives.
 
 The general problem behind the universal formula::
 

@@ -13,6 +13,7 @@ import safestab as ss
 from safestab import (
     DimensionError,
     MultiStatus,
+    NonFiniteError,
     ParameterError,
     clf_cbf,
     clf_cbf_multi,
@@ -222,8 +223,8 @@ def test_argument_errors():
         clf_cbf_multi(*one, max_iter=2.5, **P)
     with pytest.raises(ParameterError, match=r"H must be positive definite"):
         clf_cbf_multi(*one, H=-np.eye(2), **P)
-    with pytest.raises(ParameterError, match=r"give both u_min and u_max"):
-        clf_cbf_multi(*one, u_min=-1.0, **P)
+    with pytest.raises(NonFiniteError, match=r"u_min must be a number, or -inf where"):
+        clf_cbf_multi(*one, u_min=[np.nan, 0.0], u_max=1.0, **P)
     with pytest.raises(DimensionError, match=r"u_nom must have shape \(2,\)"):
         clf_cbf_multi(*one, u_nom=np.zeros(3), **P)
 

@@ -80,3 +80,21 @@ def test_no_module_uses_another_modules_underscore_names():
         if (uses := private_uses(path))
     }
     assert not bad, bad
+
+
+def test_no_docstring_or_comment_in_src_names_an_issue_or_a_date():
+    """History lives in git and the changelog: the code says what it does and why."""
+    import re
+    from pathlib import Path
+
+    pattern = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssues? \d+")
+    root = Path(__file__).resolve().parent.parent / "src" / "safestab"
+    found = [
+        f"{path.relative_to(root)}:{i}: {line.strip()}"
+        for path in sorted(root.rglob("*.py"))
+        for i, line in enumerate(path.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert not found, "\n".join(found)
+    # the pattern finds what it should (the test can fail)
+    assert pattern.search("# measured on 2026-11-27") and pattern.search("(issue 14)")

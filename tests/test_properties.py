@@ -79,6 +79,14 @@ def params(draw: Any) -> dict[str, Any]:
 
 
 def _finite(tree: Any) -> bool:
+    """Every float leaf finite, except a controller's limits, which may be infinite on their
+    own side (no bound there: u_min = -inf, u_max = +inf), never NaN."""
+    if isinstance(tree, ss.Controller) and tree.u_min is not None:
+        lo, hi = np.asarray(tree.u_min), np.asarray(tree.u_max)
+        if np.any(np.isnan(lo) | np.isnan(hi) | (lo == np.inf) | (hi == -np.inf)):
+            return False
+        rest = {k: v for k, v in tree.tunables().items() if k not in ("u_min", "u_max")}
+        return _finite(rest)
     leaves = jax.tree_util.tree_leaves(tree)
     return all(
         bool(np.all(np.isfinite(np.asarray(leaf))))

@@ -28,7 +28,7 @@ one at once. safestab writes each program to a temporary file and renames it int
 JAX's own size limit (``jax_compilation_cache_max_size``) is not used: with it set, JAX lists
 and reads the whole folder, under a file lock, before every program it writes, which costs
 0.16 s per program with 6,400 programs stored (20 new programs in 3.7 s against 0.56 s
-without the limit; 2 CPUs, 2026-11-27), so a first run slowed as the folder grew.
+without the limit, 2 CPUs), so a first run slowed as the folder grew.
 """
 
 from __future__ import annotations
@@ -58,14 +58,14 @@ ENV_VAR = "SAFESTAB_COMPILATION_CACHE"
 #: Compilations shorter than this are not stored. 0: every program is stored. A study compiles
 #: about 140 programs of 10 to 30 ms each besides its few large ones; read back they save
 #: about 3 s of a second obstacle run (21.4 s with 0.1 against 18.2 s with 0) and 1.7 s of a
-#: paper run, and writing them costs a first run 1.5 to 4 s (2 CPUs, 2026-11-27).
+#: paper run, and writing them costs a first run 1.5 to 4 s (2 CPUs).
 MIN_COMPILE_SECONDS = 0.0
 #: Size limit of the folder: beyond it the import removes the least recently used programs.
 MAX_BYTES = 2 * 2**30
 #: Pruning removes programs until the folder holds at most this share of :data:`MAX_BYTES`.
 PRUNE_TO = 0.8
 #: JAX's names of a stored program and of its access-time record (written only under JAX's
-#: own size limit, as safestab set it before 2026-11-27).
+#: own size limit, which safestab does not set).
 _PROGRAM, _ATIME = "-cache", "-atime"
 #: Suffix of a program being written (:func:`install_atomic_writes`); pruning removes those
 #: older than :data:`STALE_WRITE_SECONDS` (a process that died while writing).

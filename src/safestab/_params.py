@@ -1,4 +1,4 @@
-"""Run-time parameters: a pytree declared by example and checked per call (issue 10, point 5).
+"""Run-time parameters: a pytree declared by example and checked per call.
 
 Convention (one rule for every object): an object given ``params=example`` calls its user
 functions as ``fn(x, p)``; without it, as ``fn(x)``. ``example`` is any JAX pytree (a dict, a

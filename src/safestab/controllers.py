@@ -297,11 +297,17 @@ class Controller(ControllerValue):
 
     @classmethod
     def _check_limits(cls, u_min: Any, u_max: Any, m: int) -> tuple[Any, Any]:
-        """Both limits or neither, each a scalar or shape (m,), ``u_min <= u_max``; as (m,)."""
-        if (u_min is None) != (u_max is None):
-            raise ParameterError("give both u_min and u_max, or neither")
-        if u_min is None:
+        """The limits as (m,) arrays, ``u_min <= u_max``; each a scalar or shape (m,).
+
+        One side alone is a one-sided box: the other side is infinite (as is an entry of
+        ``-inf`` in ``u_min`` or ``+inf`` in ``u_max``). Neither: ``(None, None)``.
+        """
+        if u_min is None and u_max is None:
             return None, None
+        if u_min is None:
+            u_min = -np.inf
+        if u_max is None:
+            u_max = np.inf
         u_min, u_max = cls._limit("u_min", u_min, m), cls._limit("u_max", u_max, m)
         check_box(u_min, u_max)
         return u_min, u_max
@@ -427,7 +433,8 @@ class UniversalController(Controller):
         When given, the relaxed formula (Theorem 3) with this weight; otherwise the combined
         formula (Theorem 1, or Theorem 2 with an uncertainty model).
     u_min, u_max : float or array of shape (m,), optional
-        Input limits; both or neither.
+        Input limits; one alone is a one-sided box, and an entry of ``-inf`` (``u_min``) or
+        ``+inf`` (``u_max``) leaves that side of that input unbounded.
     saturation : {"project", "safety_first"}
         How limits are enforced: ``"project"`` is the paper's projection, eq. (26);
         ``"safety_first"`` (single input only) keeps the CBF condition whenever some input in
@@ -814,7 +821,9 @@ class UniversalController(Controller):
         unmet = (status == S.OK) & ~cbf_ok
         if self.u_min is not None:
             lo, hi = jnp.asarray(self.u_min), jnp.asarray(self.u_max)
-            best = jnp.where(d > 0, hi, lo)  # the box input that maximises d.u
+            # the box input that maximises d.u (0 where d_j = 0: an infinite bound there
+            # would make 0 * inf); an infinite corner meets the condition, as it should
+            best = jnp.where(d > 0, hi, jnp.where(d < 0, lo, 0.0))
             _, box_ok = condition_flags(
                 a, b, c, d, best, mg, self.params["kappa"], self.params["rho"], SATISFIED_RTOL
             )

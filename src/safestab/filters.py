@@ -1,6 +1,6 @@
 """Safety filters: several CBFs and CLFs, limits, a nominal input, in closed form.
 
-Limits are inside the problem, and the objective may be weighted (issue 10).
+Limits are inside the problem, and the objective may be weighted.
 
 :class:`SafetyFilter` is to :func:`~safestab.formulas.clf_cbf_multi` what
 :class:`~safestab.controllers.UniversalController` is to :func:`~safestab.formulas.clf_cbf`:
@@ -212,7 +212,9 @@ class SafetyFilter(Controller):
     slack_weight : float, optional
         CLF slack weight; hard CLFs when omitted.
     u_min, u_max : float or array of shape (m,), optional
-        Limits inside the problem.
+        Limits inside the problem; one alone is a one-sided box, and an entry of ``-inf``
+        (``u_min``) or ``+inf`` (``u_max``) leaves that side of that input unbounded (its row
+        never becomes active, so the optimum is exact).
     uncertainty : UncertaintyModel, optional
         GP-robust terms (Lemma 3) for every row.
     gp_beta : float or array of shape (n,)

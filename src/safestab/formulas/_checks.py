@@ -15,7 +15,7 @@ from .._validation import (
     check_scalar_range,
     is_concrete,
 )
-from ..errors import DimensionError, NumericalError, ParameterError
+from ..errors import DimensionError, NonFiniteError, NumericalError, ParameterError
 
 _TINY = float(np.finfo(float).tiny)
 
@@ -107,15 +107,24 @@ def check_params(batch: tuple[int, ...] | None = None, **params: Any) -> None:
 
 
 def check_box(u_min: Any, u_max: Any, shape: tuple[int, ...] | None = None) -> None:
-    """Check input bounds: real, finite, ``u_min <= u_max``, and (given) fitting ``shape``.
+    """Check input bounds: real, no NaN, ``u_min <= u_max``, and (given) fitting ``shape``.
+
+    An entry may be infinite on its own side (``u_min = -inf``, ``u_max = +inf``: no bound
+    there), never on the other (``u_min = +inf`` or ``u_max = -inf`` leaves no input).
 
     Raises
     ------
     InputTypeError, NonFiniteError, ParameterError, DimensionError
     """
-    for name, value in (("u_min", u_min), ("u_max", u_max)):
+    for name, value, wrong in (("u_min", u_min, np.inf), ("u_max", u_max, -np.inf)):
         check_real(name, value)
-        check_finite(name, value)
+        if is_concrete(value):
+            arr = np.asarray(value, dtype=float)
+            if np.any(np.isnan(arr)) or np.any(arr == wrong):
+                raise NonFiniteError(
+                    f"{name} must be a number, or {'-' if wrong > 0 else '+'}inf where there is "
+                    f"no bound; got {arr.tolist()}"
+                )
         if shape is not None:
             check_fits_batch(name, value, shape, what="input u")
     if is_concrete(u_min, u_max):

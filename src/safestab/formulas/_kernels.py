@@ -410,8 +410,11 @@ def saturate_single(u: Any, B: Any, d: Any, u_min: Any, u_max: Any) -> tuple[Any
     bound = B / _safe(dj)  # the CBF condition reads u >= bound (d > 0) or u <= bound (d < 0)
     new_lo = jnp.where(dj > 0, jnp.maximum(lo, bound), lo)
     new_hi = jnp.where(dj < 0, jnp.minimum(hi, bound), hi)
-    feasible = jnp.where(dj == 0, B <= 0, new_lo <= new_hi)
+    # a bound that overflows (|B / d| beyond float64) asks for an input no box holds
+    feasible = jnp.where(dj == 0, B <= 0, (new_lo <= new_hi) & jnp.isfinite(bound))
     best_effort = jnp.where(dj > 0, hi, lo)  # the box input that maximises d u
+    # an unbounded side (one-sided limits): the input clipped to the box instead of inf
+    best_effort = jnp.where(jnp.isfinite(best_effort), best_effort, jnp.clip(u[..., 0], lo, hi))
     clipped = jnp.clip(u[..., 0], new_lo, new_hi)
     out = jnp.where(dj == 0, jnp.clip(u[..., 0], lo, hi), jnp.where(feasible, clipped, best_effort))
     return out[..., None], feasible

@@ -1,4 +1,4 @@
-"""Several CLFs and CBFs, input limits inside the problem, and weighted objectives (issue 10).
+"""Several CLFs and CBFs, input limits inside the problem, and weighted objectives.
 
 The general problem behind the universal formula::
 
@@ -568,8 +568,9 @@ def clf_cbf_multi(
                 f"slack_weight must be a scalar or have shape ({p},), got {sw_shape}"
             )
         inv_s = inv_sqrt(slack_weight) if p > 0 else None  # no CLF row carries a slack
-    if (u_min is None) != (u_max is None):
-        raise ParameterError("give both u_min and u_max, or neither")
+    if (u_min is None) != (u_max is None):  # one-sided: the other side unbounded
+        u_min = -np.inf if u_min is None else u_min
+        u_max = np.inf if u_max is None else u_max
     lo = hi = None
     if u_min is not None:
         check_box(u_min, u_max, batch + (m,))

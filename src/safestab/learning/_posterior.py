@@ -26,7 +26,7 @@ bit (tests/test_mc_gp.py).
 
 Every function takes the arrays as arguments, never as constants of a compiled program: a
 compilation then serves every data set of the same shapes (with the training arrays as
-constants the first exact predict at Q = 6,000 took 15.8 s and 5.35 GB, issue 14).
+constants the first exact predict at Q = 6,000 took 15.8 s and 5.35 GB).
 """
 
 from __future__ import annotations

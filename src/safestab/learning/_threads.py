@@ -6,7 +6,7 @@ with other work, a factorisation with two threads ran 8 times slower than with o
 slower (489 likelihood evaluations at 0.12 to 0.18 s instead of 13 ms). Every fit the library
 runs (:class:`~safestab.learning.GaussianProcessModel`'s ``fit``, ``from_hyperparameters`` and
 ``load``, ``FastGP``, ``SparseGP.fit``) therefore runs under :func:`fit_threads`: one BLAS
-thread, as the studies and the Monte Carlo runner have fitted since 2026-11-28.
+thread, as the studies and the Monte Carlo runner fit.
 """
 
 from __future__ import annotations

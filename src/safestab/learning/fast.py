@@ -200,7 +200,7 @@ def _exact_sd_at_training(model, rows: np.ndarray) -> np.ndarray:
     ``sigma^2(x_i) = s^2 (1 - s^2 [(K + s^2 I)^-1]_ii)`` from the model's factor, by one
     triangular solve in SciPy: the exact model's batched ``predict`` (a compiled, vmapped
     triangular solve), called from two Monte Carlo threads at once under a one-thread BLAS
-    limit, never returned (both threads waited for it, 2026-11-27).
+    limit, never returned (both threads waited for it).
     """
     q = model.x_train_.shape[0]
     e = np.zeros((q, len(rows)))

@@ -1,4 +1,4 @@
-"""Monte Carlo verification of the probabilistic safety guarantee (issue 13).
+"""Monte Carlo verification of the probabilistic safety guarantee.
 
 ``run_montecarlo`` runs ``N`` closed loops of every compared controller over ``K`` fitted GPs,
 batched (``lax.scan`` inside ``vmap``, in chunks) on one machine or as Ray tasks on a cluster;

@@ -117,7 +117,7 @@ def _check(
     if "GP-robust conformal" in spec.controllers and conformal_beta_function() is None:
         raise ParameterError(
             "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
-            "(issue 14), which this installation does not provide; remove it from "
+            "(the split conformal beta), which this installation does not provide; remove it from "
             "montecarlo.controllers"
         )
 

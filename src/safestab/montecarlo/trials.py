@@ -56,7 +56,7 @@ _GP_CONTROLLERS = ("GP mean", "GP-robust", "GP-robust Lemma 2", "GP-robust confo
 
 
 def conformal_beta_function() -> Any:
-    """``safestab.learning.conformal_beta`` (issue 14), or ``None`` where it is missing.
+    """``safestab.learning.conformal_beta`` (the split conformal beta), or ``None``.
 
     The ``"GP-robust conformal"`` controller is enabled exactly when this returns a function;
     it is called as ``conformal_beta(model, x_cal, omega_cal, delta, groups=trajectory)`` with
@@ -211,7 +211,7 @@ def _fit_dataset(study, seed, index, hyper):
         if conformal is None:
             raise ParameterError(
                 "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
-                "(issue 14), which this installation does not provide"
+                "(the split conformal beta), which this installation does not provide"
             )
         cal = calibration_draw(study, seed, index)
         omega_cal = np.asarray(study.omega(cal.x))

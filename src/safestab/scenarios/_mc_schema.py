@@ -18,7 +18,7 @@ from ._schema import LIMITS, choice, fail, integer, real
 __all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_controllers", "check_montecarlo"]
 
 #: The controllers a Monte Carlo study can compare, in the order they are reported.
-#: ``"GP-robust conformal"`` needs a conformal beta from :mod:`safestab.learning` (issue 14).
+#: ``"GP-robust conformal"`` needs a conformal beta from :mod:`safestab.learning`.
 CONTROLLERS = (
     "true model",
     "mismatched model",

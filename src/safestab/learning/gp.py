@@ -76,6 +76,16 @@ def _components(components: Any, n: int) -> tuple[int, ...]:
     return comps
 
 
+def _standardisation(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The training inputs' offset and scale (their mean and std per coordinate).
+
+    A constant coordinate's std can round above 0 (0.7 repeated: 1e-16), which would blow
+    its rounding up to unit size: it is scaled by 1, as a zero std is.
+    """
+    scale = x.std(0)
+    return x.mean(0), np.where((scale > 0) & ~np.all(x == x[0], axis=0), scale, 1.0)
+
+
 #: The training inputs' design is rank-deficient (a :class:`DataWarning`) where the smallest
 #: singular value of the centred, standardised inputs is below this fraction of the largest:
 #: an exact linear relation between coordinates leaves about 1e-15 of rounding; a coordinate
@@ -353,11 +363,7 @@ class GaussianProcessModel:
             if self.noise is not None:
                 noise = np.broadcast_to(np.asarray(self.noise, float), (len(comps),))
 
-            offset = x.mean(0)
-            scale = x.std(0)
-            # a constant coordinate's std can round above 0 (0.7 repeated: 1e-16), which would
-            # blow its rounding up to unit size: it is scaled by 1, as a zero std is
-            scale = np.where((scale > 0) & ~np.all(x == x[0], axis=0), scale, 1.0)
+            offset, scale = _standardisation(x)
             xs = (x - offset) / scale
             rng = np.random.default_rng(seed)
             idx = np.sort(rng.choice(q, n_fit, replace=False)) if n_fit < q else np.arange(q)
@@ -378,12 +384,7 @@ class GaussianProcessModel:
             ]
             fits = fit_components(self, problems)
 
-            self.n_states_ = n
-            self.components_ = comps
-            self.x_train_ = x
-            self.y_train_ = y[:, list(comps)]
-            self.x_offset_ = offset
-            self.x_scale_ = scale
+            self._set_data(x, y, comps, offset, scale)
             self.amplitude_ = np.array([f["amplitude"] for f in fits])
             self.noise_ = np.array([f["noise"] for f in fits])
             self.mean_ = np.array([f["mean"] for f in fits])
@@ -498,15 +499,8 @@ class GaussianProcessModel:
         check_finite("y", y[:, list(comps)])
         model = cls(kernel=kernel, mean="constant" if np.any(hyper["mean"] != 0) else "zero",
                     jitter=jitter)  # fmt: skip
-        offset = x.mean(0)
-        scale = x.std(0)
-        scale = np.where((scale > 0) & ~np.all(x == x[0], axis=0), scale, 1.0)
-        model.n_states_ = n
-        model.components_ = comps
-        model.x_train_ = x
-        model.y_train_ = y[:, list(comps)]
-        model.x_offset_ = offset
-        model.x_scale_ = scale
+        offset, scale = _standardisation(x)
+        model._set_data(x, y, comps, offset, scale)
         model.amplitude_ = hyper["amplitude"]
         model.noise_ = hyper["noise"]
         model.mean_ = hyper["mean"]
@@ -551,6 +545,15 @@ class GaussianProcessModel:
                         DataWarning,
                         stacklevel=3,
                     )
+
+    def _set_data(self, x, y, comps, offset, scale) -> None:
+        """Set the fitted attributes of the data (a fit and ``from_hyperparameters`` alike)."""
+        self.n_states_ = x.shape[1]
+        self.components_ = comps
+        self.x_train_ = x
+        self.y_train_ = y[:, list(comps)]
+        self.x_offset_ = offset
+        self.x_scale_ = scale
 
     def _condition(self) -> None:
         xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)

@@ -16,7 +16,8 @@ in 20 RK4 substeps per hold and checked at every substep (``simulate(..., subste
 
 * ``mc``: the stress preset's Monte Carlo study at 10 Hz under the same limit, every
   compared controller (the GP ones learn ``omega`` from each of ``--datasets`` fresh data
-  sets), ``--trials-per-dataset`` random leads and starts per data set.
+  sets), ``--trials-per-dataset`` random leads and starts per data set; and the obstacle's at
+  2 Hz under its box (the safety filter), its 72 starts per data set.
 
 Each runs without the sampled-data margin and with it (``sample_time``, ``ddh_bound``): the
 bound ``M`` from the hand derivation (disc: ``-h'' = 2 |u|^2 <= 4``) or estimated by
@@ -35,7 +36,7 @@ import numpy as np
 
 import safestab as ss
 from safestab.sampled import ddh_bound
-from safestab.scenarios import load_scenario
+from safestab.scenarios import MonteCarloSpec, load_scenario
 
 SUBSTEPS = 20
 
@@ -139,29 +140,19 @@ def acc_rows() -> list[dict]:
     return rows
 
 
-def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
-    """The stress preset's Monte Carlo at 10 Hz under |u| <= 0.3 M g, without and with the
-    margin: every controller, trials over fresh data sets, h checked at 10 substeps a hold."""
+def _mc_rows(study: str, sc, spec, M: float, trials: int, datasets: int) -> list[dict]:
+    """One Monte Carlo study without and with the margin: a row per controller."""
     from safestab.montecarlo import run_montecarlo
 
-    sc = load_scenario("stress").replace(dt=0.1, input_limit=0.3)
-    system = sc.system("true")
-    _, cbf = sc.certificates()
-    lim = 0.3 * sc.mass * sc.gravity / sc.input_scale
-    spec = sc.montecarlo.replace(substeps=10)
-    g = sc.gravity
-    # every lead acceleration the trials draw
-    a_range = (-spec.lead_decel_max * g, spec.lead_accel_max * g)
-    M = _acc_bound(system, cbf, lim, a_range)
     rows = []
     for margin, bound in (("none", None), ("estimated bound", M)):
-        run = run_montecarlo(sc, trials=datasets * trials_per_dataset, datasets=datasets,
+        run = run_montecarlo(sc, trials=trials, datasets=datasets,
                              spec=spec.replace(ddh_bound=bound))  # fmt: skip
         rec = run.records
         for c, name in enumerate(run.controllers):
             h, hb = rec["min_h"][:, c], rec["min_h_between"][:, c]
             rows.append({
-                "controller": name, "margin": margin, "ddh_bound": bound,
+                "study": study, "controller": name, "margin": margin, "ddh_bound": bound,
                 "datasets": datasets, "trials": int(h.size),
                 "left_at_samples": int(np.sum(h < 0)),
                 "left_between_samples": int(np.sum(hb < 0)),
@@ -170,6 +161,37 @@ def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
                 "unmet_steps": int(np.sum(rec["barrier_unmet_steps"][:, c])),
                 "median_min_h": float(np.median(h)),
             })  # fmt: skip
+    return rows
+
+
+def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
+    """Two Monte Carlo studies at coarse rates, without and with the margin, every compared
+    controller over fresh data sets, h checked at 10 substeps a hold: the stress preset at
+    10 Hz under |u| <= 0.3 M g (random starts and leads), and the obstacle at 2 Hz under its
+    +-1.5 m/s box (the safety filter; its 72 starts per data set)."""
+    from safestab.scenarios.obstacle import load_obstacle_scenario
+
+    sc = load_scenario("stress").replace(dt=0.1, input_limit=0.3)
+    _, cbf = sc.certificates()
+    lim = 0.3 * sc.mass * sc.gravity / sc.input_scale
+    spec = sc.montecarlo.replace(substeps=10)
+    g = sc.gravity
+    # every lead acceleration the trials draw
+    a_range = (-spec.lead_decel_max * g, spec.lead_accel_max * g)
+    M = _acc_bound(sc.system("true"), cbf, lim, a_range)
+    rows = _mc_rows("ACC stress, 10 Hz, input within +-0.3 M g", sc, spec, M,
+                    datasets * trials_per_dataset, datasets)  # fmt: skip
+    ob = load_obstacle_scenario("obstacle").replace(dt=0.5)
+    _, cbf = ob.certificates()
+    lim = ob.input_limit
+    # the region of the starts and the goal, the box of inputs, the true plant (its current)
+    M = float(ddh_bound(ob.system("true"), cbf, [-9.0, -4.0], [3.0, 4.0], u_min=-lim,
+                        u_max=lim)[0])  # fmt: skip
+    spec = (ob.montecarlo or MonteCarloSpec()).replace(substeps=10, controllers=("true model", "mismatched model",
+                                                            "GP-robust"))  # fmt: skip
+    starts = len(ob.start_states())
+    rows += _mc_rows("obstacle, 2 Hz, inputs within +-1.5 m/s", ob, spec, M, starts * datasets,
+                     datasets)  # fmt: skip
     return rows
 
 
@@ -191,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     mc = mc_rows(args.datasets, args.trials_per_dataset) if args.datasets else []
     for r in mc:
         print(
-            f"mc {r['controller']:20s} margin {r['margin']:16s} left: {r['left_at_samples']} "
+            f"mc {r['study'][:8]:8s} {r['controller']:20s} margin {r['margin']:16s} left: {r['left_at_samples']} "
             f"at samples, {r['left_between_samples']} between, of {r['trials']};  min h "
             f"{r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};  trials with unmet steps "
             f"{r['trials_with_unmet_steps']}"

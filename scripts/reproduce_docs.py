@@ -325,7 +325,7 @@ def deployed_mc_table(rows: list[dict]) -> str:
     body = []
     for r in rows:
         body.append([
-            r["controller"],
+            r.get("study", "ACC stress"), r["controller"],
             r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})"),
             f"{r['left_at_samples']} / {r['trials']}",
             f"{r['left_between_samples']} / {r['trials']}",
@@ -333,11 +333,12 @@ def deployed_mc_table(rows: list[dict]) -> str:
             _signed(r["median_min_h"]),
             f"{r['trials_with_unmet_steps']} ({r['unmet_steps']} steps)",
         ])  # fmt: skip
-    header = ["controller", "sampled-data margin", "trials below h = 0 at the samples",
-              "trials below h = 0 between the samples", "min h at the samples (m)",
-              "min h between the samples (m)", "median of each trial's min h (m)",
+    header = ["study", "controller", "sampled-data margin", "trials below h = 0 at the samples",
+              "trials below h = 0 between the samples", "min h at the samples",
+              "min h between the samples", "median of each trial's min h",
               "trials with steps the limits could not make safe"]  # fmt: skip
-    return _table(header, ["---", "---", "---:", "---:", "---:", "---:", "---:", "---:"], body)
+    align = ["---", "---", "---", "---:", "---:", "---:", "---:", "---:", "---:"]
+    return _table(header, align, body)
 
 
 def deployed_table(rows: list[dict]) -> str:

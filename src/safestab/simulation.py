@@ -285,9 +285,7 @@ def closed_loop(
     h_sub = dt / substeps
 
     def held(t, x, out, data):
-        """The state after the hold interval and the least ``watch`` value over it."""
-        if substeps == 1 and watch is None:
-            return rk4_step(lambda s, z: rhs(s, z, out, data), t, x, dt), None
+        """The state after the hold interval in substeps, and the least ``watch`` value."""
 
         def sub(carry, i):
             z, least = carry

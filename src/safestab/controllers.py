@@ -337,10 +337,17 @@ class Controller(ControllerValue):
 
     def step(self, x: Any, *, params: Any = None, strict: bool = False) -> Any:
         """The input and its diagnostics at states ``x`` of shape (..., n) (see subclasses)."""
+        return self._checked_step(x, params, strict)
+
+    def _checked_step(self, x: Any, params: Any, strict: bool, u_nom: Any = None) -> Any:
+        """``step``'s checks of ``x`` and ``params``, the jitted step, its output's checks.
+
+        ``u_nom``: a filter's nominal input for this call (checked by the filter's ``step``).
+        """
         check_real("x", x)
         x = self.system.check_state(x)
         p = resolve(self.params_spec, params, f"the {self._owner}")
-        out = controller_step(self, x, p)
+        out = controller_step(self, x, p, u_nom)
         self._check_step(x, out, strict, p)
         return out
 

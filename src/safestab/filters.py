@@ -19,10 +19,10 @@ import numpy as np
 
 from ._batching import over_batch
 from ._numerics import as_scalar
-from ._params import ParamSpec, bind, make_spec, merge_specs, resolve, trace_shape
+from ._params import ParamSpec, bind, make_spec, merge_specs, trace_shape
 from ._validation import check_finite, check_real, is_concrete, traced_results
 from .certificates import CBF, CLF, check_actuated
-from .controllers import Controller, StepStatus, barrier_message, controller_step, has_input
+from .controllers import Controller, StepStatus, barrier_message, has_input
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
@@ -518,23 +518,18 @@ class SafetyFilter(Controller):
             With ``strict=True``, where a fallback was used, the solver stopped uncertified
             (``ITERATION_LIMIT``, ``UNCERTIFIED``) or a CBF condition is violated.
         """
-        if u_nom is None:
-            return super().step(x, params=params, strict=strict)
-        check_real("x", x)
-        x = self.system.check_state(x)
-        m = self.system.n_inputs
-        check_real("u_nom", u_nom)
-        check_finite("u_nom", u_nom)
-        shape = np.shape(u_nom)
-        if not shape or shape[-1] != m or len(shape) > 1 and shape[:-1] != x.shape[:-1]:
-            raise DimensionError(
-                f"u_nom must have shape ({m},) or the batch of x plus ({m},) = "
-                f"{x.shape[:-1] + (m,)}, got {shape}"
-            )
-        p = resolve(self.params_spec, params, f"the {self._owner}")
-        out = controller_step(self, x, p, jnp.asarray(u_nom, dtype=float))
-        self._check_step(x, out, strict, p)
-        return out
+        if u_nom is not None:
+            m, batch = self.system.n_inputs, np.shape(x)[:-1]
+            check_real("u_nom", u_nom)
+            check_finite("u_nom", u_nom)
+            shape = np.shape(u_nom)
+            if not shape or shape[-1] != m or len(shape) > 1 and shape[:-1] != batch:
+                raise DimensionError(
+                    f"u_nom must have shape ({m},) or the batch of x plus ({m},) = "
+                    f"{batch + (m,)}, got {shape}"
+                )
+            u_nom = jnp.asarray(u_nom, dtype=float)
+        return self._checked_step(x, params, strict, u_nom)
 
     _owner = "filter"
 

@@ -473,11 +473,7 @@ def high_order_cbf(
             return grad_h_of(x, p) @ system.f_of(x, p) + first(h_of(x, p))
 
     n = system.n_states
-    pts = (
-        np.asarray(probe, dtype=float).reshape(-1, n)
-        if probe is not None
-        else np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
-    )
+    pts = np.asarray(probe, dtype=float).reshape(-1, n) if probe is not None else _probe_states(n)
     example = None if spec is None else spec.example
     lgh, scale = _lg_h(system, grad_h_of, jnp.asarray(pts), example)
     bad = np.flatnonzero(
@@ -524,8 +520,7 @@ def check_actuated(system: ControlAffineSystem, cbf: CBF, name: str, params: Any
     checked = cbf.__dict__.setdefault("_actuated_by", [])
     if any(s is system for s in checked):
         return
-    n = system.n_states
-    pts = np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
+    pts = _probe_states(system.n_states)
     with jax.ensure_compile_time_eval():
         lgh, scale = _lg_h(system, cbf.grad_of, jnp.asarray(pts), params)
     if not is_concrete(lgh, scale):  # the system holds traced values (a vmapped model): the
@@ -539,6 +534,11 @@ def check_actuated(system: ControlAffineSystem, cbf: CBF, name: str, params: Any
             "alpha1=...), which imposes the condition on L_f h + alpha1 h instead"
         )
     checked.append(system)
+
+
+def _probe_states(n: int) -> np.ndarray:
+    """Where ``L_g h`` is probed: the origin and 16 seeded standard-normal states, (17, n)."""
+    return np.vstack([np.zeros((1, n)), np.random.default_rng(0).standard_normal((16, n))])
 
 
 def _lg_h(

@@ -102,7 +102,9 @@ def test_simulate_runs_a_safety_filter_like_a_hand_written_loop():
 
 
 def test_simulate_refuses_what_is_not_a_controller():
-    with pytest.raises(ss.InputTypeError, match="UniversalController or a SafetyFilter"):
+    with pytest.raises(
+        ss.InputTypeError, match="UniversalController, a SafetyFilter or a PolicyController"
+    ):
         simulate(lambda x: x, np.zeros(2), t_final=1.0)
 
 

@@ -89,6 +89,7 @@ from .formulas import (  # noqa: E402
     saturate_safety_first,
     zeta,
 )
+from .policy import PolicyController  # noqa: E402
 from .robust import (  # noqa: E402
     ProbabilisticCompatibility,
     RobustMargins,
@@ -112,6 +113,7 @@ __all__ = [
     "has_input",
     "SafetyFilter",
     "FilterOutput",
+    "PolicyController",
     "LieTerms",
     "Controller",
     "UniversalController",

@@ -203,9 +203,13 @@ class ControllerValue(PytreeValue):
         statics = tuple(
             (name, static_key(value))
             for name, value in sorted(self._kwargs.items())
-            if name not in leaves and not (name == "uncertainty" and name in children)
+            if name not in leaves and not (name in self._DATA_KWARGS and name in children)
         )
         self._template = Template(self, (type(self), leaves, statics))
+
+    #: Constructor arguments that are children when given as data (a pytree of arrays):
+    #: their arrays are leaves, not part of the static key.
+    _DATA_KWARGS: tuple[str, ...] = ("uncertainty",)
 
     # -- to be provided by subclasses ---------------------------------------------------
     def _leaf_names(self) -> tuple[str, ...]:

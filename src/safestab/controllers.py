@@ -170,6 +170,11 @@ class ControlOutput:
         """
         return (self.status == StepStatus.OK) & self.cbf_satisfied
 
+    @property
+    def incompatible(self) -> jax.Array:
+        """Bool array (...,): the conditions the formula used were incompatible (Lemma 1)."""
+        return (~self.compatible) | (self.region == Region.INCOMPATIBLE)
+
 
 jax.tree_util.register_dataclass(
     ControlOutput,
@@ -243,7 +248,8 @@ class Controller(ControllerValue):
     :class:`ControlOutput`; :class:`~safestab.SafetyFilter` builds it with any number of
     CLFs and CBFs and the several-row formula
     (:class:`~safestab.formulas.problem.MultiFormula`) and returns a
-    :class:`~safestab.FilterOutput`. Both are pytrees whose leaves are their numeric
+    :class:`~safestab.FilterOutput`; :class:`~safestab.PolicyController` runs a user's own law
+    through the filter's step with a formula that enforces nothing. All are pytrees whose leaves are their numeric
     parameters (:meth:`tunables`, :meth:`replace`), run by :func:`~safestab.simulate` and
     exported by :func:`~safestab.export_c` alike.
 

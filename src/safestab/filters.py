@@ -27,6 +27,7 @@ from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError,
 from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
+from .formulas.passthrough import PassThrough
 from .formulas.problem import MultiFormula, Problem
 from .formulas.smooth import SmoothFilter
 from .robust import UncertaintyModel, robust_margins
@@ -91,6 +92,16 @@ class FilterOutput:
         )
         return (self.status == StepStatus.OK) & solved & jnp.all(self.cbf_satisfied, -1)
 
+    @property
+    def incompatible(self) -> jax.Array:
+        """Bool array (...,): the problem was not solved whole (``formula_status`` not SOLVED).
+
+        A fallback was used (a hard CLF dropped, the CBFs relaxed against the limits) or the
+        solver stopped uncertified; never for the pass-through formula of a
+        :class:`~safestab.PolicyController`, which solves nothing.
+        """
+        return self.formula_status != MultiStatus.SOLVED
+
 
 jax.tree_util.register_dataclass(
     FilterOutput, data_fields=[f.name for f in dataclasses.fields(FilterOutput)], meta_fields=[]
@@ -151,23 +162,28 @@ def raise_where_failed(out: Any) -> None:
         raise InfeasibleError(barrier_message(name, f"state index {i}", detail=detail))
 
 
-def _barrier_status(status: Any, formula_status: Any, cbf_ok: Any, d: Any) -> jax.Array:
+def _barrier_status(
+    status: Any, formula_status: Any, cbf_ok: Any, d: Any, box_ok: Any = None
+) -> jax.Array:
     """``status`` with the reason named where the filter's input misses a barrier.
 
     ``CBF_UNACTUATED`` where a violated barrier's ``d = L_g h`` is zero; else
     ``CBF_INFEASIBLE`` where the solver relaxed the CBFs (they conflict with the limits or
-    with each other); ``UNCERTIFIED`` where it stopped uncertified; ``CBF_UNMET`` where a
-    CBF flag fails at an otherwise certified answer.
+    with each other), or where a violated barrier alone cannot be met by any input within the
+    limits (``box_ok`` (..., k), given for the pass-through formula, which solves nothing);
+    ``UNCERTIFIED`` where it stopped uncertified; ``CBF_UNMET`` where a CBF flag fails at an
+    otherwise certified answer.
     """
     S, M = StepStatus, MultiStatus
     unmet = ~cbf_ok  # (..., k)
     unactuated = jnp.any(unmet & jnp.all(d == 0, -1), -1)
     certified = (formula_status == M.SOLVED) | (formula_status == M.CLF_DROPPED)
+    boxed_out = jnp.asarray(False) if box_ok is None else jnp.any(unmet & ~box_ok, -1)
     reason = jnp.where(
         unactuated,
         S.CBF_UNACTUATED,
         jnp.where(
-            formula_status == M.CBF_RELAXED,
+            (formula_status == M.CBF_RELAXED) | boxed_out,
             S.CBF_INFEASIBLE,
             jnp.where(certified, S.CBF_UNMET, S.UNCERTIFIED),
         ),
@@ -277,9 +293,10 @@ class SafetyFilter(Controller):
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
         self.clfs = _as_tuple(clfs, CLF, "clfs")
-        if not self.cbfs:
+        monitor = isinstance(formula, PassThrough)
+        if not self.cbfs and not monitor:
             raise ParameterError("give at least one CBF")
-        if formula is not None:
+        if formula is not None and not monitor:
             self._check_smooth(formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H)
         max_iter = check_max_iter(max_iter)
         sample_time, ddh_bound = check_sampled(sample_time, ddh_bound, len(self.cbfs))
@@ -371,9 +388,12 @@ class SafetyFilter(Controller):
             else jnp.zeros((0, g.shape[1]))
         )
         hs = [cb.fn_of(x, p) for cb in self.cbfs]
-        alphas = jnp.stack([cb.rate_term(h) for cb, h in zip(self.cbfs, hs, strict=True)])
-        c = jnp.stack([cb.grad_of(x, p) @ f for cb in self.cbfs]) + alphas
-        d = jnp.stack([cb.grad_of(x, p) @ g for cb in self.cbfs])
+        if self.cbfs:
+            alphas = jnp.stack([cb.rate_term(h) for cb, h in zip(self.cbfs, hs, strict=True)])
+            c = jnp.stack([cb.grad_of(x, p) @ f for cb in self.cbfs]) + alphas
+            d = jnp.stack([cb.grad_of(x, p) @ g for cb in self.cbfs])
+        else:  # a PolicyController without barriers
+            c, d = jnp.zeros(0), jnp.zeros((0, g.shape[1]))
         if self.sample_time is not None:  # the sampled-data margin: a shift of each c
             c = c - sampled_shift(jnp.stack(hs), alphas, self.sample_time, self.ddh_bound)
         S = StepStatus
@@ -382,7 +402,7 @@ class SafetyFilter(Controller):
         finite = finite & jnp.all(jnp.isfinite(d))
         status = jnp.where((status == S.OK) & ~finite, S.NONFINITE_MODEL, status)
         degree_ok = jnp.all(
-            jnp.stack([cb.relative_degree_holds(self.system, x, p) for cb in self.cbfs])
+            jnp.stack([True] + [cb.relative_degree_holds(self.system, x, p) for cb in self.cbfs])
         )
         status = jnp.where((status == S.OK) & ~degree_ok, S.RELATIVE_DEGREE, status)
         if self.uncertainty is not None:
@@ -470,7 +490,13 @@ class SafetyFilter(Controller):
         finite = jnp.all(jnp.isfinite(u), -1)
         status = jnp.where((status == StepStatus.OK) & ~finite, StepStatus.NONFINITE_INPUT, status)
         ok = status == StepStatus.OK
-        status = _barrier_status(status, res.status, cbf_ok, d)
+        box_ok = None
+        if isinstance(self.formula, PassThrough) and lo is not None:
+            # each barrier alone, at the box input that maximises d_i.u (0 where d_ij = 0;
+            # an infinite corner meets the condition)
+            best = jnp.where(d > 0, hi[..., None, :], jnp.where(d < 0, lo[..., None, :], 0.0))
+            _, box_ok = condition_flags(c, d, c, d, best, mg_c, 0.0, p["rho"], SATISFIED_RTOL)
+        status = _barrier_status(status, res.status, cbf_ok, d, box_ok)
         return FilterOutput(
             u=jnp.where(ok[..., None], u, jnp.nan),
             status=status.astype(jnp.int32),

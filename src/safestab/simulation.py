@@ -14,7 +14,13 @@ import numpy as np
 from ._numerics import tied
 from ._params import ParamSpec, merge_specs, resolve
 from ._validation import check_real, check_scalar_range, traced_results
-from .controllers import Controller, StepStatus, controller_step, has_input
+from .controllers import (
+    Controller,
+    StepStatus,
+    UniversalController,
+    controller_step,
+    has_input,
+)
 from .errors import (
     DimensionError,
     InfeasibleError,
@@ -24,7 +30,6 @@ from .errors import (
     ParameterError,
 )
 from .formulas import MultiStatus, Region
-from .formulas.problem import MultiFormula
 from .systems import ControlAffineSystem
 
 __all__ = [
@@ -347,8 +352,18 @@ def closed_loop(
 
 
 def _records_rows(controller: Any) -> bool:
-    """Whether a trajectory of ``controller`` records a value per certificate (several rows)."""
-    return isinstance(controller.formula, MultiFormula)
+    """Whether a trajectory of ``controller`` records a value per certificate (several rows).
+
+    Every controller but a :class:`~safestab.UniversalController` (one CLF and one CBF at
+    most): a :class:`~safestab.SafetyFilter` with any formula, a
+    :class:`~safestab.PolicyController`.
+    """
+    return not isinstance(controller, UniversalController)
+
+
+def _values(certificates: tuple, x: jax.Array, p: Any) -> jax.Array:
+    """Each certificate's value at ``x``, shape (len,) (``(0,)`` for none)."""
+    return jnp.stack([c.fn_of(x, p) for c in certificates]) if certificates else jnp.zeros(0)
 
 
 class TrajectoryRecorder:
@@ -374,11 +389,10 @@ class TrajectoryRecorder:
         p = self.params_at(t, data)
         ctrl = self.controller
         if self.multi:
-            V = jnp.stack([c.fn_of(x, p) for c in ctrl.clfs]) if ctrl.clfs else jnp.zeros(0)
-            h = jnp.stack([c.fn_of(x, p) for c in ctrl.cbfs])
+            V, h = _values(ctrl.clfs, x, p), _values(ctrl.cbfs, x, p)
             ok = out.status == StepStatus.OK
             region = out.formula_status
-            compatible = ok & (out.formula_status == MultiStatus.SOLVED)
+            compatible = ok & ~out.incompatible
             sat = jnp.all(out.cbf_satisfied)
         else:  # NaN for a certificate the controller has not
             V, h = (jnp.nan if c is None else c.fn_of(x, p) for c in (ctrl.clf, ctrl.cbf))
@@ -470,7 +484,7 @@ def _simulation(
         def watch(t, x, data):
             p = params_at(t, data)
             if _records_rows(controller):
-                return jnp.stack([c.fn_of(x, p) for c in controller.cbfs])
+                return _values(controller.cbfs, x, p)
             return jnp.asarray(jnp.nan if controller.cbf is None else controller.cbf.fn_of(x, p))
 
     recorder = TrajectoryRecorder(controller, params_at)
@@ -567,7 +581,7 @@ def simulate(
     """
     if not isinstance(controller, Controller):
         raise InputTypeError(
-            "controller must be a UniversalController or a SafetyFilter, got "
+            "controller must be a UniversalController, a SafetyFilter or a PolicyController, got "
             f"{type(controller).__name__}"
         )
     for name, value in (("t_final", t_final), ("dt", dt)):

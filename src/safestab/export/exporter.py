@@ -371,6 +371,24 @@ def _layer_lines(obj: Any) -> list[str]:
     ]
 
 
+def _describe_policy(ctrl: Any) -> str:
+    """What a PolicyController's step computes, for the header."""
+    name = getattr(ctrl.policy, "__name__", type(ctrl.policy).__name__)
+    limits = (
+        f"projected onto u_min = {np.asarray(ctrl.u_min).tolist()}, u_max = "
+        f"{np.asarray(ctrl.u_max).tolist()}"
+        if ctrl.u_min is not None
+        else "no input limits"
+    )
+    return "\n".join([
+        f"Policy controller on system '{ctrl.system.name}': n_states = "
+        f"{ctrl.system.n_states}, n_inputs = {ctrl.system.n_inputs}.",
+        f"The user's law '{name}' passes through unchanged ({limits}); nothing is enforced. "
+        f"Its {len(ctrl.cbfs)} CBF condition(s) and {len(ctrl.clfs)} CLF condition(s) are "
+        "evaluated at that input and the status names where a barrier's fails.",
+    ])  # fmt: skip
+
+
 def _describe_filter(filt: Any) -> str:
     """The problem a SafetyFilter solves, for the header."""
     p = filt.params
@@ -415,8 +433,10 @@ def export_c(
 
     Parameters
     ----------
-    controller : UniversalController or SafetyFilter
-        The controller; its fused step ``controller.step_fn`` is traced for one state. A
+    controller : Controller
+        The controller (:class:`~safestab.UniversalController`,
+        :class:`~safestab.SafetyFilter`, :class:`~safestab.PolicyController`); its fused step
+        ``controller.step_fn`` is traced for one state. A
         :class:`~safestab.SafetyFilter` is exported with its solver (loops in C; at most
         :data:`~safestab.formulas._dual_active_set.UNROLL` whitened coordinates are written
         without LAPACK-style helpers, beyond that a Householder QR and triangular solves in
@@ -451,12 +471,14 @@ def export_c(
             "build the controller with the values fixed in its functions to export it"
         )
     from ..filters import SafetyFilter
+    from ..policy import PolicyController
 
-    text = (
-        _describe_filter(controller)
-        if isinstance(controller, SafetyFilter)
-        else _describe_controller(controller)
-    )
+    if isinstance(controller, PolicyController):
+        text = _describe_policy(controller)
+    elif isinstance(controller, SafetyFilter):
+        text = _describe_filter(controller)
+    else:
+        text = _describe_controller(controller)
     if description:
         text += "\n" + description
     exported = export_function(

@@ -320,7 +320,10 @@ class NativeController:
 
     Parameters
     ----------
-    controller : UniversalController or SafetyFilter
+    controller : Controller
+        A :class:`~safestab.UniversalController`, a :class:`~safestab.SafetyFilter` (any
+        formula) or a :class:`~safestab.PolicyController` (a user's law, traced to C like
+        the rest; its primitives need C translations).
     name : str
         Prefix of the C names.
     precision : {"double", "float"}

@@ -34,6 +34,7 @@ from .certificate import conditions_satisfied, kkt_residuals
 from .compat import compatibility
 from .limits import project_box, saturate_safety_first
 from .multi import MultiResult, MultiStatus, clf_cbf_multi
+from .passthrough import PassThrough
 from .problem import (
     CBFFormula,
     CombinedFormula,
@@ -85,6 +86,7 @@ __all__ = [
     "clf_cbf_multi",
     "Problem",
     "Formula",
+    "PassThrough",
     "SontagFormula",
     "CBFFormula",
     "CombinedFormula",

@@ -16,10 +16,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ..certificates import lie_terms_point
-from ..controllers import StepStatus, UniversalController, has_input
-from ..filters import SafetyFilter
-from ..formulas import SATISFIED_RTOL, MultiStatus, Region
+from ..certificates import CBF, CLF
+from ..controllers import Controller, StepStatus, has_input
+from ..errors import InputTypeError, ParameterError
+from ..formulas import SATISFIED_RTOL
 from ..simulation import closed_loop
 from ..systems import ControlAffineSystem
 
@@ -72,12 +72,22 @@ class StatisticsRecorder:
 
     The step's output it reads is a dict: ``u``, ``incompatible``, ``status`` and, for a
     Lemma-2 check, the uncertainty model's ``mean`` and ``std`` at the state.
+
+    ``cbfs``: the barriers recorded (one or more): ``h`` is their least value, a step breaks
+    the CBF condition where one of them does, the margin is the least over them. ``clf``:
+    the CLF recorded, or None (``clf_true_fraction``, ``final_V`` and ``settle_time`` are
+    then -1).
     """
 
-    def __init__(self, plant, clf, cbf, exo, omega, beta, n_steps, dt, price=False) -> None:
-        self.plant, self.clf, self.cbf, self.exo = plant, clf, cbf, exo
+    def __init__(self, plant, clf, cbfs, exo, omega, beta, n_steps, dt, price=False) -> None:
+        self.plant, self.clf, self.cbfs, self.exo = plant, clf, tuple(cbfs), exo
         self.omega, self.beta, self.n_steps, self.dt = omega, beta, n_steps, dt
         self.price = price  # the step's output then has "u_ref"
+
+    def h(self, x: jax.Array) -> jax.Array:
+        """The least barrier value at ``x`` (the one barrier's value for one)."""
+        values = [cbf.fn(x) for cbf in self.cbfs]
+        return values[0] if len(values) == 1 else jnp.min(jnp.stack(values))
 
     def init(self, x0: jax.Array, data: Any) -> dict[str, jax.Array]:
         """The statistics before the first step (minima at inf, counts at 0)."""
@@ -115,16 +125,25 @@ class StatisticsRecorder:
 
         ``between``: the least ``h`` over the hold interval after ``x`` (substeps), if any.
         """
-        plant, clf, cbf = self.plant, self.clf, self.cbf
+        plant, clf = self.plant, self.clf
         u = ev["u"]
-        a, b, c, d = lie_terms_point(plant, clf, cbf, x)
         e = self.exo(t, x, data)
-        gv, gh = clf.grad(x), cbf.grad(x)
-        c_true = c + gh @ e + d @ u
-        a_true = a + gv @ e + b @ u
-        cbf_bad = _violated(c_true, jnp.abs(c) + jnp.abs(gh @ e) + jnp.abs(d) @ jnp.abs(u), 1.0)
-        clf_ok = ~_violated(a_true, jnp.abs(a) + jnp.abs(gv @ e) + jnp.abs(b) @ jnp.abs(u), -1.0)
-        h, status = cbf.fn(x), ev["status"]
+        cbf_bad, c_true = jnp.asarray(False), jnp.asarray(jnp.inf)
+        for cbf in self.cbfs:  # each barrier's condition on the true dynamics
+            c, d = cbf.lie_point(plant, x)
+            gh = cbf.grad(x)
+            c_i = c + gh @ e + d @ u
+            scale = jnp.abs(c) + jnp.abs(gh @ e) + jnp.abs(d) @ jnp.abs(u)
+            cbf_bad = cbf_bad | _violated(c_i, scale, 1.0)
+            c_true = jnp.minimum(c_true, c_i)
+        clf_ok = jnp.asarray(False)
+        if clf is not None:
+            a, b = clf.lie_point(plant, x)
+            gv = clf.grad(x)
+            a_true = a + gv @ e + b @ u
+            scale = jnp.abs(a) + jnp.abs(gv @ e) + jnp.abs(b) @ jnp.abs(u)
+            clf_ok = ~_violated(a_true, scale, -1.0)
+        h, status = self.h(x), ev["status"]
         bad = ~has_input(status)
         first = (s["first_bad_status"] == 0) & bad
         least = h if between is None else jnp.minimum(h, between)
@@ -155,15 +174,16 @@ class StatisticsRecorder:
         n_steps = self.n_steps
         final_bad = ~jnp.all(jnp.isfinite(x_final)) & (s["first_bad_status"] == 0)
         l2 = s["lemma2_violations"] + self._lemma2_bad(x_final, data, ev_final)
-        v_final = self.clf.fn(x_final)
-        h_final = self.cbf.fn(x_final)
+        no_clf = jnp.asarray(-1.0)
+        v_final = no_clf if self.clf is None else self.clf.fn(x_final)
+        h_final = self.h(x_final)
         return {
             "min_h": jnp.minimum(s["min_h"], h_final),
             "min_h_between": jnp.minimum(s["min_h_between"], h_final),
             "time_h_negative": s["h_negative_steps"] * self.dt,
             "cbf_true_violations": s["cbf_true_violations"],
             "min_cbf_true_margin": s["min_cbf_true_margin"],
-            "clf_true_fraction": s["clf_true_steps"] / n_steps,
+            "clf_true_fraction": no_clf if self.clf is None else s["clf_true_steps"] / n_steps,
             "final_V": v_final,
             "incompatible_steps": s["incompatible_steps"],
             "lemma2_violations": l2 if self.beta is not None else jnp.asarray(-1),
@@ -186,15 +206,17 @@ class StatisticsRecorder:
 
 
 def trial_function(
-    controllers: Sequence[UniversalController | SafetyFilter],
+    controllers: Sequence[Controller],
     *,
     plant: ControlAffineSystem,
+    clf: CLF | None = None,
+    cbfs: CBF | Sequence[CBF] | None = None,
     n_steps: int,
     dt: float,
     exogenous: Exogenous | None = None,
     omega: Omega | None = None,
     lemma2: Sequence[tuple[Any, jax.Array] | None] | None = None,
-    reference: UniversalController | SafetyFilter | None = None,
+    reference: Controller | None = None,
     substeps: int = 1,
 ) -> Callable[[jax.Array, Any], dict[str, jax.Array]]:
     """Build ``run(x0, params) -> records`` for one trial and every controller.
@@ -204,12 +226,24 @@ def trial_function(
 
     Parameters
     ----------
-    controllers : sequence of UniversalController or SafetyFilter
-        ``C`` controllers (the same CLF and CBF; a filter with one of each); each drives its
-        own copy of ``plant``. A filter's ``incompatible`` record counts the steps whose
-        problem was not solved whole (``formula_status`` other than ``SOLVED``).
+    controllers : sequence of Controller
+        ``C`` controllers of any kind: :class:`~safestab.UniversalController` (with or
+        without a CLF or a CBF), :class:`~safestab.SafetyFilter` (any formula, any number of
+        rows), :class:`~safestab.PolicyController` (a user's own law); each drives its own
+        copy of ``plant``, and all are scored on the same certificates (``clf``, ``cbfs``).
+        The ``incompatible`` record counts the steps whose conditions were incompatible
+        (a filter: whose problem was not solved whole, ``formula_status`` other than
+        ``SOLVED``; never for a PolicyController).
     plant : ControlAffineSystem
         The true dynamics.
+    clf : CLF, optional
+        The CLF the records use (``clf_true_fraction``, ``final_V``, ``settle_time``);
+        default the first controller's first CLF; where there is none, those records are
+        -1.
+    cbfs : CBF or sequence of CBF, optional
+        The barriers the records use: ``min_h`` and ``min_h_between`` are the least value
+        over them, a step breaks the CBF condition where one of them does. Default: the
+        first controller's CBFs.
     n_steps : int
         Steps ``K``; ``K + 1`` states are visited (``t_0 .. t_K``).
     dt : float
@@ -245,14 +279,34 @@ def trial_function(
     ValueError
         If ``lemma2`` has not one entry per controller, or checks are asked without
         ``omega``.
+    InputTypeError
+        If a controller is not a :class:`~safestab.Controller`, or ``clf``/``cbfs`` are not
+        certificates.
+    ParameterError
+        If no CBF is given or found (the records are about safety), if a ``reference`` is
+        given without a CLF (``settle_time`` needs one), or if a controller takes run-time
+        parameters.
     """
     ctrls = tuple(controllers)
+    bad = [type(c).__name__ for c in ctrls if not isinstance(c, Controller)]
+    if bad or not ctrls:
+        raise InputTypeError(
+            "controllers must be a non-empty sequence of safestab controllers "
+            f"(UniversalController, SafetyFilter, PolicyController), got {bad or 'none'}"
+        )
+    takes = [repr(c) for c in ctrls if c.params_spec is not None]
+    if takes:
+        raise ParameterError(
+            f"the trial loop passes no run-time parameters, but {takes[0]} takes them; bind "
+            "their values in its functions (per-trial data reaches exogenous and omega)"
+        )
     checks = tuple(lemma2) if lemma2 is not None else (None,) * len(ctrls)
     if len(checks) != len(ctrls):
         raise ValueError("lemma2 must have one entry per controller")
     if omega is None and any(c is not None for c in checks):
         raise ValueError("lemma2 checks need omega")
-    clf, cbf = ctrls[0].clfs[0], ctrls[0].cbfs[0]  # a filter's first: the obstacle's one each
+    clf, cbfs = _record_certificates(ctrls[0], clf, cbfs, reference)
+    cbf = cbfs[0] if len(cbfs) == 1 else None
     n = plant.n_states
 
     def exo(t, x, p):
@@ -270,19 +324,18 @@ def trial_function(
                 out = ctrl.step_with_uncertainty(x, mean, std)  # the model evaluated once
             else:
                 out = ctrl.step_fn(x)
-            if isinstance(ctrl, SafetyFilter):
-                # a CBF relaxed against the box, or the solver stopped uncertified: the
-                # filter's problem (soft CLF, CBF, box) was not solved whole
-                incompatible = out.formula_status != MultiStatus.SOLVED
-            else:
-                incompatible = (~out.compatible) | (out.region == Region.INCOMPATIBLE)
-            ev = {"u": out.u, "incompatible": incompatible, "status": out.status,
+            # a filter: a CBF relaxed against the box, or the solver stopped uncertified (the
+            # problem was not solved whole); a universal formula: Lemma 1's incompatibility
+            ev = {"u": out.u, "incompatible": out.incompatible, "status": out.status,
                   "mean": mean, "std": std}  # fmt: skip
             if reference is not None:
                 ev["u_ref"] = reference.step_fn(x).u
             return ev
 
         return step
+
+    def watch(t, x, p):  # the least barrier value inside each hold interval
+        return cbf.fn(x) if cbf is not None else jnp.min(jnp.stack([c.fn(x) for c in cbfs]))
 
     loops = [
         closed_loop(
@@ -291,7 +344,7 @@ def trial_function(
             StatisticsRecorder(
                 plant,
                 clf,
-                cbf,
+                cbfs,
                 exo,
                 omega,
                 None if check is None else check[1],
@@ -302,7 +355,7 @@ def trial_function(
             n_steps=n_steps,
             dt=dt,
             substeps=substeps,
-            watch=None if substeps == 1 else (lambda t, x, p: cbf.fn(x)),
+            watch=None if substeps == 1 else watch,
         )
         for ctrl, check in zip(ctrls, checks, strict=True)
     ]
@@ -312,3 +365,29 @@ def trial_function(
         return {key: jnp.stack([jnp.asarray(r[key]) for r in per]) for key in RECORD_FIELDS}
 
     return run
+
+
+def _record_certificates(
+    first: Controller, clf: Any, cbfs: Any, reference: Any
+) -> tuple[CLF | None, tuple[CBF, ...]]:
+    """The records' CLF and CBFs: as given, else the first controller's; checked."""
+    if clf is None:
+        clf = first.clfs[0] if first.clfs else None
+    elif not isinstance(clf, CLF):
+        raise InputTypeError(f"clf must be a CLF or None, got {type(clf).__name__}")
+    if cbfs is None:
+        cbfs = first.cbfs
+    cbfs = (cbfs,) if isinstance(cbfs, CBF) else tuple(cbfs)
+    if not all(isinstance(c, CBF) for c in cbfs):
+        raise InputTypeError(
+            f"cbfs must be a CBF or a sequence of CBFs, got {[type(c).__name__ for c in cbfs]}"
+        )
+    if not cbfs:
+        raise ParameterError(
+            "the trial records are about safety: give cbfs= (the first controller has no CBF)"
+        )
+    if reference is not None and clf is None:
+        raise ParameterError(
+            "settle_time (with a reference) needs a CLF: give clf= (the first controller has none)"
+        )
+    return clf, cbfs

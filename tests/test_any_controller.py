@@ -208,3 +208,13 @@ def test_a_policy_exports_to_c_and_the_native_step_agrees():
     np.testing.assert_allclose(got.u, np.asarray(ref.u), rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(got.status, np.asarray(ref.status))
     assert len(set(np.asarray(ref.status).tolist())) >= 2  # OK and a named miss both occur
+
+
+@pytest.mark.parametrize("kind", list(_controllers()))
+def test_every_controller_kind_exports_and_the_native_step_agrees(kind):
+    ctrl = _controllers()[kind]
+    native = ss.NativeController(ctrl, name="any")
+    x = np.random.default_rng(2).uniform(-1.2, 1.2, (200, 2))
+    ref, got = ctrl.step(x), native.step(x)
+    np.testing.assert_allclose(got.u, np.asarray(ref.u), rtol=1e-11, atol=1e-13)
+    np.testing.assert_array_equal(got.status, np.asarray(ref.status))

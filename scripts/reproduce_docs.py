@@ -471,6 +471,34 @@ def price_table(doc: dict) -> str:
     return _table(head_s, align, safety) + "\n" + _table(head_e, align, effort)
 
 
+def price_limited_table(doc: dict) -> str:
+    """docs/price.md's table under the input limits: a row per size and controller.
+
+    Safe data sets with the exact interval, the median margin and settle time paid over the
+    true model, the share of steps with the input on a limit, and the trials (and steps)
+    whose status said the barrier's condition could not be met in the limits.
+    """
+    unit = doc["h_unit"]
+    rows = []
+    for point in doc["points"]:
+        for name in doc["settings"]["controllers"]:
+            e = point["controllers"][name]
+            s = e["safe_per_dataset"]
+            lo, hi = s["ci95"]
+            rows.append([
+                f"{point['n_samples']:,}", name, f"{s['count']}/{s['datasets']}",
+                f"[{lo:.2f}, {hi:.2f}]", f"{e['min_h_excess']['0.5']:+.2g}",
+                f"{e['settle_time_excess']['0.5']:+.3g}", f"{e['limit_step_fraction']:.3g}",
+                f"{e['barrier_unmet_trials']} ({e['barrier_unmet_steps']} steps)",
+            ])  # fmt: skip
+    trials = doc["settings"]["datasets"] * doc["settings"]["trials_per_dataset"]
+    header = ["Q", "controller", "safe data sets", "95 % interval",
+              f"median min h - min h_true ({unit})", "median settle time - settle time_true (s)",
+              "share of steps on the limit",
+              f"trials (of {trials}) with steps the limits could not make safe"]  # fmt: skip
+    return _table(header, ["---:", "---"] + ["---:"] * 6, rows)
+
+
 def mc_table(doc: dict) -> str:
     """A Monte Carlo metrics document's table (safestab.montecarlo.report.markdown_table)."""
     from safestab.montecarlo.report import markdown_table
@@ -653,6 +681,20 @@ def step_price(out: Path) -> dict[str, tuple[str, str]]:
     return tables
 
 
+def step_price_limited(out: Path) -> dict[str, tuple[str, str]]:
+    """The price study under the input limits, small counts (stress-limited, about 5 min)."""
+    folder = out / "price-limited"
+    _run([sys.executable, "benchmarks/price_of_robustness.py", "--scenario", "stress-limited",
+          "--out", str(folder), *PRICE_LIMITED_ARGS])  # fmt: skip
+    _copy(folder / "price_stress-limited.png", "figures/price_stress-limited.png")
+    doc = _load(folder / "price_stress-limited.json")
+    return {"price-limited": ("docs/price.md", price_limited_table(doc))}
+
+
+#: The limited price study's counts: 4 sizes, 10 data sets of 2 trials (a normal step).
+PRICE_LIMITED_ARGS = ["--q", "25", "100", "500", "2000", "--datasets", "10",
+                      "--trials-per-dataset", "2"]  # fmt: skip
+
 #: The price study's runs: scenario and arguments beyond the script's defaults.
 PRICE_RUNS = {
     "stress": [],
@@ -711,6 +753,7 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
     "price": step_price,
+    "price-limited": step_price_limited,
 }
 LONG = {"mc-datasets", "price"}
 #: The generated blocks each step writes (tests/test_docs_tools.py checks that every block
@@ -736,6 +779,7 @@ PRODUCES = {
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "price": ["price-stress", "price-obstacle"],
+    "price-limited": ["price-limited"],
 }
 
 

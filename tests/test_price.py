@@ -26,7 +26,7 @@ def _fake_run(min_h: np.ndarray, final_v: np.ndarray, sets: np.ndarray, names: t
     model = SimpleNamespace(hyper=SimpleNamespace(components=(0,)))
     return SimpleNamespace(
         records=rec, dataset_index=sets, datasets=[model] * k, controllers=names,
-        study=SimpleNamespace(h_unit="m"), spec=SimpleNamespace(delta=0.01),
+        study=SimpleNamespace(h_unit="m", n_steps=50), spec=SimpleNamespace(delta=0.01),
     )  # fmt: skip
 
 
@@ -52,6 +52,22 @@ def test_price_point_pairs_each_trial_with_the_reference():
     entry = point["GP-robust"]["safe_per_dataset"]
     assert entry["count"] == count and entry["datasets"] == 8
     assert entry["ci95"] == pytest.approx(list(clopper_pearson(count, 8)))
+
+
+def test_price_point_counts_the_limit_and_the_unmet_barrier():
+    """limit_step_fraction, limit_trials, barrier_unmet_trials and _steps against hand sums."""
+    n, names = 12, ("true model", "GP-robust")
+    run = _fake_run(np.ones((n, 2)), np.ones((n, 2)), np.arange(n) % 3, names)
+    limit = np.zeros((n, 2), int)
+    limit[[1, 4, 7], 1] = [50, 3, 10]  # 63 of 12 * 50 steps, in 3 trials
+    unmet = np.zeros((n, 2), int)
+    unmet[[4, 9], 1] = [2, 5]
+    run.records.update(limit_steps=limit, barrier_unmet_steps=unmet)
+    point = price_point(run)
+    e = point["GP-robust"]
+    assert e["limit_step_fraction"] == pytest.approx(63 / 600)
+    assert (e["limit_trials"], e["barrier_unmet_trials"], e["barrier_unmet_steps"]) == (3, 2, 7)
+    assert point["true model"]["limit_trials"] == 0
 
 
 def test_price_point_needs_the_reference():

@@ -263,7 +263,7 @@ def test_unreadable_file_named_error(tmp_path, monkeypatch):
 
 
 def test_unknown_scenario():
-    presets = r"\('paper', 'stress', 'stress-ood'\)"
+    presets = r"\('paper', 'stress', 'stress-ood', 'paper-limited', 'stress-limited'\)"
     with pytest.raises(ScenarioError, match=rf"'nope' is neither a preset {presets}"):
         load_scenario("nope")
 

@@ -249,9 +249,9 @@ class Controller(ControllerValue):
     CLFs and CBFs and the several-row formula
     (:class:`~safestab.formulas.problem.MultiFormula`) and returns a
     :class:`~safestab.FilterOutput`; :class:`~safestab.PolicyController` runs a user's own law
-    through the filter's step with a formula that enforces nothing. All are pytrees whose leaves are their numeric
-    parameters (:meth:`tunables`, :meth:`replace`), run by :func:`~safestab.simulate` and
-    exported by :func:`~safestab.export_c` alike.
+    through the filter's step with a formula that enforces nothing. All are pytrees whose
+    leaves are their numeric parameters (:meth:`tunables`, :meth:`replace`), run by
+    :func:`~safestab.simulate` and exported by :func:`~safestab.export_c` alike.
 
     Each step computes the certificates' Lie terms at the state, the GP-robust terms when an
     uncertainty model is set (Lemma 3), the formula's :class:`~safestab.formulas.problem.Problem`

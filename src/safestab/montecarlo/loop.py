@@ -49,6 +49,8 @@ RECORD_FIELDS: dict[str, str] = {
     "barrier_unmet_steps": "steps whose input broke a CBF condition the controller enforces "
     "and said so (StepStatus CBF_UNACTUATED, CBF_INFEASIBLE, CBF_UNMET or UNCERTIFIED: the "
     "limits and the barrier conflicted, say)",
+    "limit_steps": "steps whose applied input lies on a limit (some u_j at u_min,j or u_max,j, "
+    "within SATISFIED_RTOL of the bound); 0 without limits",
     "settle_time": "time (s) from which V stays at or below SETTLE_FRACTION V(x_0) to the end; "
     "the horizon if it never settles; -1 when not measured",
 }
@@ -104,6 +106,7 @@ class StatisticsRecorder:
             "first_bad_status": zero_i,
             "first_bad_step": jnp.asarray(-1, jnp.int64),
             "barrier_unmet_steps": zero_i,
+            "limit_steps": zero_i,
             **(self._price_init(x0) if self.price else {}),
         }
 
@@ -159,6 +162,7 @@ class StatisticsRecorder:
             "first_bad_status": jnp.where(first, status, s["first_bad_status"]),
             "first_bad_step": jnp.where(first, k, s["first_bad_step"]),
             "barrier_unmet_steps": s["barrier_unmet_steps"] + (status >= StepStatus.CBF_UNACTUATED),
+            "limit_steps": s["limit_steps"] + ev["at_limit"],
         }
         if self.price:
             unsettled = self.clf.fn(x) > s["v_settled"]
@@ -192,6 +196,7 @@ class StatisticsRecorder:
             ),
             "first_bad_step": jnp.where(final_bad, n_steps, s["first_bad_step"]),
             "barrier_unmet_steps": s["barrier_unmet_steps"],
+            "limit_steps": s["limit_steps"],
             **(self._price_finish(s, v_final) if self.price else
                {"mean_input_gap": jnp.asarray(-1.0), "settle_time": jnp.asarray(-1.0)}),
         }  # fmt: skip
@@ -203,6 +208,17 @@ class StatisticsRecorder:
                          s["last_unsettled"] + 1)  # fmt: skip
         return {"mean_input_gap": s["input_gap_sum"] / self.n_steps,
                 "settle_time": last * self.dt}  # fmt: skip
+
+
+def _at_limit(ctrl: Any, u: jax.Array) -> jax.Array:
+    """Whether some input component lies on its limit (within SATISFIED_RTOL of the bound)."""
+    if getattr(ctrl, "u_min", None) is None:
+        return jnp.asarray(False)
+    lo, hi = jnp.asarray(ctrl.u_min), jnp.asarray(ctrl.u_max)
+    # an infinite side is never reached (and its tolerance would be inf - inf)
+    on_lo = jnp.isfinite(lo) & (u <= lo + SATISFIED_RTOL * jnp.abs(lo))
+    on_hi = jnp.isfinite(hi) & (u >= hi - SATISFIED_RTOL * jnp.abs(hi))
+    return jnp.any(on_lo | on_hi)
 
 
 def trial_function(
@@ -327,7 +343,7 @@ def trial_function(
             # a filter: a CBF relaxed against the box, or the solver stopped uncertified (the
             # problem was not solved whole); a universal formula: Lemma 1's incompatibility
             ev = {"u": out.u, "incompatible": out.incompatible, "status": out.status,
-                  "mean": mean, "std": std}  # fmt: skip
+                  "mean": mean, "std": std, "at_limit": _at_limit(ctrl, out.u)}  # fmt: skip
             if reference is not None:
                 ev["u_ref"] = reference.step_fn(x).u
             return ev

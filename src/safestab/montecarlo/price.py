@@ -71,8 +71,10 @@ def price_point(run: MonteCarloRun, reference: str = REFERENCE) -> dict[str, Any
         ``safe`` (per trial, with the interval of :func:`summarize`), the quantiles
         :data:`QUANTILES` over trials of ``min_h_excess`` (``min h - min h_ref``, in the
         study's ``h_unit``) and ``final_V_excess``, the mean ``clf_fraction_deficit``, for GP
-        controllers ``beta_mean``, and where the run measured them (``price_metrics``) the
-        quantiles of ``settle_time_excess`` (s) and ``mean_input_gap`` (input units).
+        controllers ``beta_mean``, where the run measured them (``price_metrics``) the
+        quantiles of ``settle_time_excess`` (s) and ``mean_input_gap`` (input units), and
+        how often the limit bound and the barrier went unmet (``limit_step_fraction``,
+        ``limit_trials``, ``barrier_unmet_trials``, ``barrier_unmet_steps``).
 
     Raises
     ------
@@ -106,7 +108,29 @@ def price_point(run: MonteCarloRun, reference: str = REFERENCE) -> dict[str, Any
             entry["mean_input_gap"] = _quantiles(rec["mean_input_gap"][:, c])
         if "beta_mean_over_datasets" in s:
             entry["beta_mean"] = s["beta_mean_over_datasets"]
+        entry |= _limit_counts(rec, c, run.study.n_steps)
         out[name] = entry
+    return out
+
+
+def _limit_counts(rec: dict[str, np.ndarray], c: int, n_steps: int) -> dict[str, Any]:
+    """How often the input limit bound and the barrier went unmet, for controller ``c``.
+
+    ``limit_step_fraction``: the share of all steps whose input was on a limit;
+    ``limit_trials``: trials with any such step; ``barrier_unmet_trials`` and
+    ``barrier_unmet_steps``: trials with, and the count of, steps whose status said the
+    barrier's condition was not met (``CBF_INFEASIBLE`` and the other named statuses).
+    Records without the counts (older runs) give none of these keys.
+    """
+    out: dict[str, Any] = {}
+    if "limit_steps" in rec:
+        steps = rec["limit_steps"][:, c]
+        out["limit_step_fraction"] = float(np.sum(steps) / (steps.size * n_steps))
+        out["limit_trials"] = int(np.sum(steps > 0))
+    if "barrier_unmet_steps" in rec:
+        unmet = rec["barrier_unmet_steps"][:, c]
+        out["barrier_unmet_trials"] = int(np.sum(unmet > 0))
+        out["barrier_unmet_steps"] = int(np.sum(unmet))
     return out
 
 

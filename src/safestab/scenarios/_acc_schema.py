@@ -28,6 +28,7 @@ from ._schema import (
     vector,
 )
 from ._schema import check_structure as _check_structure_with
+from .acc_braking import BARRIERS
 
 __all__ = [
     "FIELDS", "LIMITS", "ScenarioLimits", "check_structure", "check_values", "fail", "choice",
@@ -52,6 +53,12 @@ def _input_limit(path: str, value: Any, source: str) -> float | None:
             value,
         )
     return float(value)
+
+
+def _lead_decel(path: str, value: Any, source: str) -> float | None:
+    if value is None:  # absent (the dataclass's default): only the headway barrier
+        return None
+    return real(_SMALL, 10.0)(path, value, source)
 
 
 def _profile(path: str, value: Any, source: str) -> tuple[tuple[float, float], ...]:
@@ -93,6 +100,11 @@ FIELDS: dict[str, Check] = {
     "certificates.tau": _POS,
     "certificates.lam": _NONNEG,
     "certificates.beta": _NONNEG,
+    # optional: "headway" (the paper's D - tau v_f, the default) or "braking" (the
+    # braking-distance barrier valid under controller.input_limit; acc_braking.py)
+    "certificates.barrier": choice(BARRIERS),
+    # the lead's largest deceleration (fraction of g) the braking barrier is valid for
+    "certificates.lead_decel": _lead_decel,
     "controller.kappa": _NONNEG,
     "controller.rho": _NONNEG,
     "controller.phi": _NONNEG,
@@ -107,7 +119,9 @@ FIELDS: dict[str, Check] = {
     # most M inducing inputs per component (its band contains the exact band)
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),
 }
-_OPTIONAL = {"name", "kind", "learning.n_inducing"}
+_OPTIONAL = {
+    "name", "kind", "learning.n_inducing", "certificates.barrier", "certificates.lead_decel",
+}  # fmt: skip
 
 
 # -- whole-file checks ------------------------------------------------------------------
@@ -148,4 +162,32 @@ def check_values(flat: Mapping[str, Any], source: str) -> dict[str, Any]:
     """
     v = {path: check(path, flat[path], source) for path, check in FIELDS.items() if path in flat}
     check_learning_counts(v, source)
+    _check_barrier(v, source)
     return v
+
+
+def _check_barrier(v: Mapping[str, Any], source: str) -> None:
+    """The braking barrier needs the braking limit and a lead bound the profile keeps."""
+    braking = v.get("certificates.barrier", "headway") == "braking"
+    decel = v.get("certificates.lead_decel")
+    if not braking:
+        if decel is not None:
+            raise fail(source, "certificates.lead_decel", "absent with certificates.barrier = "
+                       "'headway' (it is used only by the braking barrier)", decel)  # fmt: skip
+        return
+    if v["controller.input_limit"] is None:
+        raise fail(source, "controller.input_limit", "a number (the braking limit, fraction of "
+                   "M g) with certificates.barrier = 'braking'", False)  # fmt: skip
+    if decel is None:
+        raise fail(source, "certificates.lead_decel", "a number in (0, 10] (the lead's largest "
+                   "deceleration, fraction of g) with certificates.barrier = 'braking'",
+                   None)  # fmt: skip
+    worst = -min((acc for _, acc in v["lead.profile"]), default=0.0)
+    if worst > decel * v["vehicle.gravity"]:
+        raise fail(
+            source,
+            "certificates.lead_decel",
+            f">= the lead profile's largest "
+            f"deceleration, {worst!r} m/s^2 = {worst / v['vehicle.gravity']!r} g",
+            decel,
+        )

@@ -11,7 +11,10 @@ Input ``F``: wheel force in newtons (``input_units = "newton"``), or ``F / (M g)
 (``"normalized"``, dimensionless). CLF ``V = (v_f - v_d)^2`` with rate ``lam``; CBF
 ``h = D - tau v_f`` (m) with rate ``beta``. The lead acceleration is known to the simulator
 but not part of ``f``: it does not enter ``a, b, c, d`` because neither ``V`` nor ``h``
-depends on ``v_l``.
+depends on ``v_l``. With ``certificates.barrier = "braking"`` the CBF is the braking-distance
+barrier of :mod:`~safestab.scenarios.acc_braking`, which does depend on ``v_l``: the
+controllers then act on the model with the lead braking as hard as it may
+(:meth:`ACCScenario.controller_system`).
 """
 
 from __future__ import annotations
@@ -29,13 +32,14 @@ from ..systems import ControlAffineSystem
 from ._acc_schema import LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._schema import LEARNING_KEYS, load_flat
+from .acc_braking import braking_barrier, braking_lie_terms, check_lead_bound, worst_lead
 from .trials import ACCTrials
 
 __all__ = [
     "ACCScenario", "MonteCarloSpec", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits",
 ]  # fmt: skip
 
-PRESETS = ("paper", "stress", "stress-ood")
+PRESETS = ("paper", "stress", "stress-ood", "paper-limited", "stress-limited")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +104,12 @@ class ACCScenario:
     #: GP-corrected controller; ``M > 0`` its FastGP cache of at most ``M`` inducing inputs
     #: per component, whose band contains the exact band (docs/learning.md).
     n_inducing: int = 0
+    #: ``certificates.barrier`` (optional): ``"headway"`` (the paper's ``D - tau v_f``, the
+    #: default) or ``"braking"`` (valid under ``input_limit``; docs/acc.md).
+    barrier: str = "headway"
+    #: ``certificates.lead_decel``: the lead's largest deceleration (fraction of g) that the
+    #: braking barrier is valid for; None with the headway barrier.
+    lead_decel: float | None = None
     #: The optional ``[montecarlo]`` table (trial distributions); ``None`` when absent.
     montecarlo: MonteCarloSpec | None = None
 
@@ -110,6 +120,7 @@ class ACCScenario:
                 f"scenario {self.name!r}: montecarlo must be a MonteCarloSpec or None, got "
                 f"{type(self.montecarlo).__name__}"
             )
+        check_lead_bound(self, self.montecarlo, f"scenario {self.name!r}", ScenarioError)
 
     def replace(self, **changes: Any) -> ACCScenario:
         """A copy with some fields changed, checked like a loaded file.
@@ -186,11 +197,28 @@ class ACCScenario:
         return {"f0": drag.f0, "f1": drag.f1, "f2": drag.f2}
 
     def certificates(self) -> tuple[CLF, CBF]:
-        """CLF ``(v_f - v_d)^2`` and CBF ``D - tau v_f``."""
+        """CLF ``(v_f - v_d)^2`` and CBF ``D - tau v_f`` (or the braking-distance barrier)."""
         v_d, tau = self.v_d, self.tau
         clf = CLF(lambda x: (x[0] - v_d) ** 2, lam=self.lam)
-        cbf = CBF(lambda x: x[2] - tau * x[0], beta=self.beta)
-        return clf, cbf
+        if self.barrier == "braking":
+            g = self.gravity
+            h = braking_barrier(tau, self.input_limit * g, self.lead_decel * g)
+            return clf, CBF(h, beta=self.beta)
+        return clf, CBF(lambda x: x[2] - tau * x[0], beta=self.beta)
+
+    def controller_system(self, system: ControlAffineSystem) -> ControlAffineSystem:
+        """The model a controller acts on: ``system`` itself, or with the worst lead.
+
+        With the braking barrier, ``h`` depends on ``v_l`` and the lead's acceleration, which
+        no controller knows, moves it: the controllers' model adds ``(0, -lead_decel g, 0)``
+        (the lead braking as hard as it may), so their condition holds for every admissible
+        lead (docs/acc.md). The plant and the data collection keep ``system``.
+        """
+        if self.barrier != "braking":
+            return system
+        return system.with_disturbance(
+            worst_lead(self.lead_decel * self.gravity), name=f"{system.name}+worst-lead"
+        )
 
     def hand_lie_terms(self, x: Any, which: str = "true") -> LieTerms:
         """The Lie terms written out by hand (with the corrections of NOTES.md section 3).
@@ -198,6 +226,8 @@ class ACCScenario:
         ``a = -2 (v_f - v_d) F_r/M + lam V``, ``b = 2 (v_f - v_d) k/M``,
         ``c = v_l - v_f + tau F_r/M + beta h``, ``d = -tau k/M`` with ``k`` the input scale.
         The paper prints an extra factor ``F_r`` in ``b`` and writes ``b, d`` as 3-vectors.
+        With the braking barrier, ``c`` and ``d`` are those of the worst-lead model
+        (:func:`~safestab.scenarios.acc_braking.braking_lie_terms`).
         """
         drag = self._drag(which)
         x = jnp.asarray(x, dtype=float)
@@ -210,6 +240,9 @@ class ACCScenario:
         b = (2 * (vf - self.v_d) * k / M)[..., None]
         c = vl - vf + self.tau * fr / M + self.beta * h
         d = jnp.broadcast_to(-self.tau * k / M, vf.shape)[..., None]
+        if self.barrier == "braking":
+            c, d = braking_lie_terms(self, x, drag)
+            d = d[..., None]
         return LieTerms(a, b, c, d)
 
     def lead_acceleration(self, t: Any) -> Any:
@@ -267,7 +300,7 @@ _KEYS = {
     "v_l0": "initial.v_l",
     "D0": "initial.D",
     "lead_profile": "lead.profile",
-    **{k: f"certificates.{k}" for k in ("v_d", "tau", "lam", "beta")},
+    **{k: f"certificates.{k}" for k in ("v_d", "tau", "lam", "beta", "barrier", "lead_decel")},
     **{
         k: f"controller.{k}"
         for k in ("kappa", "rho", "phi", "varphi", "slack_weight", "input_units", "input_limit")
@@ -306,7 +339,7 @@ def _build(v: dict[str, Any], montecarlo: MonteCarloSpec | None = None) -> ACCSc
 def load_scenario(
     name_or_path: str | Path, *, overrides: Mapping[str, Any] | None = None
 ) -> ACCScenario:
-    """Load a preset by name (``"paper"``, ``"stress"``, ``"stress-ood"``) or a TOML file by path.
+    """Load a preset by name (:data:`PRESETS`) or a TOML file by path.
 
     Every key is checked for type, finiteness and range here, before any data collection,
     GP fit or simulation (bounds in docs/acc.md, "Scenario files", and :data:`LIMITS`).
@@ -330,7 +363,8 @@ def load_scenario(
     """
     flat, table, source = load_flat(
         name_or_path, PRESETS, __package__, check_structure, overrides,
-        defaults={"learning.n_inducing": 0},
+        defaults={"learning.n_inducing": 0, "certificates.barrier": "headway",
+                  "certificates.lead_decel": None},
     )  # fmt: skip
     values = check_values(flat, source)
     spec = None if table is None else check_montecarlo(table, source)

@@ -172,7 +172,9 @@ def study_controllers(
     dict
         ``{"true model": ..., "mismatched model": ..., "GP-corrected": ...}``.
     """
-    true_sys, nominal = scenario.system("true"), scenario.system("nominal")
+    # the controllers' models: with the braking barrier, with the worst lead (docs/acc.md)
+    true_sys = scenario.controller_system(scenario.system("true"))
+    nominal = scenario.controller_system(scenario.system("nominal"))
     clf, cbf = scenario.certificates()
     common = scenario.trial_study().controller_options()  # those of the Monte Carlo trials
     out = {
@@ -252,7 +254,7 @@ def run_study(
     controllers = study_controllers(scenario, unc)
 
     # the two model-based controllers stand on one parametric model: one program, other data
-    family = scenario.model_family()
+    family = scenario.controller_system(scenario.model_family())
     model_of = {"true model": "true", "mismatched model": "nominal"}
 
     def simulated(name: str) -> tuple[Trajectory, float]:

@@ -20,9 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..learning import collect_data
 from ._mc_schema import MonteCarloSpec
+from .acc_braking import check_lead_bound
 
 __all__ = ["ACCTrials", "ObstacleTrials", "ScenarioTrials", "lead_acceleration"]
 
@@ -269,6 +271,20 @@ class ACCTrials(ScenarioTrials):
     state_names: ClassVar[str] = "v_f m/s, v_l m/s, D m"
     kind: ClassVar[str] = "ACC"
     exogenous: ClassVar[Any] = staticmethod(lead_acceleration)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # a spec passed in (not the file's, checked at load) must keep the barrier's lead
+        check_lead_bound(self.scenario, self.spec, f"ACC scenario {self.name!r}", ParameterError)
+
+    def build_controller(self, system: Any, clf: Any, cbf: Any, **options: Any) -> Any:
+        """One compared controller, on :meth:`~safestab.scenarios.ACCScenario.controller_system`.
+
+        The model ``system`` itself with the headway barrier; with the braking barrier, the
+        model whose lead brakes as hard as the barrier allows (its condition then holds for
+        every admissible lead).
+        """
+        return UniversalController(self.scenario.controller_system(system), clf, cbf, **options)
 
     def excitation_span(self) -> float:
         """``excitation_limit`` of ``M g``, in input units."""

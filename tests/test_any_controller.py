@@ -170,6 +170,10 @@ def test_every_controller_runs_in_simulate_and_the_trial_loop_with_the_same_reco
         np.asarray(rec["barrier_unmet_steps"])[:, 0], np.sum(status >= S.CBF_UNACTUATED, -1)
     )
     assert np.all(np.asarray(rec["first_bad_status"]) == 0)
+    # steps whose input sits on a limit (+-1 where the controller has limits)
+    u = np.asarray(traj.u)[:, :-1, 0]
+    on_limit = np.sum(np.abs(u) >= 1.0 - 1e-12, -1) if ctrl.u_min is not None else 0
+    np.testing.assert_array_equal(np.asarray(rec["limit_steps"])[:, 0], on_limit)
 
 
 def test_the_trial_loop_scores_a_controller_without_a_clf_and_names_bad_input():

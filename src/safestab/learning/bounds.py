@@ -14,6 +14,7 @@ Three ways to choose ``beta``, with what each probability means:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import weakref
 from typing import Any
 
@@ -22,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validation import check_finite, check_scalar_range
+from .._values import model_is_data
 from ..errors import DimensionError, NumericalError, ParameterError
 from ..robust import joint_probability
 from .batched import BatchedUncertainty
@@ -215,32 +217,51 @@ def mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mean), np.asarray(std)
 
 
-#: ``jax.jit(jax.vmap(model.mean_std))`` per model, kept while the model lives.
-_BATCHED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def _batched(model: Any) -> Any:
-    """The compiled, batched ``mean_std`` of ``model`` (made once per model).
+    """The batched ``mean_std`` of ``model``: one module-level jitted function.
 
-    The function reaches the model through a weak reference: a bound ``model.mean_std`` in
-    the cached value would keep its own key alive, and every model ever batched (with its
-    compiled programs) would stay in memory.
+    A model that is data (a fitted GP or cache registered as a pytree) is its argument, so
+    every model of the same kind and shapes runs one compiled program; another model is its
+    static argument (by identity, as ``jax.jit`` keys it), and one that cannot be hashed is
+    compiled for this call only.
     """
+    if model_is_data(model):
+        return lambda x: _mean_std_of(model, x)
     try:
-        return _BATCHED[model]
-    except (KeyError, TypeError):  # TypeError: not weakly referable or not hashable
-        pass
-    try:
-        ref = weakref.ref(model)
-    except TypeError:  # not weakly referable: not cached
+        key = _Referent(model)
+    except TypeError:  # not weakly referable: compiled for this call
         return jax.jit(jax.vmap(model.mean_std))
-    # traced only while the caller holds the model (the arrays become the program's constants)
-    fn = jax.jit(jax.vmap(lambda x: ref().mean_std(x)))
-    try:
-        _BATCHED[model] = fn
-    except TypeError:  # not hashable: not cached
-        pass
-    return fn
+    return lambda x: _mean_std_static(key, x)
+
+
+class _Referent:
+    """A static argument naming a model by identity without keeping it alive.
+
+    Equal only while the model lives, so a program compiled for a model is reused for it
+    and never for a later model at the same address; the model is freed when its owner
+    drops it (the compiled program keeps only the arrays it read as constants).
+    """
+
+    __slots__ = ("ref", "key")
+
+    def __init__(self, model: Any) -> None:
+        self.ref, self.key = weakref.ref(model), id(model)
+
+    def __hash__(self) -> int:
+        return self.key
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Referent) and self.ref() is not None and self.ref() is other.ref()
+
+
+@jax.jit
+def _mean_std_of(model: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return jax.vmap(model.mean_std)(x)
+
+
+@functools.partial(jax.jit, static_argnames=("key",))
+def _mean_std_static(key: _Referent, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return jax.vmap(key.ref().mean_std)(x)
 
 
 def _scores(model: Any, x: np.ndarray, y: np.ndarray, observation_noise: bool) -> np.ndarray:

@@ -254,11 +254,12 @@ def collect_data(
         jnp.stack(keys), kinds, jnp.asarray(low), jnp.asarray(high), jnp.asarray(float(horizon)),
         shape=(n_traj, per_traj, m, int(n_samples), n),
     )  # fmt: skip
-    run = _trajectories(
-        true_system, exogenous, controller, m, per_traj, substeps, period, h,
-        float(controller_noise), tuple(low.tolist()), tuple(high.tolist()),
+    xs, us, xdots, ts, x_next = _trajectories(
+        x0s, params, true_system=true_system, exogenous=exogenous, controller=controller,
+        m=m, per_traj=per_traj, substeps=substeps, period=period, h=h,
+        controller_noise=float(controller_noise), low=tuple(low.tolist()),
+        high=tuple(high.tolist()),
     )  # fmt: skip
-    xs, us, xdots, ts, x_next = run(x0s, params)
     if derivative == "finite_difference":
         xdots = (x_next - xs) / period
     flat = [
@@ -304,16 +305,20 @@ def _draws(keys, kinds, low, high, horizon, *, shape):
     return params, jax.random.normal(k_y, (n_samples, n))
 
 
-@functools.lru_cache(maxsize=16)
-def _trajectories(
-    true_system, exogenous, controller, m, per_traj, substeps, period, h, controller_noise,
-    low, high,
-):  # fmt: skip
-    """The jitted, vmapped excitation trajectories of :func:`collect_data`.
+_STATIC = ("true_system", "exogenous", "controller", "m", "per_traj", "substeps", "period", "h",
+           "controller_noise", "low", "high")  # fmt: skip
 
-    Built once per system, excitation settings and input range (systems and callables by
-    identity), so a study that collects many data sets with the same objects traces and
-    compiles once instead of once per data set.
+
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _trajectories(
+    x0s, params, *, true_system, exogenous, controller, m, per_traj, substeps, period, h,
+    controller_noise, low, high,
+):  # fmt: skip
+    """The excitation trajectories of :func:`collect_data` from ``x0s`` (B, n), vmapped.
+
+    One jitted function: the system, the callables (by identity), the excitation settings
+    and the input range are its static arguments, so a study that collects many data sets
+    with the same objects traces and compiles once instead of once per data set.
     """
     low, high = np.asarray(low, float), np.asarray(high, float)
     mid, half = jnp.asarray((low + high) / 2), jnp.asarray((high - low) / 2)
@@ -344,4 +349,4 @@ def _trajectories(
         _, rec = jax.lax.scan(sample, x0_, jnp.arange(per_traj))
         return rec
 
-    return jax.jit(jax.vmap(trajectory))
+    return jax.vmap(trajectory)(x0s, params)

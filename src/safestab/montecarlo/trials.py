@@ -229,9 +229,15 @@ def _fit_dataset(study, seed, index, hyper):
     return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes, input_gain)
 
 
-@functools.lru_cache(maxsize=8)
-def _compiled_chunk(study: TrialStudy) -> Any:
-    """The jitted chunk runner; cached per process so each worker compiles once per shape."""
+@functools.partial(jax.jit, static_argnames=("study",))
+def _chunk(study: TrialStudy, cache, betas, input_gain, x0, params) -> dict[str, jax.Array]:
+    """One chunk of trials for every compared controller: one program per study.
+
+    A module-level jitted function (no cache of ours): the study is its static argument
+    (hashable, frozen), the data set's GP cache, betas and input gain and the trials' draws
+    are its arguments, so every data set and chunk of one shape runs the program compiled
+    for the first, in every thread of the process.
+    """
     spec = study.spec
     true_sys, nominal = study.systems()
     clf, cbf = study.certificates()
@@ -244,34 +250,31 @@ def _compiled_chunk(study: TrialStudy) -> Any:
     def omega(x, params):
         return study.omega(x)
 
-    def chunk(cache, betas, input_gain, x0, params):
-        model = BatchedUncertainty(cache)
-        # the GP controllers' model: the nominal one, with the learned input gain if any
-        learned = nominal if input_gain is None else with_input_gain(nominal, input_gain)
-        ctrls, checks = [], []
-        for name in spec.controllers:
-            if name == "true model":
-                ctrls.append(build(true_sys, clf, cbf, **common))
-                checks.append(None)
-            elif name == "mismatched model":
-                ctrls.append(build(nominal, clf, cbf, **common))
-                checks.append(None)
-            else:
-                beta = betas[name]
-                ctrls.append(
-                    build(learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust)
-                )
-                checks.append((model, beta))
-        # the reference of mean_input_gap: the true-model controller (price_metrics only)
-        ref = build(true_sys, clf, cbf, **common) if spec.price_metrics else None
-        run = trial_function(
-            ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
-            exogenous=study.exogenous, omega=omega, lemma2=checks, reference=ref,
-            substeps=spec.substeps,
-        )  # fmt: skip
-        return jax.vmap(run)(x0, params)
-
-    return jax.jit(chunk)
+    model = BatchedUncertainty(cache)
+    # the GP controllers' model: the nominal one, with the learned input gain if any
+    learned = nominal if input_gain is None else with_input_gain(nominal, input_gain)
+    ctrls, checks = [], []
+    for name in spec.controllers:
+        if name == "true model":
+            ctrls.append(build(true_sys, clf, cbf, **common))
+            checks.append(None)
+        elif name == "mismatched model":
+            ctrls.append(build(nominal, clf, cbf, **common))
+            checks.append(None)
+        else:
+            beta = betas[name]
+            ctrls.append(
+                build(learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust)
+            )
+            checks.append((model, beta))
+    # the reference of mean_input_gap: the true-model controller (price_metrics only)
+    ref = build(true_sys, clf, cbf, **common) if spec.price_metrics else None
+    run = trial_function(
+        ctrls, plant=true_sys, n_steps=study.n_steps, dt=study.dt,
+        exogenous=study.exogenous, omega=omega, lemma2=checks, reference=ref,
+        substeps=spec.substeps,
+    )  # fmt: skip
+    return jax.vmap(run)(x0, params)
 
 
 def run_chunk(
@@ -297,7 +300,7 @@ def run_chunk(
     """
     b = np.size(indices)
     args = _chunk_args(study, model, seed, indices, pad_to)
-    out = _compiled_chunk(study)(*args)
+    out = _chunk(study, *args)
     return {k: np.asarray(v)[:b] for k, v in out.items()}
 
 
@@ -313,7 +316,7 @@ def compile_chunk(
     Later chunks of the same shapes reuse the compiled loop, so they can all start at once
     (the local backend's threads) instead of waiting for a first chunk that compiles.
     """
-    _compiled_chunk(study).lower(*_chunk_args(study, model, seed, indices, pad_to)).compile()
+    _chunk.lower(study, *_chunk_args(study, model, seed, indices, pad_to)).compile()
 
 
 def _chunk_args(study, model, seed, indices, pad_to):

@@ -219,7 +219,7 @@ class ScenarioTrials:
         Trial ``i``'s key is ``fold_in(PRNGKey(seed), i)``, split into three: the initial
         state's, and two for :meth:`trial_data`.
         """
-        return _draw_fn(self)(jnp.asarray(seed, jnp.uint32), jnp.asarray(indices))
+        return _draw(self, jnp.asarray(seed, jnp.uint32), jnp.asarray(indices))
 
     def _draw_one(self, seed: jax.Array, i: jax.Array) -> tuple[jax.Array, Any]:
         spec, n = self.spec, self.n_states
@@ -236,9 +236,10 @@ class ScenarioTrials:
         return x0, self.trial_data(jnp.stack([k_d, k_a]))
 
 
-@functools.lru_cache(maxsize=8)
-def _draw_fn(study: ScenarioTrials) -> Any:
-    return jax.jit(jax.vmap(study._draw_one, in_axes=(None, 0)))
+@functools.partial(jax.jit, static_argnames=("study",))
+def _draw(study: ScenarioTrials, seed: jax.Array, indices: jax.Array) -> tuple[jax.Array, Any]:
+    """The trials' draws, one program per study (its static argument)."""
+    return jax.vmap(study._draw_one, in_axes=(None, 0))(seed, indices)
 
 
 def lead_acceleration(t: jax.Array, x: jax.Array, params: dict[str, jax.Array]) -> jax.Array:

@@ -206,7 +206,8 @@ def acc(
 def run(
     scenario: list[str] = typer.Option(
         ...,
-        help="A preset ('paper', 'stress', 'stress-ood', 'obstacle', 'swarm') or a TOML file "
+        help="A preset ('paper', 'stress', 'stress-ood', 'paper-limited', 'stress-limited', "
+        "'obstacle', 'swarm') or a TOML file "
         "(its kind key); repeatable: the studies of one kind run one after another in one "
         "process, which compiles the programs they share once (other kinds: --jobs).",
     ),
@@ -536,7 +537,8 @@ def _print_embedded(console: Any, rep: Any) -> None:
 def mc(
     scenario: str = typer.Option(
         "stress",
-        help="A preset ('paper', 'stress', 'stress-ood', 'obstacle') or a TOML file "
+        help="A preset ('paper', 'stress', 'stress-ood', 'paper-limited', 'stress-limited', "
+        "'obstacle') or a TOML file "
         "(its \\[montecarlo] table, if any, sets the trials).",
     ),
     trials: int | None = typer.Option(None, help="Number of trials N (default: the file's)."),

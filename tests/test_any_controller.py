@@ -222,3 +222,27 @@ def test_every_controller_kind_exports_and_the_native_step_agrees(kind):
     ref, got = ctrl.step(x), native.step(x)
     np.testing.assert_allclose(got.u, np.asarray(ref.u), rtol=1e-11, atol=1e-13)
     np.testing.assert_array_equal(got.status, np.asarray(ref.status))
+
+
+def test_a_law_that_is_not_finite_or_not_jax_is_named():
+    robot = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2)
+    disc = ss.CBF(lambda x: 1.0 - x @ x, beta=1.0)
+    blows_up = ss.PolicyController(robot, lambda x: jnp.array([1.0 / (x[0] - 0.5), 0.0]),
+                                   cbfs=disc, u_min=-1.0, u_max=1.0)  # fmt: skip
+    out = blows_up.step(jnp.array([0.5, 0.0]))  # inf clipped to the limit: still named
+    assert int(out.status) == S.NONFINITE_INPUT and np.all(np.isnan(np.asarray(out.u)))
+    with pytest.raises(ss.InputTypeError, match="policy must be a JAX function"):
+        ss.PolicyController(robot, lambda x: np.asarray(x) * 1.0, cbfs=disc)
+    with pytest.raises(ss.InputTypeError, match=r"policy is called as policy\(x, weights\)"):
+        ss.PolicyController(robot, lambda x: -x, weights=np.ones(2))
+    mine = ss.PolicyController(robot, lambda x, w: -w * x, weights=np.ones(2), cbfs=disc)
+    with pytest.raises(ss.InputTypeError, match="policy is called as"):
+        mine.replace(weights=np.ones(3))  # the new weights are checked as the first
+    with pytest.raises(ss.InputTypeError, match="system must be a ControlAffineSystem"):
+        ss.PolicyController(None, lambda x: -x)
+    with pytest.raises(TypeError, match="clfs must be a CLF"):
+        ss.PolicyController(robot, lambda x: -x, clfs=disc)
+    with pytest.raises(ss.DimensionError, match="plant dimensions"):
+        trial_function(mine, plant=SYSTEM, n_steps=5, dt=0.1)
+    monitored = mine.step(jnp.array([0.2, 0.0]), u_nom=jnp.array([5.0, 0.0]))  # another action
+    assert float(monitored.u[0]) == 5.0 and int(monitored.status) == S.CBF_UNMET

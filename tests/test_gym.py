@@ -84,3 +84,17 @@ def test_bad_wrapper_arguments_are_named():
         SafetyWrapper(Wall(), filt, state=lambda env, obs: obs, input_low=[-1.0])
     with pytest.raises(gymnasium.error.ResetNeeded):
         SafetyWrapper(Wall(), filt, state=lambda env, obs: obs).step(np.zeros(1))
+
+
+def test_a_one_sided_filter_maps_its_unbounded_side_to_the_action_space():
+    # u_max alone: the upper input is the filter's 2 m/s, the lower the action space's -1
+    filt = ss.SafetyFilter(ROBOT, STOP, u_max=SPEED)
+    env = SafetyWrapper(Wall(), filt, state=lambda env, obs: obs)
+    np.testing.assert_allclose(env.action_to_input([1.0]), [2.0])
+    np.testing.assert_allclose(env.action_to_input([-1.0]), [-1.0])  # by hand: low_a = -1
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([0.5], np.float32))
+    assert info["safestab"]["status"] == "OK"
+    with pytest.raises(ss.ParameterError, match="input_high must be finite"):
+        SafetyWrapper(Wall(), filt, state=lambda env, obs: obs, input_low=[-1.0],
+                      input_high=[np.inf])  # fmt: skip

@@ -193,7 +193,10 @@ def _barrier_status(
 
 
 def _as_tuple(value: Any, kind: type, name: str) -> tuple:
-    items = (value,) if isinstance(value, kind) else tuple(value)
+    try:
+        items = (value,) if isinstance(value, kind) else tuple(value)
+    except TypeError:
+        items = (value,)
     if not all(isinstance(v, kind) for v in items):
         raise TypeError(f"{name} must be a {kind.__name__} or a sequence of them")
     return items
@@ -488,6 +491,8 @@ class SafetyFilter(Controller):
         mg_v = margins(a, b, a, b, p["kappa"], 0.0, p["phi"], 0.0)
         clf_ok, _ = condition_flags(a, b, a, b, ub, mg_v, p["kappa"], 0.0, SATISFIED_RTOL)
         finite = jnp.all(jnp.isfinite(u), -1)
+        if u_nom is not None:  # a non-finite nominal input is named, not clipped or solved
+            finite = finite & jnp.all(jnp.isfinite(u_nom), -1)
         status = jnp.where((status == StepStatus.OK) & ~finite, StepStatus.NONFINITE_INPUT, status)
         ok = status == StepStatus.OK
         box_ok = None

@@ -52,8 +52,9 @@ class SafetyWrapper(gymnasium.Wrapper):
     input_low, input_high : array of shape (m,), optional
         The filter's inputs that the action space's ``low`` and ``high`` stand for: the
         action ``a`` is the input ``low_u + (a - low_a) (high_u - low_u) / (high_a - low_a)``,
-        and back. Default: the filter's ``u_min`` and ``u_max``, or the action space itself
-        (the action is the input) when the filter has no limits.
+        and back. Default: the filter's ``u_min`` and ``u_max`` (where a side is unbounded,
+        the action space's bound there), or the action space itself (the action is the
+        input) when the filter has no limits.
 
     Notes
     -----
@@ -95,11 +96,21 @@ class SafetyWrapper(gymnasium.Wrapper):
             raise ParameterError(f"env.action_space must be bounded, got {space!r}")
         if input_low is None and input_high is None:
             if safety_filter.u_min is not None:
-                input_low, input_high = safety_filter.u_min, safety_filter.u_max
+                # an unbounded side of the filter's box: the action space's bound there
+                lo = np.broadcast_to(np.asarray(safety_filter.u_min, dtype=float), (m,))
+                hi = np.broadcast_to(np.asarray(safety_filter.u_max, dtype=float), (m,))
+                input_low = np.where(np.isfinite(lo), lo, low_a)
+                input_high = np.where(np.isfinite(hi), hi, high_a)
             else:
                 input_low, input_high = low_a, high_a
         elif input_low is None or input_high is None:
             raise ParameterError("give input_low and input_high together, or neither")
+        for name, value in (("input_low", input_low), ("input_high", input_high)):
+            if not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                raise ParameterError(
+                    f"{name} must be finite (the inputs the action space's bounds stand for), "
+                    f"got {np.asarray(value).tolist()}"
+                )
         self.safety_filter = safety_filter
         self.state = state
         self.params = params

@@ -49,10 +49,17 @@ class PolicyController(SafetyFilter):
     where it does not, ``CBF_UNACTUATED`` (the violated barrier's ``L_g h`` is zero: no input
     moves it), ``CBF_INFEASIBLE`` (with limits: no input within them meets that barrier
     alone) or ``CBF_UNMET`` (an input within the limits meets each violated barrier alone:
-    the law chose another; a :class:`~safestab.SafetyFilter` around it would enforce them);
+    the law chose another; a :class:`~safestab.SafetyFilter` around it enforces them where
+    they can be met together);
     statuses 1 to 7 where the state, the model or the law's input is not finite (``u`` NaN).
     ``formula_status`` is always ``SOLVED`` (nothing is relaxed), ``active`` marks the limit
-    rows the projection hit, the multipliers and slacks are zero.
+    rows the projection hit, the multipliers and slacks are zero. ``CBF_UNMET`` judges each
+    violated barrier alone: whether an input meets several barriers at once is not
+    checked (a filter's solver decides that).
+
+    ``step(x, u_nom=a)`` (and ``controller_step(ctrl, x, p, a)``) monitors the given input
+    ``a`` instead of the law's: an action from elsewhere (a policy outside JAX), checked
+    against the same barriers and limits.
 
     Parameters
     ----------
@@ -125,7 +132,16 @@ class PolicyController(SafetyFilter):
             for path, leaf in jax.tree_util.tree_leaves_with_path(weights):
                 check_real(f"weights{jax.tree_util.keystr(path)}", leaf)
             weights = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), weights)
-        cbf_list = (cbfs,) if isinstance(cbfs, CBF) else tuple(cbfs)
+        if not isinstance(system, ControlAffineSystem):
+            raise InputTypeError(
+                f"system must be a ControlAffineSystem, got {type(system).__name__}"
+            )
+        try:
+            cbf_list = (cbfs,) if isinstance(cbfs, CBF) else tuple(cbfs)
+        except TypeError:
+            raise InputTypeError(
+                f"cbfs must be a CBF or a sequence of them, got {type(cbfs).__name__}"
+            ) from None
         if sample_time is not None and not cbf_list:
             raise ParameterError(
                 "sample_time shifts the barriers' conditions: give cbfs= (none were given)"
@@ -151,7 +167,7 @@ class PolicyController(SafetyFilter):
         else:
             w = weights
             law = lambda x, *p: policy(x, w, *p)  # noqa: E731
-        shape = getattr(trace_shape("policy", law, system.n_states, spec), "shape", None)
+        shape = getattr(_trace_law(law, system.n_states, spec, weights is not None), "shape", None)
         if shape != (m,):
             raise DimensionError(
                 f"policy must return the input of shape ({m},) for one state of shape "
@@ -183,3 +199,30 @@ class PolicyController(SafetyFilter):
         )
 
     _owner = "policy controller"
+
+
+def _trace_law(law: Callable[..., Any], n: int, spec: Any, with_weights: bool) -> Any:
+    """The law's output shape for one state; errors that name the protocol.
+
+    Raises
+    ------
+    InputTypeError
+        Where the law cannot be called with the protocol's arguments, or is not a JAX
+        function (NumPy or Python branching on the state under tracing).
+    """
+    args = "x, weights" if with_weights else "x"
+    args += ", p" if spec is not None else ""
+    given = "weights= given" if with_weights else "no weights="
+    given += ", run-time params declared" if spec is not None else ""
+    try:
+        return trace_shape("policy", law, n, spec)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
+        raise InputTypeError(
+            "policy must be a JAX function of the state (jax.numpy, no NumPy calls or Python "
+            f"branches on x) to be traced; {type(err).__name__}. A law outside JAX: give its "
+            "action per call, SafetyFilter.step(x, u_nom=action) or safestab.gym.SafetyWrapper"
+        ) from None
+    except TypeError as err:  # InputTypeError included: the protocol's call, named
+        raise InputTypeError(
+            f"policy is called as policy({args}) ({given}); calling it failed: {err}"
+        ) from None

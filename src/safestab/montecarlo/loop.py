@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from ..certificates import CBF, CLF
 from ..controllers import Controller, StepStatus, has_input
-from ..errors import InputTypeError, ParameterError
+from ..errors import DimensionError, InputTypeError, ParameterError
 from ..formulas import SATISFIED_RTOL
 from ..simulation import closed_loop
 from ..systems import ControlAffineSystem
@@ -242,7 +242,7 @@ def trial_function(
 
     Parameters
     ----------
-    controllers : sequence of Controller
+    controllers : Controller or sequence of Controller
         ``C`` controllers of any kind: :class:`~safestab.UniversalController` (with or
         without a CLF or a CBF), :class:`~safestab.SafetyFilter` (any formula, any number of
         rows), :class:`~safestab.PolicyController` (a user's own law); each drives its own
@@ -303,13 +303,20 @@ def trial_function(
         given without a CLF (``settle_time`` needs one), or if a controller takes run-time
         parameters.
     """
-    ctrls = tuple(controllers)
+    ctrls = (controllers,) if isinstance(controllers, Controller) else tuple(controllers)
     bad = [type(c).__name__ for c in ctrls if not isinstance(c, Controller)]
     if bad or not ctrls:
         raise InputTypeError(
             "controllers must be a non-empty sequence of safestab controllers "
             f"(UniversalController, SafetyFilter, PolicyController), got {bad or 'none'}"
         )
+    for c in ctrls:
+        dims = (c.system.n_states, c.system.n_inputs)
+        if dims != (plant.n_states, plant.n_inputs):
+            raise DimensionError(
+                f"plant dimensions (n={plant.n_states}, m={plant.n_inputs}) differ from the "
+                f"controller's model (n={dims[0]}, m={dims[1]}): {c!r}"
+            )
     takes = [repr(c) for c in ctrls if c.params_spec is not None]
     if takes:
         raise ParameterError(

@@ -303,6 +303,36 @@ def fast_band_table(rows: list[dict]) -> str:
     return _table(header, ["---", "---:", "---:", "---:", "---:", "---:", "---:", "---:"], body)
 
 
+def mc_band_table(rows: list[dict]) -> str:
+    """docs/learning.md's Monte Carlo cache-width table from benchmarks/mc_band_width.py's rows.
+
+    One row per preset and component, over its data sets: the inducing inputs kept, the
+    largest of the per-data-set median ratios (training inputs, ten times the box), the least
+    containment, and how many data sets are above ``STD_RATIO_WARN`` (recorded in each row)
+    and warned.
+    """
+    groups: dict[tuple[str, int], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["preset"], r["component"]), []).append(r)
+    body = []
+    for (preset, comp), rs in groups.items():
+        counts = [r["n_inducing"] for r in rs]
+        above = [r for r in rs if r["ratio_training_median"] > r["std_ratio_warn"]]
+        body.append([
+            preset, str(comp), str(len(rs)), f"{min(counts)} - {max(counts)} of {rs[0]['cap']}",
+            f"{max(r['ratio_training_median'] for r in rs):.3f}",
+            f"{max(r['ratio_far_median'] for r in rs):.3f}",
+            f"{min(r['contains_exact'] for r in rs):.3f}",
+            f"{len(above)} / {sum(r['warned'] for r in above)}",
+        ])  # fmt: skip
+    header = ["preset", "component", "data sets", "inducing inputs (of the cap)",
+              "cache std / exact std, training inputs (largest median)",
+              "the same, ten times the box (largest median)",
+              "band contains the exact band, beta = 1 (least)",
+              "data sets above 1.5 / of them warned"]  # fmt: skip
+    return _table(header, ["---", "---:", "---:", "---:", "---:", "---:", "---:", "---:"], body)
+
+
 def safe_rl_table(rows: list[dict]) -> str:
     """docs/tutorials/safe-rl.md's table from benchmarks/gym_highway.py's --json rows."""
     body = [[
@@ -719,6 +749,15 @@ def step_fast_band(out: Path) -> dict[str, tuple[str, str]]:
     return {"fastgp-width": ("docs/learning.md", fast_band_table(_load(rows)))}
 
 
+def step_mc_band(out: Path) -> dict[str, tuple[str, str]]:
+    """benchmarks/mc_band_width.py on the stress and obstacle Monte Carlo's first 20 data sets."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = out / "mc_band_width.json"
+    _run([sys.executable, "benchmarks/mc_band_width.py", "--presets", "stress", "obstacle",
+          "--datasets", "20", "--json", str(rows)])  # fmt: skip
+    return {"mc-band-width": ("docs/learning.md", mc_band_table(_load(rows)))}
+
+
 def step_deployed(out: Path) -> dict[str, tuple[str, str]]:
     """benchmarks/deployed.py: docs/deployed.md's table (sampled loops, limits, between)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -748,6 +787,7 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "mc-presets": step_mc_presets,
     "gp-coverage": step_gp_coverage,
     "fast-band": step_fast_band,
+    "mc-band": step_mc_band,
     "deployed": step_deployed,
     "safe-rl": step_safe_rl,
     "gallery": step_gallery,
@@ -774,6 +814,7 @@ PRODUCES = {
     "mc-presets": ["mc-stress", "mc-paper", "mc-stress-ood"],
     "gp-coverage": ["gp-coverage"],
     "fast-band": ["fastgp-width"],
+    "mc-band": ["mc-band-width"],
     "deployed": ["deployed", "deployed-mc"],
     "safe-rl": ["safe-rl"],
     "gallery": [],

@@ -78,6 +78,7 @@ def _obstacle_file(tmp_path, table):
     from importlib import resources
 
     base = resources.files("safestab.scenarios").joinpath("obstacle.toml").read_text()
+    base = base.split("\n[montecarlo]")[0]  # the preset's own table (its cap), replaced
     path = tmp_path / "o.toml"
     path.write_text(base + "\n" + table)
     return path

@@ -8,7 +8,8 @@ import pytest
 
 import safestab as ss
 from safestab.errors import ParameterError
-from safestab.learning import BatchedUncertainty, conformal_beta
+from safestab.learning import BatchedUncertainty, condition, conformal_beta
+from safestab.learning.fast import STD_RATIO_WARN
 from safestab.montecarlo import (
     RECORD_FIELDS,
     metrics_document,
@@ -182,6 +183,27 @@ def test_summary_and_strict_json(local_run):
     assert limited["limit_method"] == "projection"
     assert limited["u_min"] == [-0.3] and limited["u_max"] == [0.3]
     assert settings["controller_settings"]["slack_weight"] == sc.slack_weight
+
+
+def test_each_data_sets_std_ratio_is_recorded_and_checked_against_the_dense_gp(local_run):
+    """std_over_exact per data set: the batched cache's std over the exact GP's (a dense
+    predict at every training input; Q = 60 <= FastGP's sample of 128, so the median is over
+    all of them), in the metrics JSON; a ratio above STD_RATIO_WARN comes with a warning."""
+    doc = json.loads(json.dumps(metrics_document(local_run), allow_nan=False))
+    for model, entry in zip(local_run.datasets, doc["datasets"], strict=True):
+        data_seed = int(np.random.SeedSequence([3, model.index]).generate_state(1)[0])
+        data = dataset_draw(STUDY, 3, model.index)
+        x, y = data.x[: SC.n_samples], data.y[: SC.n_samples]
+        gp = condition(local_run.datasets[0].hyper, x, y, seed=data_seed)
+        comps = list(gp.components_)
+        exact = np.sqrt(np.asarray(gp.predict(x)[1]))[:, comps]
+        cached = np.asarray(BatchedUncertainty(model.cache).mean_std_batch(x)[1])[:, comps]
+        ratio = np.median(cached / exact, axis=0)
+        # the batched form changes the summation order only (docs/montecarlo.md)
+        np.testing.assert_allclose(entry["std_over_exact"], ratio, rtol=1e-6)
+        for j, comp in enumerate(comps):
+            named = any(f"component {comp}," in w for w in entry["cache_warnings"])
+            assert named == bool(ratio[j] > STD_RATIO_WARN), (model.index, comp, ratio[j])
 
 
 @pytest.mark.parametrize(

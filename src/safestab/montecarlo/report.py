@@ -71,6 +71,11 @@ def metrics_document(run: MonteCarloRun) -> dict[str, Any]:
                 "betas": {k: np.asarray(v).tolist() for k, v in m.betas.items()},
                 "held_out_coverage": m.held_out_coverage,
                 "cache_warnings": list(m.cache_warnings),
+                # FastGP's std over the exact std at the training inputs (median), per
+                # learned component; None for the exact posterior
+                "std_over_exact": (
+                    None if m.std_over_exact is None else np.asarray(m.std_over_exact).tolist()
+                ),
                 # the learned input-matrix error D (gp_settings input_gain = "learned")
                 "input_gain": None if m.input_gain is None else np.asarray(m.input_gain).tolist(),
             }

@@ -90,6 +90,12 @@ class DataSetModel:
         The learned input-matrix error ``D`` of this data set when the study's
         ``gp_settings()["input_gain"]`` is ``"learned"`` (the GP controllers then use
         ``g + D``, :func:`~safestab.learning.fit_input_gain`); None otherwise.
+    std_over_exact : array of shape (C,) or None
+        Per learned component, the cache's std over the exact posterior std at the training
+        inputs (median over FastGP's sample of 128 of them: its ``std_over_exact_``, which
+        it computes for its stopping rule and warning anyway); above
+        :data:`~safestab.learning.STD_RATIO_WARN` the data set's ``cache_warnings`` name the
+        component. None for the exact posterior (``gp = "exact"``).
     """
 
     index: int
@@ -100,6 +106,7 @@ class DataSetModel:
     held_out_coverage: dict[str, float]
     cache_warnings: tuple[str, ...] = ()
     input_gain: np.ndarray | None = None
+    std_over_exact: np.ndarray | None = None
 
 
 def calibration_draw(study: TrialStudy, seed: int, index: int) -> Any:
@@ -196,6 +203,7 @@ def _fit_dataset(study, seed, index, hyper):
         "GP-robust Lemma 2": per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
     }
     notes: tuple[str, ...] = ()
+    ratio = None
     if spec.gp == "fast":
         # warn=False: the messages are kept with the data set (and reported once by the
         # runner); warnings.catch_warnings would swap process-wide state under the runner's
@@ -203,6 +211,7 @@ def _fit_dataset(study, seed, index, hyper):
         fast = FastGP(gp, spec.n_inducing, warn=False)
         cache: Any = InducingCache.from_fastgp(fast)
         notes = fast.width_warnings_
+        ratio = np.asarray(fast.std_over_exact_, float)
     else:
         cache = ExactPosterior.from_model(gp)
     del gp  # the (k, Q, Q) factor is not shipped with the data set
@@ -226,7 +235,9 @@ def _fit_dataset(study, seed, index, hyper):
         for name, b in betas.items()
     }
     cache = jax.tree_util.tree_map(np.asarray, cache)
-    return DataSetModel(index, hyper, cache, betas, np.asarray(gain), coverage, notes, input_gain)
+    return DataSetModel(
+        index, hyper, cache, betas, np.asarray(gain), coverage, notes, input_gain, ratio
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("study",))

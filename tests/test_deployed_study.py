@@ -141,18 +141,42 @@ def test_deployed_mc_table_rows():
     )
 
 
-def test_deployed_mc_block_ends_with_the_measured_time_and_projection():
-    block = reproduce_docs.deployed_mc_block(_doc())
-    last = block.splitlines()[-1]
+def test_deployed_mc_timing_states_the_time_per_data_set_and_the_projection():
+    line = reproduce_docs.deployed_mc_timing(_doc())
     # 300 s over 10 data sets: 30 s each, 30,000 s (8.3 h) for 1,000
-    assert "10 data sets (ACC stress-limited: 10 trials each; obstacle: 72 trials each)" in last
-    assert "in 300 s: 30.0 s per data set" in last
-    assert "about 8.3 h" in last
+    assert "10 data sets (ACC stress-limited: 10 trials each; obstacle: 72 trials each)" in line
+    assert "in 300 s: 30.0 s per data set" in line
+    assert "about 8.3 h" in line
+
+
+def test_check_reports_a_measured_time_but_fails_on_a_table(tmp_path, monkeypatch, capsys):
+    page = tmp_path / "page.md"
+    written = {"t": "old\n", "t-time": "12 s\n"}
+    monkeypatch.setattr(reproduce_docs, "ROOT", tmp_path)
+    monkeypatch.setattr(reproduce_docs, "STEPS", {"fake": lambda out: {
+        name: ("page.md", body) for name, body in written.items()}})  # fmt: skip
+    monkeypatch.setattr(reproduce_docs, "PRODUCES", {"fake": ["t", "t-time"]})
+    monkeypatch.setattr(reproduce_docs, "MEASURED_TIMES", {"t-time"})
+    # a block's body is the table between blank lines (as main writes it)
+    page.write_text(
+        "<!-- generated: t -->\n\nold\n\n<!-- end generated -->\n"
+        "<!-- generated: t-time -->\n\nold\n\n<!-- end generated -->\n"
+    )
+    before = page.read_text()
+    assert reproduce_docs.main(["--check", "--out", str(tmp_path / "out")]) == 0
+    assert "measured times that differ: page.md: t-time" in capsys.readouterr().out
+    assert page.read_text() == before  # --check writes nothing
+    written["t"] = "new\n"
+    assert reproduce_docs.main(["--check", "--out", str(tmp_path / "out")]) == 1
+    # without --check the time is written like a table
+    assert reproduce_docs.main(["--out", str(tmp_path / "out")]) == 0
+    assert reproduce_docs.blocks(page.read_text()) == {"t": "\nnew\n\n", "t-time": "\n12 s\n\n"}
 
 
 def test_the_long_step_runs_the_same_study_at_1000_data_sets():
     assert "deployed-long" in reproduce_docs.LONG
-    assert reproduce_docs.PRODUCES["deployed-long"] == ["deployed-mc-long"]
+    assert reproduce_docs.PRODUCES["deployed-long"] == ["deployed-mc-long", "deployed-mc-long-time"]
+    assert {"deployed-mc-time", "deployed-mc-long-time"} <= reproduce_docs.MEASURED_TIMES
     args = deployed.parse_args(reproduce_docs.DEPLOYED_LONG_ARGS)
     assert args.datasets == 1000 and args.trials_per_dataset == 10 and args.no_loops
     normal = deployed.parse_args([])
@@ -178,3 +202,5 @@ def test_the_long_block_is_generated_or_says_how_to_generate_it():
     else:
         assert reproduce_docs.LONG_PLACEHOLDER in body
         assert "bash scripts/reproduce-docs.sh --long" in body
+        time = reproduce_docs.blocks(page)["deployed-mc-long-time"]
+        assert reproduce_docs.LONG_PLACEHOLDER in time  # no time for a study not run

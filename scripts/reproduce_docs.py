@@ -3,7 +3,7 @@
     bash scripts/reproduce-docs.sh                 # every quick study (about 12 min here)
     bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min),
                                                    # the deployed study at 1,000 data sets
-                                                   # (deployed-long: about 5.4 h projected here)
+                                                   # (deployed-long: 2 to 5 h projected here)
                                                    # and the price of robustness
     bash scripts/reproduce-docs.sh --only mc-presets obstacle
     bash scripts/reproduce-docs.sh --check         # write nothing, fail if a table would change

@@ -1,8 +1,9 @@
 """Safe as deployed: a sampled controller with a limited input, checked between the samples.
 
-    python benchmarks/deployed.py [--json FILE]
+    python benchmarks/deployed.py [--json FILE] [--datasets K] [--trials-per-dataset N]
+                                  [--obstacle-trials-per-dataset N] [--no-loops]
 
-Two loops, each run at coarse sample rates with the input held (zero-order hold), integrated
+Three loops, each run at coarse sample rates with the input held (zero-order hold), integrated
 in 20 RK4 substeps per hold and checked at every substep (``simulate(..., substeps=20)``):
 
 * ``disc``: a point robot (``x' = u``, ``|u_i| <= 1`` m/s) kept inside the unit disc by a
@@ -14,15 +15,28 @@ in 20 RK4 substeps per hold and checked at every substep (``simulate(..., subste
   ``|u| <= 0.3 M g``, the universal controller with safety-first saturation; the lead's
   profile of the preset, 60 s.
 
-* ``mc``: the stress preset's Monte Carlo study at 10 Hz under the same limit, every
-  compared controller (the GP ones learn ``omega`` from each of ``--datasets`` fresh data
-  sets), ``--trials-per-dataset`` random leads and starts per data set; and the obstacle's at
-  2 Hz under its box (the safety filter), its 72 starts per data set.
+* ``mc``: two Monte Carlo studies, every compared controller (the GP ones learn ``omega``
+  from each of ``--datasets`` fresh data sets), ``h`` checked at 10 substeps a hold:
+  the ``stress-limited`` preset (the braking-distance barrier, valid under its limit
+  ``|u| <= 0.3 M g``, 10 Hz, ``--trials-per-dataset`` random leads and starts per data set),
+  and the obstacle at 2 Hz under its box (the safety filter, ``--obstacle-trials-per-dataset``,
+  by default its 72 starts per data set). Each runs without the margin and with it on the
+  same trials and data sets (the same seed); per row: trials below ``h = 0`` at and between
+  the samples, the safe data sets with their Clopper-Pearson interval, the trials with
+  barrier-unmet steps, the share of steps on the limit, and on the margin's rows its price
+  against the same controller without it (median paired ``min h`` gain and settle-time
+  change, ``MonteCarloSpec.price_metrics``).
 
 Each runs without the sampled-data margin and with it (``sample_time``, ``ddh_bound``): the
-bound ``M`` from the hand derivation (disc: ``-h'' = 2 |u|^2 <= 4``) or estimated by
-``safestab.sampled.ddh_bound`` over the stated box (ACC). docs/deployed.md's table comes from
-this file's output (``scripts/reproduce-docs.sh``, step ``deployed``).
+bound ``M`` from the hand derivation (disc: ``-h'' = 2 |u|^2 <= 4``), the closed form
+``braking_ddh_bound`` (``stress-limited``'s ``montecarlo.ddh_bound``, a proof), or estimated
+by ``safestab.sampled.ddh_bound`` over the stated box (the ``acc`` loop, the obstacle).
+docs/deployed.md's tables come from this file's output (``scripts/reproduce-docs.sh``, step
+``deployed``; with ``--long``, step ``deployed-long``: ``--no-loops --datasets 1000``,
+the Monte Carlo part at 1,000 data sets x 10 trials: about 2 h on a shared 2-core machine,
+projected linearly from the normal step's 7.1 s per data set with JAX's compilation cache
+warm (19.5 s, so 5.4 h, with it cold and the machine loaded); the normal step writes its own
+measurement and projection in docs/deployed.md, block ``deployed-mc-time``).
 """
 
 from __future__ import annotations
@@ -35,6 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import safestab as ss
+from safestab.montecarlo import clopper_pearson
+from safestab.montecarlo.stats import safe_mask
 from safestab.sampled import ddh_bound
 from safestab.scenarios import MonteCarloSpec, load_scenario
 
@@ -140,69 +156,148 @@ def acc_rows() -> list[dict]:
     return rows
 
 
-def _mc_rows(study: str, sc, spec, M: float, trials: int, datasets: int) -> list[dict]:
-    """One Monte Carlo study without and with the margin: a row per controller."""
-    from safestab.montecarlo import run_montecarlo
+def _safe_per_dataset(rec: dict, dataset_index: np.ndarray, n_sets: int, c: int) -> dict:
+    """Data sets whose every trial of controller ``c`` was safe (every step gave an input,
+    ``h >= 0`` at the samples and between them), with the exact interval over data sets."""
+    safe = safe_mask(rec)[:, c]
+    held = np.bincount(dataset_index, weights=safe.astype(float), minlength=n_sets)
+    count = int(np.sum(held == np.bincount(dataset_index, minlength=n_sets)))
+    low, high = clopper_pearson(count, n_sets)
+    return {"count": count, "datasets": n_sets, "ci95": [low, high]}
 
+
+def margin_price(without: dict, with_margin: dict, c: int) -> dict:
+    """The margin's price for controller ``c``, paired trial by trial (the same trials run
+    without and with the margin): medians over trials of ``min h`` (with minus without,
+    the headway the margin keeps, in the study's unit of ``h``) and of ``settle_time`` (s);
+    the latter None where the run did not measure it (``price_metrics``)."""
+    gain = with_margin["min_h"][:, c] - without["min_h"][:, c]
+    settle = with_margin["settle_time"][:, c] - without["settle_time"][:, c]
+    measured = np.all(with_margin["settle_time"][:, c] >= 0) and np.all(
+        without["settle_time"][:, c] >= 0
+    )
+    finite = np.isfinite(gain)
+    return {
+        "median_min_h_gain": float(np.median(gain[finite])) if finite.any() else None,
+        "median_settle_time_change": float(np.median(settle)) if measured else None,
+    }
+
+
+def study_rows(study: str, runs: dict, M: float) -> list[dict]:
+    """A row per controller and margin from two runs of one Monte Carlo study on the same
+    trials, ``runs = {"none": run, label: run}`` (``run.records``, ``run.controllers``,
+    ``run.dataset_index``, ``run.study.n_steps``); the margin's rows carry its price
+    against the same controller in the run without it."""
     rows = []
-    for margin, bound in (("none", None), ("estimated bound", M)):
-        run = run_montecarlo(sc, trials=trials, datasets=datasets,
-                             spec=spec.replace(ddh_bound=bound))  # fmt: skip
-        rec = run.records
+    plain = runs["none"].records
+    for margin, run in runs.items():
+        rec, sets = run.records, np.asarray(run.dataset_index)
+        n_sets = int(sets.max()) + 1
         for c, name in enumerate(run.controllers):
             h, hb = rec["min_h"][:, c], rec["min_h_between"][:, c]
-            rows.append({
-                "study": study, "controller": name, "margin": margin, "ddh_bound": bound,
-                "datasets": datasets, "trials": int(h.size),
+            limit = rec["limit_steps"][:, c]
+            row = {
+                "study": study, "controller": name, "margin": margin,
+                "ddh_bound": None if margin == "none" else M,
+                "datasets": n_sets, "trials": int(h.size),
                 "left_at_samples": int(np.sum(h < 0)),
                 "left_between_samples": int(np.sum(hb < 0)),
-                "min_h_samples": float(np.min(h)), "min_h_between": float(np.min(hb)),
+                "min_h_samples": float(np.nanmin(h)), "min_h_between": float(np.nanmin(hb)),
+                "median_min_h": float(np.nanmedian(h)),
+                "safe_per_dataset": _safe_per_dataset(rec, sets, n_sets, c),
                 "trials_with_unmet_steps": int(np.sum(rec["barrier_unmet_steps"][:, c] > 0)),
                 "unmet_steps": int(np.sum(rec["barrier_unmet_steps"][:, c])),
-                "median_min_h": float(np.median(h)),
-            })  # fmt: skip
+                "limit_step_fraction": float(np.sum(limit) / (limit.size * run.study.n_steps)),
+                "price": None if margin == "none" else margin_price(plain, rec, c),
+            }  # fmt: skip
+            rows.append(row)
     return rows
 
 
-def mc_rows(datasets: int, trials_per_dataset: int) -> list[dict]:
+def _run_pair(sc, spec, M: float, bound: str, trials: int, datasets: int) -> tuple[dict, dict]:
+    """One Monte Carlo study without and with the margin (the same seed: the same trials and
+    data sets); ``({margin: run}, {margin: timings})``."""
+    from safestab.montecarlo import run_montecarlo
+
+    runs = {}
+    for margin, value in (("none", None), (bound, M)):
+        runs[margin] = run_montecarlo(sc, trials=trials, datasets=datasets,
+                                      spec=spec.replace(ddh_bound=value, price_metrics=True))  # fmt: skip
+    return runs, {m: r.timings for m, r in runs.items()}
+
+
+#: The Monte Carlo studies' titles (the table's first column).
+ACC_STUDY = "ACC stress-limited, 10 Hz"
+OBSTACLE_STUDY = "obstacle, 2 Hz"
+
+
+def mc_rows(
+    datasets: int, trials_per_dataset: int, obstacle_trials_per_dataset: int | None = None
+) -> dict:
     """Two Monte Carlo studies at coarse rates, without and with the margin, every compared
-    controller over fresh data sets, h checked at 10 substeps a hold: the stress preset at
-    10 Hz under |u| <= 0.3 M g (random starts and leads), and the obstacle at 2 Hz under its
-    +-1.5 m/s box (the safety filter; its 72 starts per data set)."""
+    controller over fresh data sets, h checked at 10 substeps a hold: the stress-limited
+    preset (the braking-distance barrier, valid under its limit |u| <= 0.3 M g, at 10 Hz,
+    random starts and leads; its margin ``montecarlo.ddh_bound`` is the closed-form
+    ``braking_ddh_bound``), and the obstacle at 2 Hz under its +-1.5 m/s box (the safety
+    filter; by default its 72 starts per data set; the bound estimated on the true plant).
+
+    Returns ``{"rows": [...], "settings": ..., "timings_s": ...}``.
+    """
     from safestab.scenarios.obstacle import load_obstacle_scenario
 
-    sc = load_scenario("stress").replace(dt=0.1, input_limit=0.3)
-    _, cbf = sc.certificates()
-    lim = 0.3 * sc.mass * sc.gravity / sc.input_scale
-    spec = sc.montecarlo.replace(substeps=10)
-    g = sc.gravity
-    # every lead acceleration the trials draw
-    a_range = (-spec.lead_decel_max * g, spec.lead_accel_max * g)
-    M = _acc_bound(sc.system("true"), cbf, lim, a_range)
-    rows = _mc_rows("ACC stress, 10 Hz, input within +-0.3 M g", sc, spec, M,
-                    datasets * trials_per_dataset, datasets)  # fmt: skip
+    sc = load_scenario("stress-limited")
+    spec = sc.montecarlo
+    M = float(spec.ddh_bound)
+    acc_runs, acc_t = _run_pair(sc, spec, M, "closed-form bound", datasets * trials_per_dataset,
+                                datasets)  # fmt: skip
+    rows = study_rows(ACC_STUDY, acc_runs, M)
     ob = load_obstacle_scenario("obstacle").replace(dt=0.5)
     _, cbf = ob.certificates()
     lim = ob.input_limit
     # the region of the starts and the goal, the box of inputs, the true plant (its current)
     M = float(ddh_bound(ob.system("true"), cbf, [-9.0, -4.0], [3.0, 4.0], u_min=-lim,
                         u_max=lim)[0])  # fmt: skip
-    spec = (ob.montecarlo or MonteCarloSpec()).replace(substeps=10, controllers=("true model", "mismatched model",
-                                                            "GP-robust"))  # fmt: skip
-    starts = len(ob.start_states())
-    rows += _mc_rows("obstacle, 2 Hz, inputs within +-1.5 m/s", ob, spec, M, starts * datasets,
-                     datasets)  # fmt: skip
-    return rows
+    spec = (ob.montecarlo or MonteCarloSpec()).replace(
+        substeps=10, controllers=("true model", "mismatched model", "GP-robust")
+    )
+    per_set = obstacle_trials_per_dataset or len(ob.start_states())
+    ob_runs, ob_t = _run_pair(ob, spec, M, "estimated bound", per_set * datasets, datasets)
+    rows += study_rows(OBSTACLE_STUDY, ob_runs, M)
+    settings = {
+        "datasets": datasets,
+        "trials_per_dataset": {ACC_STUDY: trials_per_dataset, OBSTACLE_STUDY: per_set},
+    }
+    return {"rows": rows, "settings": settings,
+            "timings_s": {ACC_STUDY: acc_t, OBSTACLE_STUDY: ob_t}}  # fmt: skip
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line; refuses negative counts."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the rows to this file")
     parser.add_argument("--datasets", type=int, default=10,
                         help="data sets of the Monte Carlo part (0: skip it)")  # fmt: skip
-    parser.add_argument("--trials-per-dataset", type=int, default=10)
+    parser.add_argument("--trials-per-dataset", type=int, default=10,
+                        help="the ACC study's trials per data set")  # fmt: skip
+    parser.add_argument("--obstacle-trials-per-dataset", type=int, default=None,
+                        help="the obstacle study's (default: its 72 starts)")  # fmt: skip
+    parser.add_argument("--no-loops", action="store_true",
+                        help="the Monte Carlo part only (not the disc, pass-by, acc loops)")  # fmt: skip
     args = parser.parse_args(argv)
-    rows = disc_rows() + pass_by_rows() + acc_rows()
+    for name in ("datasets", "trials_per_dataset", "obstacle_trials_per_dataset"):
+        value = getattr(args, name)
+        if value is not None and (value < 0 or (value == 0 and name != "datasets")):
+            parser.error(
+                f"--{name.replace('_', '-')} must be {'>= 0' if name == 'datasets' else '>= 1'}, got {value}"
+            )
+    if args.no_loops and not args.datasets:
+        parser.error("--no-loops with --datasets 0 leaves nothing to run")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    rows = [] if args.no_loops else disc_rows() + pass_by_rows() + acc_rows()
     for r in rows:
         print(
             f"{r['case']:7s} {r['rate_hz']:5.0f} Hz  margin {r['margin']:16s} "
@@ -210,17 +305,25 @@ def main(argv: list[str] | None = None) -> int:
             f"  min h {r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};"
             f"  not OK {r['steps_not_ok']} of {r['steps']} {r['statuses']}"
         )
-    mc = mc_rows(args.datasets, args.trials_per_dataset) if args.datasets else []
-    for r in mc:
+    mc = {"rows": [], "settings": None, "timings_s": None}
+    if args.datasets:
+        mc = mc_rows(args.datasets, args.trials_per_dataset, args.obstacle_trials_per_dataset)
+    for r in mc["rows"]:
+        safe = r["safe_per_dataset"]
         print(
-            f"mc {r['study'][:8]:8s} {r['controller']:20s} margin {r['margin']:16s} left: {r['left_at_samples']} "
-            f"at samples, {r['left_between_samples']} between, of {r['trials']};  min h "
-            f"{r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};  trials with unmet steps "
-            f"{r['trials_with_unmet_steps']}"
+            f"mc {r['study'][:8]:8s} {r['controller']:18s} margin {r['margin']:17s} left: "
+            f"{r['left_at_samples']} at samples, {r['left_between_samples']} between, of "
+            f"{r['trials']};  min h {r['min_h_samples']:+.4f} / {r['min_h_between']:+.4f};  "
+            f"safe data sets {safe['count']}/{safe['datasets']};  trials with unmet steps "
+            f"{r['trials_with_unmet_steps']};  on the limit {r['limit_step_fraction']:.3g}"
         )
+    if mc["timings_s"]:
+        print("timings (s):", json.dumps(mc["timings_s"]))
     if args.json:
+        doc = {"loops": rows, "montecarlo": mc["rows"], "montecarlo_settings": mc["settings"],
+               "montecarlo_timings_s": mc["timings_s"]}  # fmt: skip
         with open(args.json, "w") as fh:
-            json.dump({"loops": rows, "montecarlo": mc}, fh, indent=1, allow_nan=False)
+            json.dump(doc, fh, indent=1, allow_nan=False)
     return 0
 
 

@@ -1,7 +1,9 @@
 """Rerun the studies behind the docs' result tables and figures, and rewrite them in place.
 
     bash scripts/reproduce-docs.sh                 # every quick study (about 12 min here)
-    bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min)
+    bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min),
+                                                   # the deployed study at 1,000 data sets
+                                                   # (deployed-long: 2 to 5 h projected here)
                                                    # and the price of robustness
     bash scripts/reproduce-docs.sh --only mc-presets obstacle
     bash scripts/reproduce-docs.sh --check         # write nothing, fail if a table would change
@@ -13,7 +15,8 @@ by hand. Each step's figures are copied into docs/figures or docs/gallery. Timin
 (``scripts/run-benchmarks.sh`` rewrites them). The script prints what it reran and how long
 each step took. ``--check`` writes nothing: it exits 1 if a generated table would change, and
 lists the figures whose bytes would change (which does not fail: a figure's bytes also depend
-on the matplotlib and FreeType versions). The slow test
+on the matplotlib and FreeType versions) and the blocks of ``MEASURED_TIMES`` that would
+change (a study's own measured time, which does not fail either). The slow test
 ``tests/test_docs_tools.py::test_reproduce_docs_check`` runs the check.
 """
 
@@ -350,25 +353,78 @@ def _signed(x: float) -> str:
     return f"{x:+.4f}" if abs(x) >= 1e-3 or x == 0 else f"{x:+.1e}"
 
 
+def _margin_cell(r: dict) -> str:
+    """The margin's name and its bound ``M``."""
+    return r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})")
+
+
+def _price_cells(price: dict | None) -> list[str]:
+    """The margin's paired price: median min h gain and median settle-time change."""
+    if price is None:
+        return ["-", "-"]
+    gain, settle = price["median_min_h_gain"], price["median_settle_time_change"]
+    return [
+        "-" if gain is None else _signed(gain),
+        "not measured" if settle is None else f"{settle:+.2f}",
+    ]
+
+
 def deployed_mc_table(rows: list[dict]) -> str:
-    """docs/deployed.md's Monte Carlo table from benchmarks/deployed.py's --json rows."""
+    """docs/deployed.md's Monte Carlo table from benchmarks/deployed.py's --json rows.
+
+    Per study, controller and margin: the trials below ``h = 0`` at and between the samples,
+    the least ``h`` there and its median over trials, the data sets whose every trial was
+    safe with the Clopper-Pearson interval, the trials (and steps) the limits could not make
+    safe, the share of steps on the limit, and, on the margin's rows, its price against the
+    same controller without it on the same trials.
+    """
     body = []
     for r in rows:
+        safe = r["safe_per_dataset"]
+        low, high = safe["ci95"]
         body.append([
-            r.get("study", "ACC stress"), r["controller"],
-            r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})"),
+            r["study"], r["controller"], _margin_cell(r),
             f"{r['left_at_samples']} / {r['trials']}",
             f"{r['left_between_samples']} / {r['trials']}",
             _signed(r["min_h_samples"]), _signed(r["min_h_between"]),
             _signed(r["median_min_h"]),
+            f"{safe['count']}/{safe['datasets']}", f"[{low:.2f}, {high:.2f}]",
             f"{r['trials_with_unmet_steps']} ({r['unmet_steps']} steps)",
+            f"{r['limit_step_fraction']:.3g}",
+            *_price_cells(r["price"]),
         ])  # fmt: skip
     header = ["study", "controller", "sampled-data margin", "trials below h = 0 at the samples",
               "trials below h = 0 between the samples", "min h at the samples",
               "min h between the samples", "median of each trial's min h",
-              "trials with steps the limits could not make safe"]  # fmt: skip
-    align = ["---", "---", "---", "---:", "---:", "---:", "---:", "---:", "---:"]
+              "safe data sets", "95 % interval",
+              "trials with steps the limits could not make safe", "share of steps on the limit",
+              "margin's price: median min h gain",
+              "margin's price: median settle time change (s)"]  # fmt: skip
+    align = ["---", "---", "---"] + ["---:"] * 11
     return _table(header, align, body)
+
+
+def deployed_mc_timing(doc: dict) -> str:
+    """The Monte Carlo part's measured time per data set and the projection to 1,000.
+
+    From ``montecarlo_timings_s`` of benchmarks/deployed.py's --json document: every run's
+    ``total`` (data sets and trials, the compilation included), summed over the two studies
+    and the two margins, divided by the data sets. The projection scales it linearly, which
+    overstates the time by the fixed compilation.
+    """
+    settings = doc["montecarlo_settings"]
+    k = settings["datasets"]
+    total = sum(t["total"] for runs in doc["montecarlo_timings_s"].values()
+                for t in runs.values())  # fmt: skip
+    per_set = total / k
+    trials = "; ".join(f"{study.split(',')[0]}: {n} trials each"
+                       for study, n in settings["trials_per_dataset"].items())  # fmt: skip
+    return (
+        f"Measured here: {k:,} data sets ({trials}), both studies without and with the "
+        f"margin, in {total:.0f} s: {per_set:.1f} s per data set, compilation included. "
+        f"1,000 data sets would take about {1000 * per_set / 3600:.1f} h at that rate (an "
+        f"overestimate: the compilation does not grow with the data sets).\n"
+    )
 
 
 def deployed_table(rows: list[dict]) -> str:
@@ -767,6 +823,26 @@ def step_deployed(out: Path) -> dict[str, tuple[str, str]]:
     return {
         "deployed": ("docs/deployed.md", deployed_table(doc["loops"])),
         "deployed-mc": ("docs/deployed.md", deployed_mc_table(doc["montecarlo"])),
+        "deployed-mc-time": ("docs/deployed.md", deployed_mc_timing(doc)),
+    }
+
+
+#: What a --long step's block says until that step has run (the docs' tests accept it).
+LONG_PLACEHOLDER = "Not yet generated"
+
+#: The 1,000-data-set deployed study's arguments to benchmarks/deployed.py (--long).
+DEPLOYED_LONG_ARGS = ["--no-loops", "--datasets", "1000", "--trials-per-dataset", "10"]
+
+
+def step_deployed_long(out: Path) -> dict[str, tuple[str, str]]:
+    """The deployed Monte Carlo study at 1,000 data sets (--long): docs/deployed.md's block."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = out / "deployed_long.json"
+    _run([sys.executable, "benchmarks/deployed.py", *DEPLOYED_LONG_ARGS, "--json", str(rows)])
+    doc = _load(rows)
+    return {
+        "deployed-mc-long": ("docs/deployed.md", deployed_mc_table(doc["montecarlo"])),
+        "deployed-mc-long-time": ("docs/deployed.md", deployed_mc_timing(doc)),
     }
 
 
@@ -792,10 +868,14 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "safe-rl": step_safe_rl,
     "gallery": step_gallery,
     "mc-datasets": step_mc_datasets,
+    "deployed-long": step_deployed_long,
     "price": step_price,
     "price-limited": step_price_limited,
 }
-LONG = {"mc-datasets", "price"}
+LONG = {"mc-datasets", "deployed-long", "price"}
+#: Blocks that state a measured time: written like the others, but a difference is reported,
+#: not failed, by --check (a time depends on the machine and its load, like a figure's bytes).
+MEASURED_TIMES = {"deployed-mc-time", "deployed-mc-long-time"}
 #: The generated blocks each step writes (tests/test_docs_tools.py checks that every block
 #: in docs/ is written by a step).
 PRODUCES = {
@@ -815,10 +895,11 @@ PRODUCES = {
     "gp-coverage": ["gp-coverage"],
     "fast-band": ["fastgp-width"],
     "mc-band": ["mc-band-width"],
-    "deployed": ["deployed", "deployed-mc"],
+    "deployed": ["deployed", "deployed-mc", "deployed-mc-time"],
     "safe-rl": ["safe-rl"],
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
+    "deployed-long": ["deployed-mc-long", "deployed-mc-long-time"],
     "price": ["price-stress", "price-obstacle"],
     "price-limited": ["price-limited"],
 }
@@ -840,6 +921,7 @@ def main(argv: list[str] | None = None) -> int:
     names = args.only or [n for n in STEPS if args.long or n not in LONG]
     changed: list[str] = []
     files_changed: list[str] = []
+    times_changed: list[str] = []  # measured times: reported, never failed
     pages: dict[Path, str] = {}  # with --check, the pages as they would be
     total = time.perf_counter()
     for name in names:
@@ -854,7 +936,7 @@ def main(argv: list[str] | None = None) -> int:
             path = ROOT / page
             text = pages.get(path, path.read_text())
             if blocks(text).get(block) != body:
-                changed.append(f"{page}: {block}")
+                (times_changed if block in MEASURED_TIMES else changed).append(f"{page}: {block}")
             pages[path] = replace_block(text, block, body)
         files_changed += [
             rel for rel, data in FILES.items()
@@ -873,6 +955,8 @@ def main(argv: list[str] | None = None) -> int:
     # depend on the matplotlib and FreeType versions as well as on the numbers
     if files_changed:
         print("files whose bytes differ: " + ", ".join(files_changed))
+    if times_changed:
+        print("measured times that differ: " + ", ".join(times_changed))
     if changed:
         print(("would change: " if args.check else "changed: ") + ", ".join(changed))
         return 1 if args.check else 0

@@ -15,7 +15,6 @@ import ctypes
 import hashlib
 import tempfile
 import threading
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ import numpy as np
 
 from ..errors import CompilationError, ParameterError
 from .exporter import ExportedC
-from .native import _FALLBACK_FLAGS, _run, find_compiler, native_flags
+from .native import compile_object, find_compiler, run_tool
 
 __all__ = ["jax_function", "find_cxx_compiler", "MAX_STACK_BYTES"]
 
@@ -113,25 +112,11 @@ def _build(exported: ExportedC, cc: str, cxx: str, march_native: bool) -> tuple[
         with tempfile.TemporaryDirectory(prefix="safestab-ffi-") as tmp:
             build = Path(tmp)
             exported.write(build)
-            obj = build / f"{exported.name}.o"
-            flags = [*native_flags(cc, march_native=march_native), "-fPIC"]
-            cmd = [cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)]
-            try:
-                _run(cmd, build)
-            except CompilationError as exc:
-                if "internal compiler error" not in str(exc):
-                    raise
-                _run(cmd[:1] + _FALLBACK_FLAGS + cmd[1:], build)
-                warnings.warn(
-                    f"{cc} failed with an internal compiler error on {exported.name}.c; "
-                    f"compiled it again with {' '.join(_FALLBACK_FLAGS)}",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
+            obj = compile_object(exported, cc, build, march_native=march_native)
             src = build / "handler.cc"
             src.write_text(handler)
             lib_path = build / f"lib{symbol}.so"
-            _run(
+            run_tool(
                 [cxx, "-std=c++17", "-O2", "-fPIC", "-shared", f"-I{jax.ffi.include_dir()}",
                  str(src), str(obj), "-lm", "-o", str(lib_path)],
                 build,

@@ -422,6 +422,15 @@ class SafetyFilter(Controller):
             status = jnp.where((status == S.OK) & jnp.any(std < 0), S.NEGATIVE_STD, status)
         return (a, b, c, d, self.nominal_input(x, p)), status.astype(jnp.int32)
 
+    def rows(self, x: jax.Array, p: Any = None) -> tuple:
+        """The problem's terms at one state ``x`` (n,), unchecked: ``(a, b, c, d, u_nom)``.
+
+        ``a`` (p,), ``b`` (p, m) of the CLFs, ``c`` (k,), ``d`` (k, m) of the CBFs (robust
+        terms and the sampled-data shift included) and the nominal input (m,) or None: what
+        the solver receives at ``x``. Differentiable (the native step's derivative uses it).
+        """
+        return self._point(x, p)[0]
+
     @property
     def max_iter(self) -> int | None:
         """The solver's iteration bound per phase (the formula's; None: from the size)."""

@@ -97,6 +97,35 @@ def _run(cmd: list[str], cwd: Path) -> None:
         )
 
 
+def run_tool(cmd: list[str], cwd: Path) -> None:
+    """Run a compiler or linker command in ``cwd``; CompilationError with its output if it fails."""
+    _run(cmd, cwd)
+
+
+def compile_object(exported: ExportedC, cc: str, build: Path, *, march_native: bool) -> Path:
+    """Compile ``<name>.c`` (already written in ``build``) to a position-independent object.
+
+    With the flags of :func:`native_flags`; where GCC stops with an internal error, again
+    without loop vectorisation (the same results), with a warning.
+    """
+    obj = build / f"{exported.name}.o"
+    flags = [*native_flags(cc, march_native=march_native), "-fPIC"]
+    cmd = [cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)]
+    try:
+        _run(cmd, build)
+    except CompilationError as exc:
+        if "internal compiler error" not in str(exc):
+            raise
+        _run(cmd[:1] + _FALLBACK_FLAGS + cmd[1:], build)
+        warnings.warn(
+            f"{cc} failed with an internal compiler error on {exported.name}.c; "
+            f"compiled it again with {' '.join(_FALLBACK_FLAGS)}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    return obj
+
+
 #: States up to this size get :func:`_args_glue`'s step taking the state as arguments.
 _MAX_ARGS_STATES = 16
 

@@ -6,7 +6,7 @@ writes docs/embedded.json and the table block of docs/export.md ("On a microcont
 Needs arm-none-eabi-gcc, libnewlib-arm-none-eabi and qemu-system-arm (installed with apt-get
 where this process may; else the error names them).
 
-Rows: the GP-corrected ACC controller (presets paper and stress) and the obstacle scenario's
+Rows: the GP-robust ACC controller (presets paper and stress) and the obstacle scenario's
 GP-robust controller on a Cortex-M4F (float) and a Cortex-M7 (double), the stress preset's
 nominal controller in float, and a safety filter (a point robot among 8 discs, a CLF, input
 limits: the filter issue's problem). Each row: the harness under QEMU against the JAX step,

@@ -34,6 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import safestab as ss  # noqa: E402
+from safestab.scenarios.names import NameMap  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GALLERY = ROOT / "docs" / "gallery"
@@ -69,7 +70,8 @@ def _acc(scenario: str, out: Path) -> dict:
         subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL)
         shutil.copyfile(folder / f"acc_{scenario}.png", out / f"acc_{scenario}.png")
         metrics = json.loads((folder / f"acc_{scenario}_metrics.json").read_text())
-    mins = {name: round(m["min_h_m"], 3) for name, m in metrics["controllers"].items()}
+    controllers = NameMap(metrics["controllers"], where="acc metrics")  # old names renamed
+    mins = {name: round(m["min_h_m"], 3) for name, m in controllers.items()}
     return {"command": f"safestab acc --scenario {scenario} --out DIR", "min_h_m": mins}
 
 

@@ -174,7 +174,7 @@ def cache_accuracy(n: int = 48) -> dict:
         return float(sd + (e_w * r + mround) / fast.min_beta)
 
     ref = np.array([exact(s) for s in x])
-    _, batched = fast.predict(x)
+    _, batched = fast.predict(x, return_std=True)
     single = np.stack([np.asarray(fast.mean_std(s)[1]) for s in x])
     native = compile_native(export_function(fast.mean_std, 3, "cache"))
     (_, c_std), _ = native.columns(np.ascontiguousarray(x))

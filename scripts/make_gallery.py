@@ -339,8 +339,7 @@ def gp_band(out: Path) -> dict:
     )
     for ax, (axis, s, fixed, label, where) in zip(axes, slices, strict=True):
         xs = np.stack([s, np.full_like(s, fixed)] if axis == 0 else [np.full_like(s, fixed), s], -1)
-        mean, var = (np.asarray(a)[:, 1] for a in gp.predict(xs))
-        sd = np.sqrt(var)
+        mean, sd = (a[:, 1] for a in gp.predict(xs, return_std=True))
         truth = np.asarray(jax.vmap(omega)(jnp.asarray(xs)))[:, 1]
         ax.fill_between(
             s, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.25, label="mean +- 2 sigma"

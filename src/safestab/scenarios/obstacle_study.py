@@ -522,8 +522,8 @@ def _cache_width(gp: GaussianProcessModel, cache: FastGP) -> dict[str, Any]:
     """The cache's inducing inputs, and its std over the exact std at the training inputs."""
     x = gp.x_train_
     comps = list(gp.components_)
-    exact = np.sqrt(np.asarray(gp.predict(x)[1]))[:, comps]
-    ratio = cache.predict(x)[1][:, comps] / exact
+    exact = gp.predict(x, return_std=True)[1][:, comps]
+    ratio = cache.predict(x, return_std=True)[1][:, comps] / exact
     return {
         "n_inducing": cache.n_inducing_.tolist(),
         "std_over_exact_at_training_median": np.median(ratio, 0).tolist(),

@@ -34,7 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import safestab as ss  # noqa: E402
-from safestab.scenarios.names import NameMap  # noqa: E402
+from safestab.controller_names import NameMap  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GALLERY = ROOT / "docs" / "gallery"

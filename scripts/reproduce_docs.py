@@ -459,7 +459,7 @@ def _num(x: float | None) -> str:
 
 def acc_table(doc: dict) -> str:
     """docs/acc.md's table for one ACC preset, and its GP line, from a metrics document."""
-    from safestab.scenarios.names import NameMap
+    from safestab.controller_names import NameMap
 
     rows = []  # NameMap: a document written before a rename is read with the current names
     for name, c in NameMap(doc["controllers"], where="acc metrics").items():
@@ -607,7 +607,7 @@ def _run(cmd: list[str]) -> None:
 
 def _all_controllers() -> str:
     """Every controller a Monte Carlo study can compare, as ``--controllers`` takes them."""
-    from safestab.scenarios.names import CONTROLLERS
+    from safestab.controller_names import CONTROLLERS
 
     return ",".join(CONTROLLERS)
 

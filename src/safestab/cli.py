@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import typer
 
-from .scenarios.names import CONTROLLERS, EXPORT_CHOICES
+from .controller_names import CONTROLLERS, EXPORT_CHOICES
 
 app = typer.Typer(
     add_completion=False,

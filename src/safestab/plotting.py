@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from .scenarios.names import GP_ROBUST, MISMATCHED_MODEL, TRUE_MODEL
+from .controller_names import GP_ROBUST, MISMATCHED_MODEL, TRUE_MODEL
 
 __all__ = [
     "OUTCOME_COLORS",

@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from .._io import with_finite_status
+from ..controller_names import GP_CONTROLLERS, TRUE_MODEL
 from ..errors import ParameterError
 from ..scenarios import MonteCarloSpec
-from ..scenarios.names import GP_CONTROLLERS, TRUE_MODEL
 from .report import study_settings
 from .runner import MonteCarloRun, run_montecarlo
 from .stats import summarize

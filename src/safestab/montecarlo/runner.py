@@ -21,11 +21,11 @@ import numpy as np
 from .._batching import in_threads
 from .._cache import child_cache_environment, compilation_cache_dir
 from .._xla_flags import xla_flag_environment
+from ..controller_names import GP_ROBUST_CONFORMAL
 from ..errors import InducingPointsWarning, ParameterError
 from ..learning._fit_cache import fit_cache_dir
 from ..learning.batched import one_blas_thread
 from ..scenarios import MonteCarloSpec
-from ..scenarios.names import GP_ROBUST_CONFORMAL
 from .loop import RECORD_FIELDS
 from .protocol import TrialStudy
 from .trials import (

@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
+from ..controller_names import GP_ROBUST_CONFORMAL, GP_ROBUST_LEMMA2
 from ..controllers import StepStatus
 from ..errors import ParameterError
 from ..robust import joint_probability
-from ..scenarios.names import GP_ROBUST_CONFORMAL, GP_ROBUST_LEMMA2
 from .runner import MonteCarloRun
 
 __all__ = ["GUARANTEES", "clopper_pearson", "empirical_bernstein", "safe_mask", "summarize"]

@@ -21,6 +21,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controller_names import (
+    GP_MEAN,
+    GP_ROBUST,
+    GP_ROBUST_CONFORMAL,
+    GP_ROBUST_LEMMA2,
+    MISMATCHED_MODEL,
+    TRUE_MODEL,
+)
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..learning import (
@@ -35,14 +43,6 @@ from ..learning import (
 )
 from ..learning.batched import InducingCache, one_blas_thread
 from ..learning.input_gain import estimate_input_gain, fit_input_gain, with_input_gain
-from ..scenarios.names import (
-    GP_MEAN,
-    GP_ROBUST,
-    GP_ROBUST_CONFORMAL,
-    GP_ROBUST_LEMMA2,
-    MISMATCHED_MODEL,
-    TRUE_MODEL,
-)
 from .loop import trial_function
 from .protocol import TrialStudy
 

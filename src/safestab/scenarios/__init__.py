@@ -1,10 +1,10 @@
 """Ready-made problems with parameter presets."""
 
+from ..controller_names import CONTROLLERS
 from ._mc_schema import check_controllers
 from ._schema import LIMITS, ScenarioLimits
 from .acc import PRESETS, ACCScenario, MonteCarloSpec, load_scenario
 from .loading import KINDS, load, parse_override, scenario_kind
-from .names import CONTROLLERS
 from .obstacle import ObstacleScenario, load_obstacle_scenario
 
 __all__ = [

@@ -12,9 +12,9 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from ..controller_names import CONTROLLERS, current_name
 from ..errors import ScenarioError
 from ._schema import LIMITS, choice, fail, integer, real
-from .names import CONTROLLERS, current_name
 
 __all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_controllers", "check_montecarlo"]
 
@@ -26,7 +26,7 @@ _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
 def check_controllers(path: str, value: Any, source: str) -> tuple[str, ...]:
     """The controllers ``value`` (names from :data:`CONTROLLERS`), or a ScenarioError.
 
-    An old name (:data:`~safestab.scenarios.names.RENAMED`) is read as its current name, with
+    An old name (:data:`~safestab.controller_names.RENAMED`) is read as its current name, with
     a DeprecationWarning.
     """
     expected = "a non-empty array of distinct names from " + ", ".join(map(repr, CONTROLLERS))

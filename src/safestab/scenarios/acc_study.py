@@ -9,6 +9,7 @@ import numpy as np
 
 from .._batching import in_threads
 from .._io import with_finite_status
+from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL, NameMap
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import (
@@ -19,7 +20,6 @@ from ..learning import (
 )
 from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
-from .names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL, NameMap
 from .pipeline import (
     MetricsWriter,
     Progress,

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..controller_names import EXPORT_CHOICES
 from ..errors import CompilationError, ParameterError
 from ..export.embedded import TARGETS, run_on_target
 from ..export.exporter import check_name, check_precision, export_c
@@ -25,7 +26,6 @@ from ..learning import FastGP
 from .acc import ACCScenario
 from .acc_study import collect_study_data, fit_study_gp, study_controllers
 from .loading import load as load_any_scenario
-from .names import EXPORT_CHOICES
 from .obstacle import ObstacleScenario
 from .obstacle_study import calibrate_beta, fit_obstacle_gp, obstacle_controller
 

@@ -28,6 +28,7 @@ import numpy as np
 from .._batching import in_threads
 from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
+from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL
 from ..controllers import StepStatus, UniversalController
 from ..errors import ParameterError
 from ..filters import SafetyFilter
@@ -36,7 +37,6 @@ from ..learning import FastGP, GaussianProcessModel, InputGain, fit_input_gain
 from ..learning.bounds import mean_std_batch
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
-from .names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
 from .pipeline import (
     MetricsWriter,

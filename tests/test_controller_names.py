@@ -1,4 +1,4 @@
-"""One name per controller: the list in scenarios/names.py, imported everywhere; old names."""
+"""One name per controller: the list in controller_names.py, imported everywhere; old names."""
 
 import ast
 import warnings
@@ -7,13 +7,13 @@ from pathlib import Path
 import pytest
 
 import safestab
+from safestab import controller_names as names
 from safestab.montecarlo import price, stats
 from safestab.scenarios import (
     CONTROLLERS,
     acc_study,
     check_controllers,
     load_scenario,
-    names,
     obstacle_study,
 )
 
@@ -31,17 +31,17 @@ def test_every_module_uses_the_one_list():
 
 
 def test_no_module_spells_a_controller_name_of_its_own():
-    # a string constant equal to a controller name (current or old) outside names.py is a
-    # list of its own; docstrings and messages that mention a name are longer strings
+    # a string constant equal to a controller name (current or old) outside controller_names.py:
+    # a list of its own; docstrings and messages that mention a name are longer strings
     spelled = set(CONTROLLERS) | set(names.RENAMED)
     found = []
     for path in sorted(SRC.rglob("*.py")):
-        if path.name == "names.py":
+        if path.name == "controller_names.py":
             continue
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Constant) and node.value in spelled:
                 found.append(f"{path.relative_to(SRC)}:{node.lineno}: {node.value!r}")
-    assert not found, "controller names spelled outside scenarios/names.py:\n" + "\n".join(found)
+    assert not found, "controller names spelled outside controller_names.py:\n" + "\n".join(found)
 
 
 def test_the_old_name_in_a_scenario_file_is_read_with_a_warning(tmp_path):

@@ -3,7 +3,9 @@
 Every study, table, figure, metrics key and command-line option names a controller by the
 strings defined here, and every module that needs the list imports it from here. Old names are
 still read for one release (:data:`RENAMED`): :func:`current_name` and :class:`NameMap` accept
-them with a :class:`DeprecationWarning` that names the new name.
+them with a :class:`DeprecationWarning` that names the new name. The module imports nothing
+of the package, so every layer that names a controller (the studies, the figures, the
+command line) imports it from below.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ writes docs/embedded.json and the table block of docs/export.md ("On a microcont
 Needs arm-none-eabi-gcc, libnewlib-arm-none-eabi and qemu-system-arm (installed with apt-get
 where this process may; else the error names them).
 
-Rows: the GP-corrected ACC controller (presets paper and stress) and the obstacle scenario's
+Rows: the GP-robust ACC controller (presets paper and stress) and the obstacle scenario's
 GP-robust controller on a Cortex-M4F (float) and a Cortex-M7 (double), the stress preset's
 nominal controller in float, and a safety filter (a point robot among 8 discs, a CLF, input
 limits: the filter issue's problem). Each row: the harness under QEMU against the JAX step,
@@ -174,7 +174,7 @@ def cache_accuracy(n: int = 48) -> dict:
         return float(sd + (e_w * r + mround) / fast.min_beta)
 
     ref = np.array([exact(s) for s in x])
-    _, batched = fast.predict(x)
+    _, batched = fast.predict(x, return_std=True)
     single = np.stack([np.asarray(fast.mean_std(s)[1]) for s in x])
     native = compile_native(export_function(fast.mean_std, 3, "cache"))
     (_, c_std), _ = native.columns(np.ascontiguousarray(x))

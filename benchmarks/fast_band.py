@@ -44,9 +44,9 @@ def rows_for(preset: str) -> list[dict]:
     comps = list(gp.components_)
     out = []
     for name, x in (("training", gp.x_train_), ("held-out", test.x)):
-        _, s_fa = fast.predict(x)
-        _, v_ex = gp.predict(x)
-        ratio = s_fa[:, comps] / np.sqrt(np.asarray(v_ex))[:, comps]
+        _, s_fa = fast.predict(x, return_std=True)
+        _, s_ex = gp.predict(x, return_std=True)
+        ratio = s_fa[:, comps] / s_ex[:, comps]
         cover = fast.coverage_of_exact_band(x, 1.0)
         out.append((name, ratio, cover))
     rows = []

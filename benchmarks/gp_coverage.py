@@ -51,11 +51,11 @@ def one_seed(sc, seed):
     beta_c = float(rep.beta[0])
     fresh = trajectories(sc, (seed + 3 * 2**30) % 2**32, N_TRAJ, span)
     omega = np.asarray(sc.omega(fresh.x))
-    mean, var = gp.predict(fresh.x)
+    mean, std = gp.predict(fresh.x, return_std=True)
     # the joint event over the learned components, the one conformal_beta calibrates (its
     # score is the largest of the components' scores)
     comps = list(gp.components_)
-    ratio = np.abs(omega - np.asarray(mean))[:, comps] / np.sqrt(np.asarray(var))[:, comps]
+    ratio = np.abs(omega - mean)[:, comps] / std[:, comps]
     score = ratio.max(axis=1)
     out = {"seed": seed, "fit_s": fit_s, "beta_conformal": beta_c}
     for key, beta in (("chosen", sc.gp_beta), ("conformal", beta_c)):

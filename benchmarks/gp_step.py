@@ -8,7 +8,7 @@ arguments of the compiled loop (as :func:`~safestab.simulate` passes them): the 
 with the factor as row panels of 64 to 500 rows (``_posterior.solve_panels``; the package
 uses ``PANEL_ROWS``), with XLA's solve of the whole factor (the package before), and a
 product with the whole factor (what an explicit inverse would cost; not used: it loses the
-solve's backward stability). Then the preset's whole GP-corrected closed loop (80 s at
+solve's backward stability). Then the preset's whole GP-robust closed loop (80 s at
 100 Hz) through :func:`~safestab.simulate`, a first call (tracing and compiling, no
 persistent cache) and a second. Writes ``docs/performance_gp_step.json`` and its block in
 ``docs/performance.md``.
@@ -81,7 +81,7 @@ def bench() -> dict:
         x0,
     )
     print(rows)
-    ctrl = study_controllers(sc, gp)["GP-corrected"]
+    ctrl = study_controllers(sc, gp)["GP-robust"]
     loop = []
     for _ in range(2):
         t0 = time.perf_counter()
@@ -123,7 +123,7 @@ def markdown(r: dict) -> str:
     first, second = r["closed_loop_s"]
     lines += [
         "",
-        f"The preset's GP-corrected closed loop ({r['closed_loop_steps']:,} steps, "
+        f"The preset's GP-robust closed loop ({r['closed_loop_steps']:,} steps, "
         f"`simulate`): {first:.1f} s on the first call (tracing and compiling, no persistent "
         f"cache), {second:.1f} s on the second.",
         "",

@@ -75,9 +75,9 @@ def rows_for(
         comps = list(gp.components_)
         ratios = {}
         for name, pts in (("training", gp.x_train_), ("far", far)):
-            _, s_fa = fast.predict(pts)
-            _, v_ex = gp.predict(pts)
-            ratios[name] = s_fa[:, comps] / np.sqrt(np.maximum(np.asarray(v_ex)[:, comps], 1e-300))
+            _, s_fa = fast.predict(pts, return_std=True)
+            _, s_ex = gp.predict(pts, return_std=True)
+            ratios[name] = s_fa[:, comps] / np.maximum(s_ex[:, comps], 1e-150)
         cover = fast.coverage_of_exact_band(np.concatenate([gp.x_train_[:400], far]), 1.0)
         for j, comp in enumerate(comps):
             named = any(f"component {comp}," in w for w in fast.width_warnings_)

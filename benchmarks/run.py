@@ -243,10 +243,10 @@ def gp_scaling_worker(q):
     fit_s = time.perf_counter() - t0
     rss_fit = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
     t0 = time.perf_counter()
-    jax.block_until_ready(gp.predict(test.x))  # first call: compilation included
+    jax.block_until_ready(gp.predict(test.x, return_std=True))  # first call: compilation included
     first_predict_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    jax.block_until_ready(gp.predict(test.x))
+    jax.block_until_ready(gp.predict(test.x, return_std=True))
     predict_s = time.perf_counter() - t0
     cal = calibration(gp, test.x, np.asarray(sc.omega(test.x)), sc.gp_beta)
     return {

@@ -53,7 +53,7 @@ def _child(data: Path, q: int, exact: bool, fit_only: bool = False) -> None:
         return
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
     comps = list(sp.components_)
-    m, s = sp.predict(d["x_test"])
+    m, s = sp.predict(d["x_test"], return_std=True)
     err = (m - d["omega_test"])[:, comps]
     rep = conformal_beta(sp, d["x_cal"], d["omega_cal"], DELTA, groups=d["traj_cal"])
     beta = np.asarray(rep.beta)[comps]
@@ -65,7 +65,7 @@ def _child(data: Path, q: int, exact: bool, fit_only: bool = False) -> None:
     }  # fmt: skip
     if exact:
         gp = GaussianProcessModel().fit(d["x"][:q], d["y"][:q], hyper_subset=500, seed=0)
-        me = np.asarray(gp.predict(d["x_test"])[0])
+        me = gp.predict(d["x_test"], return_std=False)
         out["exact_rmse"] = np.sqrt(np.mean((me - d["omega_test"])[:, comps] ** 2, 0)).tolist()
     print(json.dumps(out))
 

@@ -34,6 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import safestab as ss  # noqa: E402
+from safestab.controller_names import NameMap  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GALLERY = ROOT / "docs" / "gallery"
@@ -69,7 +70,8 @@ def _acc(scenario: str, out: Path) -> dict:
         subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL)
         shutil.copyfile(folder / f"acc_{scenario}.png", out / f"acc_{scenario}.png")
         metrics = json.loads((folder / f"acc_{scenario}_metrics.json").read_text())
-    mins = {name: round(m["min_h_m"], 3) for name, m in metrics["controllers"].items()}
+    controllers = NameMap(metrics["controllers"], where="acc metrics")  # old names renamed
+    mins = {name: round(m["min_h_m"], 3) for name, m in controllers.items()}
     return {"command": f"safestab acc --scenario {scenario} --out DIR", "min_h_m": mins}
 
 
@@ -337,8 +339,7 @@ def gp_band(out: Path) -> dict:
     )
     for ax, (axis, s, fixed, label, where) in zip(axes, slices, strict=True):
         xs = np.stack([s, np.full_like(s, fixed)] if axis == 0 else [np.full_like(s, fixed), s], -1)
-        mean, var = (np.asarray(a)[:, 1] for a in gp.predict(xs))
-        sd = np.sqrt(var)
+        mean, sd = (a[:, 1] for a in gp.predict(xs, return_std=True))
         truth = np.asarray(jax.vmap(omega)(jnp.asarray(xs)))[:, 1]
         ax.fill_between(
             s, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.25, label="mean +- 2 sigma"

@@ -37,9 +37,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 SAFESTAB = [sys.executable, "-m", "safestab.cli"]
-MC_CONTROLLERS = (
-    "true model,mismatched model,GP mean,GP-robust,GP-robust Lemma 2,GP-robust conformal"
-)
 BLOCK = re.compile(r"(<!-- generated: ([\w.-]+) -->\n)(.*?)(<!-- end generated -->)", re.S)
 
 
@@ -462,8 +459,10 @@ def _num(x: float | None) -> str:
 
 def acc_table(doc: dict) -> str:
     """docs/acc.md's table for one ACC preset, and its GP line, from a metrics document."""
-    rows = []
-    for name, c in doc["controllers"].items():
+    from safestab.controller_names import NameMap
+
+    rows = []  # NameMap: a document written before a rename is read with the current names
+    for name, c in NameMap(doc["controllers"], where="acc metrics").items():
         regions = ", ".join(f"{k} {100 * v:.0f} %" for k, v in c["region_fraction"].items() if v)
         rows.append([
             name, f"{c['min_h_m']:+.3f}", _num(c["time_h_negative_s"]),
@@ -606,6 +605,13 @@ def _run(cmd: list[str]) -> None:
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
 
 
+def _all_controllers() -> str:
+    """Every controller a Monte Carlo study can compare, as ``--controllers`` takes them."""
+    from safestab.controller_names import CONTROLLERS
+
+    return ",".join(CONTROLLERS)
+
+
 def _load(path: Path) -> dict:
     return json.loads(path.read_text())
 
@@ -733,7 +739,7 @@ def step_mc_datasets(out: Path) -> dict[str, tuple[str, str]]:
     """The 1,000-data-set stress study (--long): table, figure, summary JSON."""
     folder = out / "datasets"
     _run([*SAFESTAB, "mc", "--scenario", "stress", "--trials", "10000", "--datasets", "1000",
-          "--controllers", MC_CONTROLLERS, "--out", str(folder)])  # fmt: skip
+          "--controllers", _all_controllers(), "--out", str(folder)])  # fmt: skip
     _copy(folder / "mc_stress.png", "figures/mc_stress_datasets.png")
     doc = _load(folder / "mc_stress_metrics.json")
     FILES["docs/montecarlo_datasets.json"] = datasets_summary(folder).encode()

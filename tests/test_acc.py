@@ -104,7 +104,7 @@ def test_user_toml_runs(tmp_path):
 
 
 def test_n_inducing_picks_the_exact_gp_or_its_cache(tmp_path):
-    """learning.n_inducing: 0 (a file without the key) puts the exact GP in the GP-corrected
+    """learning.n_inducing: 0 (a file without the key) puts the exact GP in the GP-robust
     controller; M > 0 its FastGP cache, whose band contains the exact band at beta >= 1 and
     gp_beta; a bad value is refused by name."""
     from safestab.learning import FastGP
@@ -173,7 +173,7 @@ def test_cli_smoke(tmp_path):
     ]  # fmt: skip  (no temporaries or probe files left behind)
     record = json.loads((out / "acc_stress_run.json").read_text())
     assert record["files"] == sorted(p.name for p in out.iterdir())
-    assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-corrected"}
+    assert set(doc["controllers"]) == {"true model", "mismatched model", "GP-robust"}
     for m in doc["controllers"].values():
         for key in (
             "min_h_m",
@@ -190,7 +190,7 @@ def test_cli_smoke(tmp_path):
     conf = doc["gp"]["conformal"]
     assert conf["beta"] > 0 and conf["probability"] == 0.95 and conf["n_trajectories"] == 40
     assert conf["chosen_beta"] == doc["gp"]["beta"] and "conformal" in conf["statement"]
-    # the preset's GP-corrected controller uses the FastGP cache (learning.n_inducing = 32)
+    # the preset's GP-robust controller uses the FastGP cache (learning.n_inducing = 32)
     cache = doc["gp"]["cache"]
     assert max(cache["n_inducing"]) <= 32 and cache["min_beta"] == doc["gp"]["beta"]
 
@@ -202,8 +202,8 @@ def test_stress_claims():
     m = result.metrics
     assert m["true model"]["min_h_m"] >= 0.0
     assert m["mismatched model"]["min_h_m"] < -0.5
-    assert m["GP-corrected"]["min_h_m"] >= 0.0
+    assert m["GP-robust"]["min_h_m"] >= 0.0
     # closeness to the true-model run: the metric quoted in docs/acc.md
-    assert m["GP-corrected"]["max_abs_h_gap_to_true_m"] < 0.05
-    assert m["GP-corrected"]["rms_vf_gap_to_true_mps"] < 0.01
+    assert m["GP-robust"]["max_abs_h_gap_to_true_m"] < 0.05
+    assert m["GP-robust"]["rms_vf_gap_to_true_mps"] < 0.01
     assert result.calibration.per_component[0] >= 0.9545

@@ -272,7 +272,7 @@ def test_warnings_print_one_line_without_internal_paths(tmp_path, study, monkeyp
 
 def test_json_has_no_nan_tokens_when_a_metric_is_not_finite(tmp_path, study):
     metrics = {name: _metrics(1.0) for name in acc_study.CONTROLLERS}
-    metrics["GP-corrected"]["min_h_m"] = float("nan")
+    metrics["GP-robust"]["min_h_m"] = float("nan")
     metrics["mismatched model"]["rms_speed_error_mps"] = float("inf")
     study.state["metrics"] = metrics
     res = _invoke("--out", tmp_path)
@@ -286,10 +286,10 @@ def test_json_has_no_nan_tokens_when_a_metric_is_not_finite(tmp_path, study):
     doc = json.loads(text, parse_constant=refuse)
     assert doc["status"] == "non-finite"
     assert doc["non_finite"] == {
-        "/controllers/GP-corrected/min_h_m": "nan",
+        "/controllers/GP-robust/min_h_m": "nan",
         "/controllers/mismatched model/rms_speed_error_mps": "inf",
     }
-    assert doc["controllers"]["GP-corrected"]["min_h_m"] is None
+    assert doc["controllers"]["GP-robust"]["min_h_m"] is None
     assert doc["controllers"]["mismatched model"]["rms_speed_error_mps"] is None
     assert doc["controllers"]["true model"]["min_h_m"] == 1.0
 

@@ -106,7 +106,7 @@ def _gp_controller():
     from .systems_zoo import small_stress_gp
 
     sc, gp, rng = small_stress_gp()
-    ctrl = study_controllers(sc, FastGP(gp, 48))["GP-corrected"]  # 32 caps the drag
+    ctrl = study_controllers(sc, FastGP(gp, 48))["GP-robust"]  # 32 caps the drag
     return ctrl, rng.uniform(sc.x0_low, sc.x0_high, (400, 3))
 
 

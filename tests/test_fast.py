@@ -28,8 +28,8 @@ def acc_gp():
 
 
 def _check_bound(gp, fast, x, label):
-    m_ex, v_ex = (np.asarray(a) for a in gp.predict(x))
-    m_fa, s_fa = fast.predict(x)
+    m_ex, s_ex = gp.predict(x, return_std=True)
+    m_fa, s_fa = fast.predict(x, return_std=True)
     m_one, s_one = jax.vmap(fast.mean_std)(jnp.asarray(x[:5]))  # the controller's path
     # same formulas, fused differently by XLA: they differ by rounding, which the cache's
     # running magnitudes bound (the weights c = Lj^-T Lj^-1 k carry cond(K_ZZ) u; the std's
@@ -48,7 +48,7 @@ def _check_bound(gp, fast, x, label):
     # rounding of the exact predictor's own amp^2 - |L^-1 k|^2: about Q u amp^2 (u = 1.1e-16),
     # with a factor 4 of slack; the cache adds its own allowance for its side
     tol_var = 4 * q * 1.1e-16 * amp2
-    s_ex2 = v_ex[:, comps]
+    s_ex2 = s_ex[:, comps] ** 2
     assert np.all(s_fa[:, comps] ** 2 >= s_ex2 - tol_var), label  # variance bound
     gap = np.abs(m_fa - m_ex)[:, comps]
     # mean bound |m~ - m| <= E r(x), up to the exact mean's rounding (Q u sum |alpha_i k_i|)
@@ -57,10 +57,9 @@ def _check_bound(gp, fast, x, label):
     for beta in (1.0, 2.0, 3.0):  # every beta >= min_beta = 1: the cache's band contains the exact
         lo = m_fa[:, comps] - beta * s_fa[:, comps]
         hi = m_fa[:, comps] + beta * s_fa[:, comps]
-        s_ex = np.sqrt(s_ex2)
         slack = beta * np.sqrt(tol_var) + tol_mean
-        assert np.all(lo <= m_ex[:, comps] - beta * s_ex + slack), label
-        assert np.all(hi >= m_ex[:, comps] + beta * s_ex - slack), label
+        assert np.all(lo <= m_ex[:, comps] - beta * s_ex[:, comps] + slack), label
+        assert np.all(hi >= m_ex[:, comps] + beta * s_ex[:, comps] - slack), label
 
 
 @pytest.mark.parametrize("kind", ["se", "matern52"])
@@ -104,9 +103,9 @@ def test_too_few_inducing_points_warn_and_bad_arguments(acc_gp):
     # training inputs the warning looks at): the cache's std is within 1.5 times the exact
     # one per component (median), from about 200 times before the cond-free allowance
     comps = list(gp.components_)
-    _, v_ex = gp.predict(test.x)
-    _, s_fa = fast.predict(test.x)
-    ratio = np.asarray(s_fa)[:, comps] / np.sqrt(np.asarray(v_ex))[:, comps]
+    _, s_ex = gp.predict(test.x, return_std=True)
+    _, s_fa = fast.predict(test.x, return_std=True)
+    ratio = s_fa[:, comps] / s_ex[:, comps]
     assert np.all(np.median(ratio, 0) <= 1.5), np.median(ratio, 0)
     with pytest.raises(ParameterError, match=r"n_inducing must be an integer >= 1, got 0"):
         FastGP(gp, n_inducing=0)
@@ -128,14 +127,13 @@ def test_fast_cache_exact_at_small_q():
     fast = FastGP(gp, n_inducing=30, pivot_tol=0.0, std_tol=0.0)
     assert fast.n_inducing_.tolist() == [30, 30]
     xq = rng.uniform(-1, 1, size=(20, 2))
-    m_ex, v_ex = gp.predict(xq)
+    m_ex, s_ex = gp.predict(xq, return_std=True)
     m_fa, s_fa = jax.vmap(fast.mean_std)(jnp.asarray(xq))
     # tolerance: jitter (1e-10) times cond(Kzz) (about 1e4 here) times a safety factor of 10
     np.testing.assert_allclose(m_fa, m_ex, rtol=1e-5, atol=1e-7)
     # the std is an upper bound: with the jitter, Kj = Kzz + eps I leaves r(x_i)^2 ~ eps =
     # 1e-10 amp^2 at the inducing inputs themselves, which the bound's cross and mean-error
     # terms carry (times sum |alpha_i| ~ 1e3 here): an excess of order 1e-3 relative; 1 %
-    s_ex = np.sqrt(np.asarray(v_ex))
     assert np.all(np.asarray(s_fa) >= s_ex - 1e-12)
     assert np.all(np.asarray(s_fa) <= 1.01 * s_ex + 1e-6)
 
@@ -159,11 +157,12 @@ def test_std_tol_stops_below_the_exact_std_and_keeps_the_band():
     xs = (gp.x_train_ - gp.x_offset_) / gp.x_scale_
     # the stopping level: a tenth of the exact std's median at FastGP's sample of 128 inputs
     sample = np.random.default_rng(0).choice(len(xs), 128, replace=False)
-    exact_sd = np.sqrt(np.asarray(gp.predict(gp.x_train_[sample])[1]))[:, 1]  # dense
-    one = np.median(fast.predict(gp.x_train_[sample])[1][:, 1] / exact_sd)
-    capped = np.median(full.predict(gp.x_train_[sample])[1][:, 1] / exact_sd)
+    exact_sds = gp.predict(gp.x_train_[sample], return_std=True)[1]  # dense
+    exact_sd = exact_sds[:, 1]
+    one = np.median(fast.predict(gp.x_train_[sample], return_std=True)[1][:, 1] / exact_sd)
+    capped = np.median(full.predict(gp.x_train_[sample], return_std=True)[1][:, 1] / exact_sd)
     assert one <= 1.01 * capped
-    level = 0.1 * np.median(np.sqrt(np.asarray(gp.predict(gp.x_train_[sample])[1])), 0)
+    level = 0.1 * np.median(exact_sds, 0)
     for j, amp in enumerate(gp.amplitude_):
         m = int(fast.n_inducing_[j])
         z = (fast.inducing_[j, :m] - gp.x_offset_) / gp.x_scale_
@@ -273,14 +272,14 @@ def test_a_capped_component_that_learned_nothing_keeps_one_input():
     # the rule's premises, checked independently at FastGP's sample of training inputs: the
     # capped cache (the rule off) is more than 1.5 times the exact std (dense predict) ...
     sample = np.random.default_rng(0).choice(300, 128, replace=False)
-    exact_sd = np.sqrt(np.asarray(gp.predict(x[sample])[1]))[:, 1]
+    exact_sd = gp.predict(x[sample], return_std=True)[1][:, 1]
     full = FastGP(gp, n_inducing=8, std_tol=0.0, warn=False)
     assert full.n_inducing_.tolist() == [8, 8]
-    sd_full = full.predict(x[sample])[1][:, 1]
+    sd_full = full.predict(x[sample], return_std=True)[1][:, 1]
     assert np.median(sd_full / exact_sd) > STD_RATIO_WARN
     # ... and the one-input band exceeds the exact std by at most 0.1 noise stds, as the
     # capped one nearly does (more inputs do not narrow it)
-    sd = fast.predict(x[sample])[1][:, 1]
+    sd = fast.predict(x[sample], return_std=True)[1][:, 1]
     assert np.max(sd - exact_sd) <= EXCESS_WARN * 0.01
     assert np.median(sd - sd_full) <= 0.1 * np.median(sd_full - exact_sd)
     # the band contains the exact band near the data and far from it

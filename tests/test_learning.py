@@ -46,7 +46,8 @@ def test_posterior_matches_dense_numpy(toy_data, kind, mean):
     x, y = toy_data
     gp = GaussianProcessModel(kernel=kind, mean=mean).fit(x, y)
     xq = np.random.default_rng(1).uniform(-2.5, 2.5, size=(25, 2))
-    m, v = gp.predict(xq)
+    m, s = gp.predict(xq, return_std=True)
+    v = s**2
     for j in range(2):
         amp, ls, nz, mu = gp.amplitude_[j], gp.lengthscale_[j], gp.noise_[j], gp.mean_[j]
         K = _dense_kernel(kind, amp, ls, x, x) + nz**2 * np.eye(len(x))  # noise_ is effective
@@ -101,8 +102,8 @@ def test_recover_acc_drag_mismatch():
     rep = conformal_beta(gp, calib.x, np.asarray(sc.omega(calib.x)), 0.05)
     beta_c = float(np.asarray(rep.beta)[0])
     assert calibration(gp, test.x, omega, beta_c).per_component[0] >= 0.9
-    _, std = gp.predict(test.x)
-    assert np.all(np.asarray(std)[:, 1:] == 0)  # skipped components are exact
+    _, std = gp.predict(test.x, return_std=True)
+    assert np.all(std[:, 1:] == 0)  # skipped components are exact
 
 
 def test_recover_nonlinear_function_of_two_states():
@@ -149,7 +150,8 @@ def test_save_load_roundtrip(toy_data, tmp_path):
     gp.save(tmp_path / "gp.npz")
     back = GaussianProcessModel.load(tmp_path / "gp.npz")
     xq = np.random.default_rng(2).normal(size=(10, 2))
-    for got, want in zip(back.predict(xq), gp.predict(xq), strict=True):
+    pairs = zip(back.predict(xq, return_std=True), gp.predict(xq, return_std=True), strict=True)
+    for got, want in pairs:
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
     assert back.components_ == (1,)
 
@@ -269,7 +271,7 @@ def test_learning_errors(toy_data):
     with pytest.raises(ParameterError, match=r"delta must be"):
         ss.joint_probability(-0.1, 3)
     with pytest.raises(RuntimeError, match=r"not fitted yet"):
-        GaussianProcessModel().predict(x)
+        GaussianProcessModel().predict(x, return_std=True)
     sc = load_scenario("stress")
     with pytest.raises(ParameterError, match=r"noise_std must be >= 0.0"):
         collect_data(
@@ -595,14 +597,14 @@ def test_silent_bad_fits_now_warn_or_raise(toy_data):
     bad = x[:3].copy()
     bad[1, 0] = np.nan
     with pytest.raises(NonFiniteError, match=r"x must be finite"):
-        gp.predict(bad)
+        gp.predict(bad, return_std=True)
     with pytest.raises(NonFiniteError, match=r"x must be finite"):
         gp.mean_std(jnp.asarray(bad[1]))
     # a NaN in a skipped component's column is never read, so it is accepted
     y_nan = y.copy()
     y_nan[5, 1] = np.nan
     fitted = GaussianProcessModel().fit(x, y_nan, components=[0])
-    np.testing.assert_allclose(fitted.predict(x[:4])[0], gp.predict(x[:4])[0], rtol=1e-12)
+    np.testing.assert_allclose(fitted.predict(x[:4], False), gp.predict(x[:4], False), rtol=1e-12)
 
 
 def test_seeds_are_checked_everywhere(toy_data):
@@ -660,12 +662,12 @@ def test_conformal_beta_coverage_binomial():
 
     n_cal, delta, reps = 19, 0.1, 1000
     xs = rng.uniform(-2.5, 2.5, size=(reps, n_cal + 1, 1))  # slightly beyond the data
-    m_new, v_new = (np.asarray(a)[:, 0] for a in gp.predict(xs[:, n_cal]))
+    m_new, s_new = (a[:, 0] for a in gp.predict(xs[:, n_cal], return_std=True))
     covered = 0
     for r in range(reps):
         cal, new = xs[r, :n_cal], xs[r, n_cal, 0]
         rep = conformal_beta(gp, cal, omega(cal), delta)
-        covered += int(abs(omega(new) - m_new[r]) <= rep.beta[0] * np.sqrt(v_new[r]))
+        covered += int(abs(omega(new) - m_new[r]) <= rep.beta[0] * s_new[r])
     assert rep.method == "conformal" and rep.probability == pytest.approx(0.9)
     assert covered >= binom.ppf(1e-3, reps, 1 - delta)
     assert covered <= binom.ppf(1 - 1e-3, reps, 1 - delta + 1 / (n_cal + 1))
@@ -684,8 +686,8 @@ def test_conformal_beta_per_trajectory_and_errors():
     per_traj = conformal_beta(gp, xc, yc, 0.1, groups=groups)
     # hand derivation: the unit score is the largest row score of the group, and beta the
     # ceil(21 * 0.9) = 19th smallest of the 20 unit scores
-    m, v = gp.predict(xc)
-    row = np.abs(yc[:, 0] - np.asarray(m)[:, 0]) / np.sqrt(np.asarray(v)[:, 0])
+    m, s = gp.predict(xc, return_std=True)
+    row = np.abs(yc[:, 0] - m[:, 0]) / s[:, 0]
     unit_scores = np.sort(row.reshape(20, 10).max(1))
     np.testing.assert_allclose(per_traj.beta[0], unit_scores[18], rtol=1e-12)
     rank = int(np.ceil(201 * 0.9))

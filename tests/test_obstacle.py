@@ -444,7 +444,7 @@ def test_calibrate_beta_is_the_conformal_quantile_of_trajectory_scores(sc):
     cal_seed = int(np.random.SeedSequence([small.seed, 1]).generate_state(1)[0])
     cal = small.trial_study().collect(100 * 20, cal_seed)
     cal = cal.take(np.arange(0, len(cal), 10))  # 20 rows per trajectory: rows 0 and 10 of each
-    mean, std = (np.asarray(a) for a in model.predict(cal.x))
+    mean, std = model.predict(cal.x, return_std=True)
     score = np.abs(np.asarray(small.omega(cal.x)) - mean) / std
     per_traj = np.array([score[cal.trajectory == t].max() for t in np.unique(cal.trajectory)])
     k = int(np.ceil((len(per_traj) + 1) * (1 - small.delta)))

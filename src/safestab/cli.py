@@ -18,6 +18,8 @@ from typing import Any, TypeVar
 
 import typer
 
+from .controller_names import CONTROLLERS, EXPORT_CHOICES
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
@@ -50,6 +52,9 @@ def _main(
     import warnings
 
     warnings.formatwarning = _format_warning  # one line, no path into the installed package
+    # an old controller name in a file or an option: shown at the command line, which
+    # Python's default filters would hide (a DeprecationWarning outside __main__)
+    warnings.filterwarnings("default", ".*the controller name", DeprecationWarning)
     if no_compilation_cache:
         from ._cache import disable_compilation_cache
 
@@ -450,7 +455,9 @@ def export_cmd(
     ),
     out: Path = typer.Option(Path("build"), help="Output folder (created if needed)."),
     controller: str = typer.Option(
-        "gp", help="'gp' (GP-corrected, fast cache), 'nominal' or 'true' model."
+        "gp",
+        help=", ".join(f"'{short}' ({name})" for short, name in EXPORT_CHOICES.items())
+        + "; 'gp' through the fast GP cache.",
     ),
     name: str | None = typer.Option(
         None, help="Prefix of the C names and files (default 'acc' or 'obstacle')."
@@ -549,8 +556,8 @@ def mc(
     controllers: str | None = typer.Option(
         None,
         help="Comma-separated controllers to compare (default: the file's), from: "
-        "true model, mismatched model, GP mean, GP-robust, GP-robust Lemma 2, "
-        "GP-robust conformal.",
+        + ", ".join(CONTROLLERS)
+        + ".",
     ),
     workers: int | None = typer.Option(
         None,

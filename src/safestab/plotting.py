@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from .controller_names import GP_ROBUST, MISMATCHED_MODEL, TRUE_MODEL
+
 __all__ = [
     "OUTCOME_COLORS",
     "plot_acc_study",
@@ -16,9 +18,9 @@ __all__ = [
 ]
 
 _STYLES = {
-    "true model": {"color": "black", "ls": "-"},
-    "mismatched model": {"color": "tab:red", "ls": "--"},
-    "GP-corrected": {"color": "tab:blue", "ls": "-."},
+    TRUE_MODEL: {"color": "black", "ls": "-"},
+    MISMATCHED_MODEL: {"color": "tab:red", "ls": "--"},
+    GP_ROBUST: {"color": "tab:blue", "ls": "-."},
 }
 
 
@@ -60,7 +62,7 @@ def plot_acc_study(result: Any, axes: Any = None) -> Any:
     else:
         fig = axes[0].figure
     ax_v, ax_h, ax_u = axes
-    ref = result.trajectories["true model"]
+    ref = result.trajectories[TRUE_MODEL]
     t = np.asarray(ref.t)
     ax_v.plot(t, np.asarray(ref.x)[:, 1], color="tab:green", lw=1.2, label="lead $v_l$")
     ax_v.axhline(sc.v_d, color="0.6", lw=0.8, ls=":", label="$v_d$")
@@ -231,10 +233,10 @@ def plot_compatibility_maps(result: Any, axes: Any = None) -> Any:
     region_colors = ["black", "#9ecae1", "#fdae6b", "#c7a0d8", "#d9d9d9"]  # INCOMPATIBLE, P1..P4
     robust_class = np.where(~maps.robust_updated, 0, np.where(maps.robust_lemma4, 2, 1))
     panels = [
-        (maps.nominal_region, region_colors, "mismatched model",
+        (maps.nominal_region, region_colors, MISMATCHED_MODEL,
          "Lemma 1, nominal model: regions of the compatible formula",
          ["incompatible", "P1", "P2", "P3", "P4"]),
-        (robust_class, ["black", "#fdae6b", "#9ecae1"], "GP-robust",
+        (robust_class, ["black", "#fdae6b", "#9ecae1"], GP_ROBUST,
          f"eq. (20), GP-robust terms ($\\beta$ = {sc.gp_beta:.3g}"
          + (", conformal), stated probability $1-\\delta$"
             if result.coverage.get("beta_method") == "conformal"

@@ -92,8 +92,8 @@ def float_safe_controller(
     unc = controller.uncertainty
     if unc is not None and hasattr(unc, "for_precision"):
         unc_f = unc.for_precision("float")
-        _, std = unc.predict(x)
-        _, std_f = unc_f.predict(x)
+        _, std = unc.predict(x, return_std=True)
+        _, std_f = unc_f.predict(x, return_std=True)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(std > 0, std_f / std, 1.0).max(0)
         worst = int(np.argmax(ratio))

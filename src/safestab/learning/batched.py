@@ -43,6 +43,7 @@ import numpy as np
 
 from .._values import register_model
 from ._posterior import band_products, bucket, exact_products
+from ._predict import Predictor
 from ._threads import one_blas_thread
 from .fast import FastGP
 from .gp import GaussianProcessModel
@@ -354,7 +355,7 @@ def _mean_std_rule(axis_size, in_batched, cache, x):
     return cache.mean_std_batch(x), (True, True)
 
 
-class BatchedUncertainty:
+class BatchedUncertainty(Predictor):
     """An :class:`~safestab.robust.UncertaintyModel` whose batches are matrix products.
 
     ``mean_std`` takes one state, as the protocol asks; under ``jax.vmap`` a custom batching
@@ -382,6 +383,10 @@ class BatchedUncertainty:
         traced again for every cache: a Monte Carlo study calls it once per data set.
         """
         return _mean_std_batch(self.cache, jnp.asarray(x, dtype=float))
+
+    def _predict_rows(self, x: np.ndarray) -> tuple[jax.Array, jax.Array]:
+        # predict(x, return_std=False): Predictor's, over the batched evaluation
+        return self.mean_std_batch(x)
 
 
 register_model(

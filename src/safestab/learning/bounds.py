@@ -26,8 +26,7 @@ from .._validation import check_finite, check_scalar_range
 from .._values import model_is_data
 from ..errors import DimensionError, NumericalError, ParameterError
 from ..robust import joint_probability
-from .batched import BatchedUncertainty
-from .gp import GaussianProcessModel
+from ._predict import Predictor
 
 __all__ = [
     "information_gain",
@@ -202,17 +201,14 @@ def confidence(
 def mean_std_batch(model: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and std at states (N, n), each (N, n).
 
-    The model's compiled ``predict`` or ``mean_std_batch`` where it has one (a fitted GP, a
-    ``BatchedUncertainty``), else its ``mean_std`` mapped with ``jax.vmap`` and compiled
-    (once per model and shape: run op by op, the first call of each shape compiled every
-    operation on its own, 2.3 s for the paper preset's cache against 0.3 s).
+    A GP class of this package answers ``predict(x, return_std=True)`` (compiled once per
+    shape); any other :class:`~safestab.robust.UncertaintyModel` has its ``mean_std`` mapped
+    with ``jax.vmap`` and compiled (once per model and shape: run op by op, the first call of
+    each shape compiled every operation on its own, 2.3 s for the paper preset's cache
+    against 0.3 s).
     """
-    if isinstance(model, GaussianProcessModel):
-        mean, var = model.predict(x)
-        return np.asarray(mean), np.sqrt(np.asarray(var))
-    if isinstance(model, BatchedUncertainty):
-        mean, std = model.mean_std_batch(x)
-        return np.asarray(mean), np.asarray(std)
+    if isinstance(model, Predictor):
+        return model.predict(x, return_std=True)
     mean, std = _batched(model)(jnp.asarray(x))
     return np.asarray(mean), np.asarray(std)
 

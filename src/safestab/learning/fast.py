@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .._validation import check_finite, check_real, check_scalar_range
+from .._validation import check_finite, check_scalar_range
 from .._values import register_model
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
 from ._checks import check_fitted
@@ -51,6 +51,7 @@ from ._posterior import (
     kernel_matrix,
     residual_allowance,
 )
+from ._predict import Predictor
 from ._threads import fit_threads
 from .gp import GaussianProcessModel
 
@@ -284,7 +285,7 @@ def _component(model, j, xs, n_inducing, pivot_tol, floor):
     }  # fmt: skip
 
 
-class InducingBand:
+class InducingBand(Predictor):
     """A band evaluated from ``M`` inducing inputs per component (FastGP, SparseGP).
 
     With ``k = k_Z(x)``, ``c = Lj^-T Lj^-1 k``, ``q = amp^2 - 2 c.k + c.(K_ZZ c)`` and
@@ -451,24 +452,14 @@ class InducingBand:
         std = jnp.zeros(self.n_states).at[comps].set(sd_c + merr / self.min_beta)
         return mean, std
 
-    def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and guaranteed std at states of shape (N, n), each (N, n); compiled once.
+    # predict(x, return_std=False): Predictor's, over these rows (compiled once per M)
+    _legacy_predict = True
 
-        Raises
-        ------
-        InputTypeError
-            If ``x`` is bool, complex, a string or not an array.
-        DimensionError
-            If ``x`` is not of shape (N, n).
-        NonFiniteError
-            If ``x`` contains NaN or inf.
-        """
+    def _check_fitted(self) -> None:
         self._require_fit()
-        check_real("x", x)
-        x = np.asarray(x, float)
-        if x.ndim != 2 or x.shape[1] != self.n_states:
-            raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
-        check_finite("x", x)
+
+    def _predict_rows(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (the guaranteed one for FastGP) at checked states (N, n)."""
         mean_c, sd_c, merr = (np.asarray(a) for a in self._parts_batch(x))
         comps = list(self.components_)
         mean = np.zeros(x.shape)
@@ -717,9 +708,8 @@ class FastGP(InducingBand):
         check_scalar_range("beta", beta, lower=0.0)
         comps = list(self.components_)
         b = np.broadcast_to(np.asarray(beta, float), (self.n_states,))[comps]
-        mean_ex, var_ex = self.model.predict(x)
-        m_fa, s_fa = (a[:, comps] for a in self.predict(x))
-        m_ex, s_ex = np.asarray(mean_ex)[:, comps], np.sqrt(np.asarray(var_ex))[:, comps]
+        m_ex, s_ex = (a[:, comps] for a in self.model.predict(x, return_std=True))
+        m_fa, s_fa = (a[:, comps] for a in self.predict(x, return_std=True))
         lo_ok = m_fa - b * s_fa <= m_ex - b * s_ex
         hi_ok = m_fa + b * s_fa >= m_ex + b * s_ex
         return (lo_ok & hi_ok).mean(0)

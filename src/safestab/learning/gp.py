@@ -32,6 +32,7 @@ from ..errors import (
 from ._checks import check_fitted, check_seed
 from ._likelihood import fit_components, pose_component
 from ._posterior import exact_point, factor, panels, predict_batch
+from ._predict import Predictor
 from ._threads import fit_threads
 
 __all__ = [
@@ -140,7 +141,7 @@ def _check_design(x: np.ndarray) -> None:
         )
 
 
-class GaussianProcessModel:
+class GaussianProcessModel(Predictor):
     """n independent GPs, one per learned component of ``omega``.
 
     Parameters
@@ -606,39 +607,21 @@ class GaussianProcessModel:
 
     # -------------------------------------------------------------------------- predict
 
-    def predict(self, x: Any) -> tuple[jax.Array, jax.Array]:
-        """Posterior mean and variance of ``omega`` at states ``x``, eqs. (12), (13).
+    # predict(x, return_std=False): Predictor's, over these rows (the batched solve with the
+    # whole factor)
+    _spread = "variance"
+    _legacy_predict = True
 
-        Parameters
-        ----------
-        x : array of shape (..., n)
-
-        Returns
-        -------
-        mean : array of shape (..., n)
-        var : array of shape (..., n)
-            Variance of the latent ``omega_i`` (without the noise); 0 for skipped components.
-            Rounding can make ``k(x, x) - k_*^T (K + sigma^2 I)^-1 k_*`` slightly negative; it is
-            floored at 0.
-
-        Raises
-        ------
-        InputTypeError
-            If ``x`` is bool, complex, a string or not an array.
-        DimensionError
-            If the last axis of ``x`` is not ``n``.
-        NonFiniteError
-            If ``x`` contains NaN or inf.
-        """
+    def _check_fitted(self) -> None:
         check_fitted(self)
-        check_real("x", x)
-        x = jnp.asarray(x, dtype=float)
-        if x.ndim == 0 or x.shape[-1] != self.n_states_:
-            raise DimensionError(f"x must have shape (..., {self.n_states_}), got shape {x.shape}")
-        check_finite("x", x)
-        flat = x.reshape((-1, self.n_states_))
-        mean, var = predict_batch(self.posterior_, flat, self.kernel, self.n_states_)
-        return mean.reshape(x.shape), var.reshape(x.shape)
+
+    def _predict_rows(self, x: np.ndarray) -> tuple[jax.Array, jax.Array]:
+        """Mean and variance (eqs. (12), (13)) at checked states (N, n).
+
+        Rounding can make ``k(x, x) - k_*^T (K + sigma^2 I)^-1 k_*`` slightly negative; the
+        variance is floored at 0.
+        """
+        return predict_batch(self.posterior_, jnp.asarray(x), self.kernel, self.n_states_)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and standard deviation at one state of shape (n,) (jittable).

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import DimensionError
 from ._posterior import exact_point
+from ._predict import Predictor
 
 __all__ = ["SklearnGPAdapter"]
 
@@ -51,7 +52,7 @@ def _parse_kernel(kernel: Any) -> tuple[str, float, np.ndarray]:
     raise TypeError(f"unsupported kernel {kernel}: expected RBF or Matern(nu=2.5)")
 
 
-class SklearnGPAdapter:
+class SklearnGPAdapter(Predictor):
     """Wrap fitted scikit-learn regressors, one per learned component of ``omega``.
 
     Parameters
@@ -113,3 +114,7 @@ class SklearnGPAdapter:
             m, v = exact_point(post, x, kind, self.n_states)
             mean, var = mean + m, var + v
         return mean, jnp.sqrt(var)
+
+    def _predict_rows(self, x: np.ndarray) -> tuple[jax.Array, jax.Array]:
+        # predict(x, return_std=False): Predictor's, over mean_std mapped with jax.vmap
+        return jax.vmap(self.mean_std)(jnp.asarray(x))

@@ -213,15 +213,3 @@ class SparseGP(InducingBand):
         ``err``, ``rho_b`` and ``rho_err`` are zero: the DTC band, not a proven one.
         """
         return super().arrays()
-
-    def predict(self, x: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and std at states of shape (N, n), each (N, n); compiled once per ``N``.
-
-        Raises
-        ------
-        RuntimeError
-            Before :meth:`fit`.
-        InputTypeError, DimensionError, NonFiniteError
-            For a bad ``x``.
-        """
-        return super().predict(x)

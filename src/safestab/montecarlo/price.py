@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from .._io import with_finite_status
+from ..controller_names import GP_CONTROLLERS, TRUE_MODEL
 from ..errors import ParameterError
 from ..scenarios import MonteCarloSpec
 from .report import study_settings
@@ -39,11 +40,9 @@ from .stats import summarize
 __all__ = ["PRICE_CONTROLLERS", "REFERENCE", "plot_price", "price_point", "price_study"]
 
 #: The controller every price is measured against.
-REFERENCE = "true model"
+REFERENCE = TRUE_MODEL
 #: The controllers of the study: the reference and the four GP controllers.
-PRICE_CONTROLLERS = (
-    REFERENCE, "GP mean", "GP-robust", "GP-robust Lemma 2", "GP-robust conformal",
-)  # fmt: skip
+PRICE_CONTROLLERS = (REFERENCE, *GP_CONTROLLERS)
 #: Quantiles of the paired differences over trials.
 QUANTILES = ("0.1", "0.5", "0.9")
 

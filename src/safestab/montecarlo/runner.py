@@ -21,6 +21,7 @@ import numpy as np
 from .._batching import in_threads
 from .._cache import child_cache_environment, compilation_cache_dir
 from .._xla_flags import xla_flag_environment
+from ..controller_names import GP_ROBUST_CONFORMAL
 from ..errors import InducingPointsWarning, ParameterError
 from ..learning._fit_cache import fit_cache_dir
 from ..learning.batched import one_blas_thread
@@ -114,9 +115,9 @@ def _check(
         isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1
     ):
         raise ParameterError(f"workers must be an integer >= 1 or None, got {workers!r}")
-    if "GP-robust conformal" in spec.controllers and conformal_beta_function() is None:
+    if GP_ROBUST_CONFORMAL in spec.controllers and conformal_beta_function() is None:
         raise ParameterError(
-            "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
+            f"the controller {GP_ROBUST_CONFORMAL!r} needs safestab.learning.conformal_beta "
             "(the split conformal beta), which this installation does not provide; remove it from "
             "montecarlo.controllers"
         )

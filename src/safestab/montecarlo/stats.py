@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
+from ..controller_names import GP_ROBUST_CONFORMAL, GP_ROBUST_LEMMA2
 from ..controllers import StepStatus
 from ..errors import ParameterError
 from ..robust import joint_probability
@@ -113,7 +114,7 @@ def safe_mask(records: dict[str, np.ndarray]) -> np.ndarray:
 #: it rests (printed beside their rates, plotted against them and documented). Every other
 #: controller has none: "GP-robust" uses a hand-chosen beta, "GP mean" beta = 0.
 GUARANTEES: dict[str, dict[str, Any]] = {
-    "GP-robust Lemma 2": {
+    GP_ROBUST_LEMMA2: {
         "source": "Lemma 2 with Theorem 3",
         "claim": "(1 - delta)^n over the data set (the measurement noise): the band "
         "|omega_i - m_i| <= beta_i sigma_i holds at every state, so the controller is safe",
@@ -130,7 +131,7 @@ GUARANTEES: dict[str, dict[str, Any]] = {
             "tested on the trials of a data set only, not on every initial state",
         ],
     },
-    "GP-robust conformal": {
+    GP_ROBUST_CONFORMAL: {
         "source": "split conformal prediction (learning.conformal_beta)",
         "claim": "1 - delta per trial, over the calibration draw and the trial together: "
         "the band holds along the trial's trajectory, so the controller is safe",

@@ -21,6 +21,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controller_names import (
+    GP_MEAN,
+    GP_ROBUST,
+    GP_ROBUST_CONFORMAL,
+    GP_ROBUST_LEMMA2,
+    MISMATCHED_MODEL,
+    TRUE_MODEL,
+)
 from ..controllers import UniversalController
 from ..errors import ParameterError
 from ..learning import (
@@ -51,8 +59,6 @@ __all__ = [
 
 #: Fewest calibration trajectories of the conformal beta (more when ``1 / delta`` is larger).
 CONFORMAL_MIN_TRAJECTORIES = 100
-
-_GP_CONTROLLERS = ("GP mean", "GP-robust", "GP-robust Lemma 2", "GP-robust conformal")
 
 
 def conformal_beta_function() -> Any:
@@ -198,9 +204,9 @@ def _fit_dataset(study, seed, index, hyper):
         return out
 
     betas = {
-        "GP mean": per_state(0.0),
-        "GP-robust": per_state(gp_settings["gp_beta"]),
-        "GP-robust Lemma 2": per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
+        GP_MEAN: per_state(0.0),
+        GP_ROBUST: per_state(gp_settings["gp_beta"]),
+        GP_ROBUST_LEMMA2: per_state(beta_lemma2(spec.rkhs_norm, gain, q, spec.delta)),
     }
     notes: tuple[str, ...] = ()
     ratio = None
@@ -215,11 +221,11 @@ def _fit_dataset(study, seed, index, hyper):
     else:
         cache = ExactPosterior.from_model(gp)
     del gp  # the (k, Q, Q) factor is not shipped with the data set
-    if "GP-robust conformal" in spec.controllers:
+    if GP_ROBUST_CONFORMAL in spec.controllers:
         conformal = conformal_beta_function()
         if conformal is None:
             raise ParameterError(
-                "the controller 'GP-robust conformal' needs safestab.learning.conformal_beta "
+                f"the controller {GP_ROBUST_CONFORMAL!r} needs safestab.learning.conformal_beta "
                 "(the split conformal beta), which this installation does not provide"
             )
         cal = calibration_draw(study, seed, index)
@@ -227,7 +233,7 @@ def _fit_dataset(study, seed, index, hyper):
         report = conformal(
             BatchedUncertainty(cache), cal.x, omega_cal, spec.delta, groups=cal.trajectory
         )
-        betas["GP-robust conformal"] = np.asarray(getattr(report, "beta", report), float)
+        betas[GP_ROBUST_CONFORMAL] = np.asarray(getattr(report, "beta", report), float)
     omega_test = np.asarray(study.omega(x_test))
     mean, std = (np.asarray(v) for v in BatchedUncertainty(cache).mean_std_batch(x_test))
     coverage = {
@@ -266,10 +272,10 @@ def _chunk(study: TrialStudy, cache, betas, input_gain, x0, params) -> dict[str,
     learned = nominal if input_gain is None else with_input_gain(nominal, input_gain)
     ctrls, checks = [], []
     for name in spec.controllers:
-        if name == "true model":
+        if name == TRUE_MODEL:
             ctrls.append(build(true_sys, clf, cbf, **common))
             checks.append(None)
-        elif name == "mismatched model":
+        elif name == MISMATCHED_MODEL:
             ctrls.append(build(nominal, clf, cbf, **common))
             checks.append(None)
         else:

@@ -1,6 +1,7 @@
 """Ready-made problems with parameter presets."""
 
-from ._mc_schema import CONTROLLERS, check_controllers
+from ..controller_names import CONTROLLERS
+from ._mc_schema import check_controllers
 from ._schema import LIMITS, ScenarioLimits
 from .acc import PRESETS, ACCScenario, MonteCarloSpec, load_scenario
 from .loading import KINDS, load, parse_override, scenario_kind

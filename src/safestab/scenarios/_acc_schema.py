@@ -115,7 +115,7 @@ FIELDS: dict[str, Check] = {
     "simulation.t_final": _POS,
     "simulation.dt": _POS,
     **learning_fields(_VECTOR3),
-    # optional, default 0: the exact GP in the GP-corrected controller; M > 0: FastGP with at
+    # optional, default 0: the exact GP in the GP-robust controller; M > 0: FastGP with at
     # most M inducing inputs per component (its band contains the exact band)
     "learning.n_inducing": integer(0, LIMITS.max_n_samples),
 }

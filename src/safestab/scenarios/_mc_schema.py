@@ -12,31 +12,27 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from ..controller_names import CONTROLLERS, current_name
 from ..errors import ScenarioError
 from ._schema import LIMITS, choice, fail, integer, real
 
 __all__ = ["CONTROLLERS", "MC_FIELDS", "MonteCarloSpec", "check_controllers", "check_montecarlo"]
 
-#: The controllers a Monte Carlo study can compare, in the order they are reported.
-#: ``"GP-robust conformal"`` needs a conformal beta from :mod:`safestab.learning`.
-CONTROLLERS = (
-    "true model",
-    "mismatched model",
-    "GP mean",
-    "GP-robust",
-    "GP-robust Lemma 2",
-    "GP-robust conformal",
-)
 #: Most trials one study may ask for, and most data sets (each a GP fit).
 MAX_TRIALS, MAX_DATASETS, MAX_SEGMENTS = 100_000_000, 10_000, 1000
 _BIG, _SMALL = LIMITS.max_magnitude, LIMITS.min_positive
 
 
 def check_controllers(path: str, value: Any, source: str) -> tuple[str, ...]:
-    """The controllers ``value`` (names from :data:`CONTROLLERS`), or a ScenarioError."""
+    """The controllers ``value`` (names from :data:`CONTROLLERS`), or a ScenarioError.
+
+    An old name (:data:`~safestab.controller_names.RENAMED`) is read as its current name, with
+    a DeprecationWarning.
+    """
     expected = "a non-empty array of distinct names from " + ", ".join(map(repr, CONTROLLERS))
     if not isinstance(value, list | tuple) or not value:
         raise fail(source, path, expected, value)
+    value = [current_name(name, f"{source}: {path}[{i}]") for i, name in enumerate(value)]
     for i, name in enumerate(value):
         if not isinstance(name, str) or name not in CONTROLLERS:
             raise fail(source, f"{path}[{i}]", "one of " + ", ".join(map(repr, CONTROLLERS)), name)

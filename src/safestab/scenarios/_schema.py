@@ -52,7 +52,7 @@ class ScenarioLimits:
         Most simulation steps ``round(t_final / dt)``, and most samples per excitation
         trajectory ``round(sample_horizon * sample_rate)``. A trajectory's history takes about
         70 bytes per step (0.2 GB for the ACC study's three runs at the limit); the
-        GP-corrected ACC run costs about 5 ms per step at ``Q = 2000`` on 2 cores
+        GP-robust ACC run costs about 5 ms per step at ``Q = 2000`` on 2 cores
         (docs/acc.md), so the limit allows runs of an hour or more but not the absurd ones
         (``t_final = 1e12``).
     max_n_samples : int

@@ -101,7 +101,7 @@ class ACCScenario:
     hyper_subset: int  # rows used to fit GP hyperparameters (then conditioned on all)
     seed: int
     #: ``learning.n_inducing`` (optional): 0 (the default) puts the exact GP in the
-    #: GP-corrected controller; ``M > 0`` its FastGP cache of at most ``M`` inducing inputs
+    #: GP-robust controller; ``M > 0`` its FastGP cache of at most ``M`` inducing inputs
     #: per component, whose band contains the exact band (docs/learning.md).
     n_inducing: int = 0
     #: ``certificates.barrier`` (optional): ``"headway"`` (the paper's ``D - tau v_f``, the

@@ -9,6 +9,7 @@ import numpy as np
 
 from .._batching import in_threads
 from .._io import with_finite_status
+from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL, NameMap
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import (
@@ -43,7 +44,7 @@ __all__ = [
 ]
 
 #: The three controllers of the paper's Fig. 4.
-CONTROLLERS = ("true model", "mismatched model", "GP-corrected")
+CONTROLLERS = STUDY_CONTROLLERS
 
 #: The closed loops and the conformal check run this many at once, in threads (wall times in
 #: ``timings`` then overlap). Results do not depend on it.
@@ -68,7 +69,7 @@ class StudyResult(MetricsWriter):
     metrics: dict[str, dict[str, Any]]
     timings: dict[str, float]
     conformal: dict[str, Any] = dataclasses.field(default_factory=dict)
-    #: The GP-corrected controller's uncertainty model: ``gp`` itself, or its FastGP cache
+    #: The GP-robust controller's uncertainty model: ``gp`` itself, or its FastGP cache
     #: (``learning.n_inducing > 0``), whose band the coverage and conformal figures are about.
     uncertainty: Any = None
 
@@ -156,33 +157,35 @@ def trajectory_metrics(
 
 def study_controllers(
     scenario: ACCScenario, uncertainty: Any = None
-) -> dict[str, UniversalController]:
+) -> NameMap[UniversalController]:
     """The controllers of Fig. 4 with the scenario's parameters and input limits.
 
     Parameters
     ----------
     scenario : ACCScenario
     uncertainty : UncertaintyModel, optional
-        A fitted GP (or its :class:`~safestab.learning.FastGP` cache) for the GP-corrected
+        A fitted GP (or its :class:`~safestab.learning.FastGP` cache) for the GP-robust
         controller, used with ``scenario.gp_beta``; without it only the two model-based
         controllers are returned.
 
     Returns
     -------
-    dict
-        ``{"true model": ..., "mismatched model": ..., "GP-corrected": ...}``.
+    NameMap
+        ``{"true model": ..., "mismatched model": ..., "GP-robust": ...}``, a dict that also
+        finds the GP-robust controller by its old name ``"GP-corrected"`` (with a
+        DeprecationWarning).
     """
     # the controllers' models: with the braking barrier, with the worst lead (docs/acc.md)
     true_sys = scenario.controller_system(scenario.system("true"))
     nominal = scenario.controller_system(scenario.system("nominal"))
     clf, cbf = scenario.certificates()
     common = scenario.trial_study().controller_options()  # those of the Monte Carlo trials
-    out = {
-        "true model": UniversalController(true_sys, clf, cbf, **common),
-        "mismatched model": UniversalController(nominal, clf, cbf, **common),
-    }
+    out = NameMap({
+        TRUE_MODEL: UniversalController(true_sys, clf, cbf, **common),
+        MISMATCHED_MODEL: UniversalController(nominal, clf, cbf, **common),
+    })  # fmt: skip
     if uncertainty is not None:
-        out["GP-corrected"] = UniversalController(
+        out[GP_ROBUST] = UniversalController(
             nominal, clf, cbf, uncertainty=uncertainty, gp_beta=scenario.gp_beta, **common
         )
     return out
@@ -255,7 +258,7 @@ def run_study(
 
     # the two model-based controllers stand on one parametric model: one program, other data
     family = scenario.controller_system(scenario.model_family())
-    model_of = {"true model": "true", "mismatched model": "nominal"}
+    model_of = {TRUE_MODEL: "true", MISMATCHED_MODEL: "nominal"}
 
     def simulated(name: str) -> tuple[Trajectory, float]:
         t0 = time.perf_counter()
@@ -276,10 +279,10 @@ def run_study(
             return [simulated(n) for n in model_of]
         return simulated(name)
 
-    # the GP-corrected loop (memory-bound, most of the run) on one core; the conformal check
+    # the GP-robust loop (memory-bound, most of the run) on one core; the conformal check
     # and the two model-based loops (one after the other) beside it on the other (JAX
     # releases the GIL)
-    jobs = ["GP-corrected", "conformal", "models"]
+    jobs = [GP_ROBUST, "conformal", "models"]
     report("simulating the controllers beside the conformal check, two at a time", 0.4)
     done = in_threads(
         job, jobs, STUDY_THREADS,
@@ -289,16 +292,16 @@ def run_study(
     out.update(zip(model_of, out.pop("models"), strict=True))
     conformal = out.pop("conformal")
     timings["conformal_beta"] = conformal.pop("seconds")
-    trajectories: dict[str, Trajectory] = {}
+    trajectories: NameMap[Trajectory] = NameMap()
     for name in controllers:  # the order of CONTROLLERS
         trajectories[name], timings[f"simulate {name}"] = out[name]
-    ref = trajectories["true model"]
-    metrics = {
-        name: trajectory_metrics(tr, scenario, None if name == "true model" else ref)
+    ref = trajectories[TRUE_MODEL]
+    metrics = NameMap(
+        (name, trajectory_metrics(tr, scenario, None if name == TRUE_MODEL else ref))
         for name, tr in trajectories.items()
-    }
-    # both betas on the GP-corrected run's own states (another distribution: no guarantee)
-    closed = np.asarray(trajectories["GP-corrected"].x)[:: max(1, int(round(1.0 / scenario.dt)))]
+    )
+    # both betas on the GP-robust run's own states (another distribution: no guarantee)
+    closed = np.asarray(trajectories[GP_ROBUST].x)[:: max(1, int(round(1.0 / scenario.dt)))]
     omega_cl = np.asarray(scenario.omega(closed))
     for key, beta in (("chosen", scenario.gp_beta), ("conformal", conformal["beta"])):
         cov = calibration(unc, closed, omega_cl, beta).per_component
@@ -308,7 +311,7 @@ def run_study(
 
 
 def study_uncertainty(scenario: ACCScenario, gp: GaussianProcessModel) -> Any:
-    """The GP-corrected controller's uncertainty model: ``gp`` or its FastGP cache.
+    """The GP-robust controller's uncertainty model: ``gp`` or its FastGP cache.
 
     ``learning.n_inducing = 0``: the exact GP, ``O(Q^2)`` per step. ``M > 0``: FastGP with at
     most ``M`` inducing inputs per component, ``O(M^2)`` per step, whose band contains the

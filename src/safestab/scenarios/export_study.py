@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..controller_names import EXPORT_CHOICES
 from ..errors import CompilationError, ParameterError
 from ..export.embedded import TARGETS, run_on_target
 from ..export.exporter import check_name, check_precision, export_c
@@ -33,8 +34,6 @@ __all__ = [
     "export_scenario",
     "scenario_controller",
 ]
-
-CONTROLLERS = {"gp": "GP-corrected", "nominal": "mismatched model", "true": "true model"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +95,7 @@ def export_scenario(
         Output folder, created if needed; a relative path is taken against the current
         working folder when the function is called.
     controller : {"gp", "nominal", "true"}
-        The GP-corrected controller (GP fitted as in the study, exported through a
+        The GP-robust controller (GP fitted as in the study, exported through a
         :class:`~safestab.learning.FastGP` cache whose band contains the exact GP's), or the
         controller built on the nominal or the true model. For the obstacle scenario, the
         study's relaxed controller without input limits.
@@ -143,8 +142,10 @@ def export_scenario(
         raise ParameterError(f"target must be one of {sorted(TARGETS)}, got {target!r}")
     if precision is None:
         precision = TARGETS[target].precision if target is not None else "double"
-    if controller not in CONTROLLERS:  # before the output folder is made
-        raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+    if controller not in EXPORT_CHOICES:  # before the output folder is made
+        raise ParameterError(
+            f"controller must be one of {sorted(EXPORT_CHOICES)}, got {controller!r}"
+        )
     if int(cases) < 1:
         raise ParameterError(f"cases must be >= 1, got {cases!r}")
     # every option checked before the data collection and the GP fit (minutes)
@@ -245,8 +246,10 @@ def scenario_controller(
     ParameterError
         If ``controller`` is unknown or the scenario is of another kind.
     """
-    if controller not in CONTROLLERS:
-        raise ParameterError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+    if controller not in EXPORT_CHOICES:
+        raise ParameterError(
+            f"controller must be one of {sorted(EXPORT_CHOICES)}, got {controller!r}"
+        )
     seed = sc.seed if seed is None else int(seed)
     say = progress or (lambda msg: None)
     if isinstance(sc, ACCScenario):
@@ -266,7 +269,7 @@ def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):
         train, _ = collect_study_data(sc, seed=seed, n_samples=n_samples)
         gp = fit_study_gp(sc, train, seed=seed)
         uncertainty = FastGP(gp, n_inducing=n_inducing)  # its band contains the exact one
-    ctrl = study_controllers(sc, uncertainty)[CONTROLLERS[controller]]
+    ctrl = study_controllers(sc, uncertainty)[EXPORT_CHOICES[controller]]
     units = (
         "wheel force divided by M g (normalised input)"
         if sc.input_units == "normalized"
@@ -274,14 +277,11 @@ def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):
     )
     description = (
         f"Scenario '{sc.name}' (adaptive cruise control, docs/acc.md), controller "
-        f"'{CONTROLLERS[controller]}'. State x = (v_f follower speed, m/s; v_l lead speed, m/s; "
+        f"'{EXPORT_CHOICES[controller]}'. State x = (v_f follower speed, m/s; v_l lead speed, m/s; "
         f"D gap, m). Input u: {units}. CLF V = (v_f - v_d)^2 with v_d = {sc.v_d} m/s; CBF "
         f"h = D - tau v_f with tau = {sc.tau} s."
     )
     return ctrl, description, "acc"
-
-
-_OBSTACLE_NAMES = {"gp": "GP-robust", "nominal": "mismatched model", "true": "true model"}
 
 
 def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
@@ -309,10 +309,10 @@ def _obstacle_controller(sc, controller, seed, n_samples, n_inducing, say):
                 f"gp_beta is {cal['chosen_beta']:g}): {cal['statement']}"
             )
         beta_note += gain_note
-    ctrl = obstacle_controller(sc, _OBSTACLE_NAMES[controller], uncertainty)
+    ctrl = obstacle_controller(sc, EXPORT_CHOICES[controller], uncertainty)
     description = (
         f"Scenario '{sc.name}' (a point robot passing a disc obstacle, docs/obstacle.md), "
-        f"controller '{_OBSTACLE_NAMES[controller]}', relaxed formula, no input limits. State "
+        f"controller '{EXPORT_CHOICES[controller]}', relaxed formula, no input limits. State "
         "x = (x1, x2) position, m. Input u: velocity, m/s. CLF V = x^T P x with P = "
         f"diag{tuple(sc.P)} (goal at the origin); CBF h = |x - x_o|^2 - r^2 with x_o = "
         f"({sc.obstacle_x1}, 0) m, r = {sc.radius} m; V and h in m^2.{beta_note}"

@@ -28,6 +28,7 @@ import numpy as np
 from .._batching import in_threads
 from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
+from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL
 from ..controllers import StepStatus, UniversalController
 from ..errors import ParameterError
 from ..filters import SafetyFilter
@@ -67,7 +68,7 @@ __all__ = [
 ]
 
 #: The three controllers, as in the ACC study.
-CONTROLLERS = ("true model", "mismatched model", "GP-robust")
+CONTROLLERS = STUDY_CONTROLLERS
 #: The controllers that use no data (the true and the nominal model): their part of the
 #: study runs in a thread of its own once the GP is fitted, beside the GP-robust part.
 MODEL_BASED = CONTROLLERS[:2]
@@ -119,7 +120,7 @@ def classify_outcomes(
 
 
 #: The model each controller is built on (``"learned"``: nominal, plus the learned gain).
-_SYSTEM_OF = {"true model": "true", "mismatched model": "nominal", "GP-robust": "learned"}
+_SYSTEM_OF = {TRUE_MODEL: "true", MISMATCHED_MODEL: "nominal", GP_ROBUST: "learned"}
 
 
 def _params(sc: ObstacleScenario) -> dict[str, Any]:
@@ -161,13 +162,13 @@ def verdict(
     """
     if controller not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
-    if controller == "GP-robust" and uncertainty is None:
+    if controller == GP_ROBUST and uncertainty is None:
         raise ParameterError("the 'GP-robust' verdict needs uncertainty= (a model of omega)")
     x = jnp.asarray(x, dtype=float)
     which = _SYSTEM_OF[controller]
     flat = x.reshape(-1, 2)
     terms = _terms(sc, which, flat)
-    if controller != "GP-robust":
+    if controller != GP_ROBUST:
         out = compatibility(*terms, **_params(sc)).compatible
     else:
         out = _robust(sc, uncertainty, flat, terms).updated
@@ -521,8 +522,8 @@ def _cache_width(gp: GaussianProcessModel, cache: FastGP) -> dict[str, Any]:
     """The cache's inducing inputs, and its std over the exact std at the training inputs."""
     x = gp.x_train_
     comps = list(gp.components_)
-    exact = np.sqrt(np.asarray(gp.predict(x)[1]))[:, comps]
-    ratio = cache.predict(x)[1][:, comps] / exact
+    exact = gp.predict(x, return_std=True)[1][:, comps]
+    ratio = cache.predict(x, return_std=True)[1][:, comps] / exact
     return {
         "n_inducing": cache.n_inducing_.tolist(),
         "std_over_exact_at_training_median": np.median(ratio, 0).tolist(),
@@ -635,7 +636,7 @@ def _controller(sc, name, system, uncertainty, limits, hard):
     """:func:`obstacle_controller` on ``system`` (the model itself or the parametric family)."""
     clf, cbf = sc.certificates()
     extra: dict[str, Any] = {}
-    if name == "GP-robust":
+    if name == GP_ROBUST:
         if uncertainty is None:
             raise ParameterError("the GP-robust controller needs an uncertainty model")
         extra = {"uncertainty": uncertainty, "gp_beta": sc.gp_beta}
@@ -675,7 +676,7 @@ def study_controller(
     (controller, params)
         ``params`` goes to :func:`~safestab.simulate`'s ``params``.
     """
-    if name == "GP-robust":
+    if name == GP_ROBUST:
         return obstacle_controller(sc, name, uncertainty, limits=limits, hard=hard), None
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
@@ -805,14 +806,14 @@ def run_obstacle_study(
 
         report("domains of attraction and maps", 0.2)
         t0 = time.perf_counter()
-        robust_verdicts = verdict(sc, "GP-robust", pset, uncertainty)
-        robust_level = doa_level(sc, "GP-robust", verdicts=robust_verdicts)
+        robust_verdicts = verdict(sc, GP_ROBUST, pset, uncertainty)
+        robust_level = doa_level(sc, GP_ROBUST, verdicts=robust_verdicts)
         maps = compatibility_maps(sc, uncertainty, calibrated=calibrated is not None)
         timings["doa_and_maps"] = time.perf_counter() - t0
 
         report(f"simulating GP-robust, {SIMULATION_THREADS} settings at once", 0.3)
         finished = in_threads(
-            lambda lim: run(sc, ("GP-robust", lim), robust_level, uncertainty),
+            lambda lim: run(sc, (GP_ROBUST, lim), robust_level, uncertainty),
             LIMIT_SETTINGS, SIMULATION_THREADS,
             lambda k: report(f"simulated {k} of {len(LIMIT_SETTINGS)} GP-robust settings",
                              0.3 + 0.6 * k / len(LIMIT_SETTINGS)),
@@ -833,10 +834,10 @@ def run_obstacle_study(
         raise
     finally:
         background.shutdown(wait=False, cancel_futures=True)
-    done.update({("GP-robust", lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
+    done.update({(GP_ROBUST, lim): r for lim, r in zip(LIMIT_SETTINGS, finished, strict=True)})
     # in the order of CONTROLLERS: the model-based ones (MODEL_BASED), then GP-robust
-    pverd = {**model_verdicts, "GP-robust": robust_verdicts}
-    doa = {**model_levels, "GP-robust": robust_level}
+    pverd = {**model_verdicts, GP_ROBUST: robust_verdicts}
+    doa = {**model_levels, GP_ROBUST: robust_level}
     runs: dict[tuple[str, str], ObstacleRun] = {}
     for setting in [(name, limits) for name in CONTROLLERS for limits in LIMIT_SETTINGS]:
         one, seconds = done[setting]

@@ -1,0 +1,121 @@
+"""The controllers the studies compare: one name each, and what each one is.
+
+Every study, table, figure, metrics key and command-line option names a controller by the
+strings defined here, and every module that needs the list imports it from here. Old names are
+still read for one release (:data:`RENAMED`): :func:`current_name` and :class:`NameMap` accept
+them with a :class:`DeprecationWarning` that names the new name. The module imports nothing
+of the package, so every layer that names a controller (the studies, the figures, the
+command line) imports it from below.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterable, Mapping
+from typing import Any, TypeVar
+
+__all__ = [
+    "CONTROLLERS",
+    "DESCRIPTIONS",
+    "EXPORT_CHOICES",
+    "GP_CONTROLLERS",
+    "GP_MEAN",
+    "GP_ROBUST",
+    "GP_ROBUST_CONFORMAL",
+    "GP_ROBUST_LEMMA2",
+    "MISMATCHED_MODEL",
+    "MODEL_CONTROLLERS",
+    "RENAMED",
+    "STUDY_CONTROLLERS",
+    "TRUE_MODEL",
+    "NameMap",
+    "current_name",
+]
+
+TRUE_MODEL = "true model"
+MISMATCHED_MODEL = "mismatched model"
+GP_MEAN = "GP mean"
+GP_ROBUST = "GP-robust"
+GP_ROBUST_LEMMA2 = "GP-robust Lemma 2"
+GP_ROBUST_CONFORMAL = "GP-robust conformal"
+
+#: What each compared controller is, in the order tables report them.
+DESCRIPTIONS: dict[str, str] = {
+    TRUE_MODEL: "the universal formula on the true model: the reference, not available in practice",
+    MISMATCHED_MODEL: "the universal formula on the nominal (mismatched) model, no learning",
+    GP_MEAN: "the nominal model plus the GP mean (beta = 0: no margin)",
+    GP_ROBUST: "the GP-robust Lie terms (Lemma 3, Theorem 2) with the scenario's chosen beta",
+    GP_ROBUST_LEMMA2: "the GP-robust Lie terms with Lemma 2's beta (Theorem 3)",
+    GP_ROBUST_CONFORMAL: "the GP-robust Lie terms with a split conformal beta "
+    "(needs safestab.learning.conformal_beta)",
+}
+#: Every compared controller, in the order tables report them.
+CONTROLLERS = tuple(DESCRIPTIONS)
+#: The controllers built on a model alone (no data).
+MODEL_CONTROLLERS = (TRUE_MODEL, MISMATCHED_MODEL)
+#: The controllers that use the learned model of ``omega``.
+GP_CONTROLLERS = (GP_MEAN, GP_ROBUST, GP_ROBUST_LEMMA2, GP_ROBUST_CONFORMAL)
+#: The three controllers of a single study (the paper's Fig. 4; the obstacle study).
+STUDY_CONTROLLERS = (TRUE_MODEL, MISMATCHED_MODEL, GP_ROBUST)
+#: ``safestab export --controller``'s short names.
+EXPORT_CHOICES = {"gp": GP_ROBUST, "nominal": MISMATCHED_MODEL, "true": TRUE_MODEL}
+#: Old names, read for one release: old name -> current name.
+RENAMED = {"GP-corrected": GP_ROBUST}
+
+_V = TypeVar("_V")
+
+
+def _warn(old: str, where: str | None) -> None:
+    source = f"{where}: " if where else ""
+    warnings.warn(
+        f"{source}the controller name {old!r} is deprecated; use {RENAMED[old]!r} "
+        "(the old name is read for one release only)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+
+
+def current_name(name: Any, where: str | None = None) -> Any:
+    """``name``, or its current name if it is an old one (with a DeprecationWarning).
+
+    Parameters
+    ----------
+    name : str
+        A controller name; anything else is returned as it is (the caller checks it).
+    where : str, optional
+        Where the name came from, for the warning (a file and key, a command-line option).
+
+    Returns
+    -------
+    str
+        The current name.
+
+    Warns
+    -----
+    DeprecationWarning
+        If ``name`` is a key of :data:`RENAMED`.
+    """
+    if isinstance(name, str) and name in RENAMED:
+        _warn(name, where)
+        return RENAMED[name]
+    return name
+
+
+class NameMap(dict[str, _V]):
+    """A dict keyed by controller names that also finds a value by an old name.
+
+    ``m["GP-corrected"]`` returns ``m["GP-robust"]`` with a DeprecationWarning; the keys
+    themselves are the current names. Made from a mapping whose keys may be old names (a
+    metrics file written before a rename), it renames them, with the same warning.
+    """
+
+    def __init__(self, items: Mapping[str, _V] | Iterable[tuple[str, _V]] = (), /,
+                 where: str | None = None) -> None:  # fmt: skip
+        pairs = items.items() if isinstance(items, Mapping) else items
+        super().__init__((current_name(k, where), v) for k, v in pairs)
+
+    def __missing__(self, key: str) -> _V:
+        if isinstance(key, str) and key in RENAMED and RENAMED[key] in self:
+            _warn(key, None)
+            return self[RENAMED[key]]
+        raise KeyError(key)

@@ -355,7 +355,7 @@ def _margin_cell(r: dict) -> str:
     return r["margin"] + ("" if r["ddh_bound"] is None else f" (M = {r['ddh_bound']:.3g})")
 
 
-def _price_cells(price: dict | None) -> list[str]:
+def price_cells(price: dict | None) -> list[str]:
     """The margin's paired price: median min h gain and median settle-time change."""
     if price is None:
         return ["-", "-"]
@@ -388,7 +388,7 @@ def deployed_mc_table(rows: list[dict]) -> str:
             f"{safe['count']}/{safe['datasets']}", f"[{low:.2f}, {high:.2f}]",
             f"{r['trials_with_unmet_steps']} ({r['unmet_steps']} steps)",
             f"{r['limit_step_fraction']:.3g}",
-            *_price_cells(r["price"]),
+            *price_cells(r["price"]),
         ])  # fmt: skip
     header = ["study", "controller", "sampled-data margin", "trials below h = 0 at the samples",
               "trials below h = 0 between the samples", "min h at the samples",

@@ -94,7 +94,7 @@ def test_margin_price_without_settle_times_says_not_measured():
     margin = _records([[1.2, 0.5], [2.4, 0.1], [1.1, 0.3], [1.3, 0.3]])
     price = deployed.margin_price(plain, margin, 0)
     assert price == {"median_min_h_gain": pytest.approx(0.25), "median_settle_time_change": None}
-    assert reproduce_docs._price_cells(price) == ["+0.2500", "not measured"]
+    assert reproduce_docs.price_cells(price) == ["+0.2500", "not measured"]
 
 
 def _doc():

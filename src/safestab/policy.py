@@ -105,7 +105,7 @@ class PolicyController(SafetyFilter):
     >>> law = ss.PolicyController(system, lambda x, K: -K @ x, weights=jnp.eye(2), cbfs=disc)
     >>> out = law.step(jnp.array([0.5, 0.0]))
     >>> out.u.tolist(), ss.StepStatus(int(out.status)).name
-    ([-0.5, -0.0], 'OK')
+    ([-0.5, 0.0], 'OK')
     """
 
     def __init__(

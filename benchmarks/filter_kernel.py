@@ -19,9 +19,19 @@ compilation for each, the persistent compilation cache off); *max |du|* and *sam
 compare with the XLA step on the 1,000 states. daqp and quadprog solve the same rows
 prebuilt (their Python call, not inside JAX) where installed.
 
-    python benchmarks/filter_kernel.py [--calls 500]
+The 100-disc problem (104 rows) is measured under vmap only, where the custom call takes it:
+its step needs more stack than :data:`safestab.export.jax_kernel.MAX_STACK_BYTES`, and the
+block says so. *Build from the disk cache* is the first call of ``native_step`` at 8 discs in
+a fresh process whose cache folder another fresh process has just filled (the built object is
+loaded, no compiler runs; the rest is the export's trace of the filter).
 
-Prints the table only (the results are not written to the docs).
+    python benchmarks/filter_kernel.py --json docs/performance_filter_kernel.json [--calls 500]
+    python benchmarks/run.py --only filter-kernel          # the same, into docs/
+
+``--json PATH`` writes the results as strict JSON (atomically) and, where PATH's folder holds
+``performance.md``, puts their block between ``<!-- filter-kernel:begin -->`` and
+``<!-- filter-kernel:end -->``; ``python benchmarks/run.py --page`` rewrites the block from the
+saved JSON. Without ``--json`` the block is printed only.
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ import argparse
 import os
 import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("SAFESTAB_COMPILATION_CACHE", "off")
 
@@ -66,8 +77,8 @@ def acc_filter() -> ss.SafetyFilter:
     )  # fmt: skip
 
 
-def robot_states(rng, obstacles, n):
-    x = rng.uniform(-5, 5, (4 * n, 2))
+def robot_states(rng, obstacles, n, oversample=4):
+    x = rng.uniform(-5, 5, (oversample * n, 2))
     h = np.sum((x[:, None] - obstacles) ** 2, -1) - RADIUS**2
     return x[np.all(h > 0.1, -1)][:n]
 
@@ -163,46 +174,59 @@ def qp_rows(filt, states):
     return daqp_args, quad_args
 
 
+#: Candidates' names in the block.
+LABELS = {
+    "xla": "XLA step (`step_fn`)",
+    "pure_callback": "`jax.pure_callback` into the C step",
+    "ffi": "XLA custom call (`native_step`)",
+}
+BEGIN, END = "<!-- filter-kernel:begin -->", "<!-- filter-kernel:end -->"
+#: Discs of the problem measured under vmap only, and its target (states per second).
+LARGE_DISCS, LARGE_TARGET = 100, 2e5
+
+
 def run_problem(name, filt, states, calls):
+    """One problem's candidates and solvers; a JSON-ready dict."""
     from safestab.export import NativeController, native_step
 
     print(f"\n== {name}: {len(filt.cbfs)} CBF(s), {len(filt.clfs)} CLF(s); load "
           f"{os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    load_start = os.getloadavg()[0]
     x = jnp.asarray(states)
     one = [jnp.asarray(s) for s in states[:64]]
-    rows = {}
+    rows, fns = {}, {}
 
     # each candidate is a step function (x -> FilterOutput) that a user's jit traces; the
     # first call builds it and runs the user's jitted function returning u once
     t = time.perf_counter()
-    xla = filt.step_fn
-    jax.block_until_ready(jax.jit(lambda s: xla(s).u)(one[0]))
-    rows["xla"] = {"first_s": time.perf_counter() - t, "fn": xla}
-    ref = jax.jit(xla)(x)
+    fns["xla"] = filt.step_fn
+    jax.block_until_ready(jax.jit(lambda s: fns["xla"](s).u)(one[0]))
+    rows["xla"] = {"first_call_s": time.perf_counter() - t}
+    ref = jax.jit(fns["xla"])(x)
 
     t = time.perf_counter()
-    cb = callback_step(NativeController(filt, name="kcb"), filt)
-    jax.block_until_ready(jax.jit(lambda s: cb(s).u)(one[0]))
-    rows["pure_callback"] = {"first_s": time.perf_counter() - t, "fn": cb}
+    fns["pure_callback"] = callback_step(NativeController(filt, name="kcb"), filt)
+    jax.block_until_ready(jax.jit(lambda s: fns["pure_callback"](s).u)(one[0]))
+    rows["pure_callback"] = {"first_call_s": time.perf_counter() - t}
 
     t = time.perf_counter()
-    ffi = native_step(filt, name="kffi")
+    fns["ffi"] = ffi = native_step(filt, name="kffi")
     jax.block_until_ready(jax.jit(lambda s: ffi(s).u)(one[0]))
-    rows["ffi"] = {"first_s": time.perf_counter() - t, "fn": ffi}
+    rows["ffi"] = {"first_call_s": time.perf_counter() - t}
 
     for key, r in rows.items():
-        fn = r["fn"]
+        fn = fns[key]
         got = jax.jit(jax.vmap(fn))(x)
-        r["max_du"] = float(np.nanmax(np.abs(np.asarray(got.u) - np.asarray(ref.u))))
+        r["max_abs_du_vs_xla"] = float(np.nanmax(np.abs(np.asarray(got.u) - np.asarray(ref.u))))
         r["same_status"] = float(
             np.mean((np.asarray(got.status) == np.asarray(ref.status))
                     & (np.asarray(got.formula_status) == np.asarray(ref.formula_status)))
         )  # fmt: skip
-        r["one_us"] = one_call_us(jax.jit(lambda s, fn=fn: fn(s).u), one, calls)
+        r["one_call_us"] = one_call_us(jax.jit(lambda s, fn=fn: fn(s).u), one, calls)
         vm = jax.jit(jax.vmap(lambda s, fn=fn: fn(s).u))
-        r["per_s"] = per_second(vm, x)
-        print(f"  {key}: one call {r['one_us']:.1f} us, vmap {r['per_s']:.3g}/s, first call "
-              f"{r['first_s']:.1f} s", flush=True)  # fmt: skip
+        r["vmap_per_s"] = per_second(vm, x)
+        print(f"  {key}: one call {r['one_call_us']:.1f} us, vmap {r['vmap_per_s']:.3g}/s, "
+              f"first call {r['first_call_s']:.1f} s", flush=True)  # fmt: skip
     # the derivative: jvp of u inside a user's jit, one state
     _, t_ref = jax.jvp(filt.step_fn, (x,), (jnp.ones_like(x),))
     _, t_ffi = jax.jvp(ffi, (x,), (jnp.ones_like(x),))
@@ -234,41 +258,253 @@ def run_problem(name, filt, states, calls):
         solvers["quadprog"] = one_call_us(quad, qa, calls)
     except ImportError:
         pass
+    result = {
+        "name": name, "n_cbfs": len(filt.cbfs), "n_clfs": len(filt.clfs),
+        "n_states_compared": len(states), "candidates": rows, "solvers_us": solvers,
+        "jvp_one_call_us": jvp_us, "jvp_max_abs_du_vs_xla": jvp_du,
+        "load_average": [load_start, os.getloadavg()[0]],
+    }  # fmt: skip
+    print(problem_table(result))
+    return result
+
+
+def large_problem(rng):
+    """The 100-disc robot under vmap: XLA's rate, and the custom call's or why it refuses."""
+    from safestab.errors import ParameterError
+    from safestab.export import native_step
+
+    print(f"\n== point robot, {LARGE_DISCS} discs (vmap only)", flush=True)
+    obstacles = rng.uniform(-6, 6, (LARGE_DISCS, 2))
+    filt = robot_filter(obstacles)
+    x = jnp.asarray(robot_states(rng, obstacles, BATCH, oversample=40))
+    out = {"discs": LARGE_DISCS, "rows": LARGE_DISCS + 4, "batch": int(x.shape[0]),
+           "target_per_s": LARGE_TARGET}  # fmt: skip
+    out["xla_vmap_per_s"] = per_second(jax.jit(jax.vmap(lambda s: filt.step_fn(s).u)), x)
+    fs = np.asarray(jax.jit(jax.vmap(filt.step_fn))(x).formula_status)
+    out["formula_status_shares"] = {
+        ss.formulas.MultiStatus(int(v)).name: float(np.mean(fs == v)) for v in np.unique(fs)
+    }
+    try:
+        ffi = native_step(filt, name="kffi_large")
+    except ParameterError as exc:
+        out["ffi_vmap_per_s"] = None
+        out["ffi_refused"] = str(exc)
+    else:
+        out["ffi_vmap_per_s"] = per_second(jax.jit(jax.vmap(lambda s: ffi(s).u)), x)
+        out["ffi_refused"] = None
+    print(f"  xla vmap {out['xla_vmap_per_s']:.3g}/s; ffi "
+          f"{out['ffi_vmap_per_s'] or out['ffi_refused']}", flush=True)  # fmt: skip
+    return out
+
+
+def cached_build_s():
+    """First ``native_step`` at 8 discs in a fresh process: with an empty cache, then a full one."""
+    import subprocess
+    import tempfile
+
+    times = []
+    with tempfile.TemporaryDirectory(prefix="safestab-kernel-cache-") as tmp:
+        env = {**os.environ, "SAFESTAB_COMPILATION_CACHE": tmp}
+        for _ in range(2):
+            proc = subprocess.run(
+                [sys.executable, __file__, "--build-child"], env=env, capture_output=True,
+                text=True, check=True,
+            )  # fmt: skip
+            times.append(float(proc.stdout.strip().splitlines()[-1]))
+        stored = len(list(Path(tmp, "native").glob("*.so")))
+    return {"empty_cache_s": times[0], "from_disk_cache_s": times[1], "objects_stored": stored}
+
+
+def build_child() -> None:
+    """Print the seconds from nothing to the first answer of ``native_step`` at 8 discs."""
+    from safestab.export import native_step
+
+    obstacles = np.random.default_rng(0).uniform(-6, 6, (8, 2))
+    t = time.perf_counter()
+    step = native_step(robot_filter(obstacles), name="kffi")
+    jax.block_until_ready(jax.jit(lambda s: step(s).u)(jnp.ones(2)))
+    print(time.perf_counter() - t)
+
+
+def bench(calls: int) -> dict:
+    """Every measurement of the block, as a JSON-ready dict."""
+    from _page import machine
+
+    # first calls compile (also when run.py imported safestab, which turns the caches on;
+    # the native object cache is off with the compilation cache)
+    ss.disable_compilation_cache()
+    rng = np.random.default_rng(0)
+    results = {
+        "date": time.strftime("%Y-%m-%d"), "machine": machine(),
+        "settings": {"calls": calls, "rounds": 3, "batch": BATCH, "seed": 0,
+                     "compilation_cache": "off (first calls compile)",
+                     "one_call": "jax.jit(lambda x: step(x).u) on one state, median of the "
+                                 "calls, median of the rounds",
+                     "vmap": f"jax.jit(jax.vmap(lambda x: step(x).u)) over {BATCH} states, "
+                             "median of 5"},
+    }  # fmt: skip
+    print(f"JAX {jax.__version__}, {os.cpu_count()} CPUs, load average "
+          f"{os.getloadavg()[0]:.2f} at the start", flush=True)  # fmt: skip
+    obstacles = rng.uniform(-6, 6, (8, 2))
+    results["problems"] = [
+        run_problem("point robot, 8 discs", robot_filter(obstacles),
+                    robot_states(rng, obstacles, BATCH), calls),
+        run_problem("ACC (CBF-CLF-Helper)", acc_filter(), acc_states(rng, BATCH), calls),
+    ]  # fmt: skip
+    results["large"] = large_problem(rng)
+    results["cached_build"] = cached_build_s()
+    results["load_average_at_end"] = os.getloadavg()[0]
+    print(f"\nload average {results['load_average_at_end']:.2f} at the end")
+    return results
+
+
+def _x(a, b):
+    return f"{a / b:.1f}x" if a and b else ""
+
+
+def problem_table(p: dict) -> str:
+    rows = p["candidates"]
     base = rows["xla"]
-    print(f"\n| {name} | one call (us) | x XLA | vmap {BATCH:,} (/s) | x XLA | first call (s) "
-          "| max abs du vs XLA | same statuses |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    lines = [
+        f"| {p['name']} ({p['n_cbfs']} CBF, {p['n_clfs']} CLF) | one call (us) | x XLA "
+        f"| vmap (/s) | x XLA | first call (s) | max abs du vs XLA | same statuses |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for key, r in rows.items():
-        print(
-            f"| {key} | {r['one_us']:.1f} | {base['one_us'] / r['one_us']:.1f}x | "
-            f"{r['per_s']:.3g} | {r['per_s'] / base['per_s']:.1f}x | {r['first_s']:.1f} | "
-            f"{r['max_du']:.1e} | {100 * r['same_status']:.0f} % |"
+        lines.append(
+            f"| {LABELS[key]} | {r['one_call_us']:.1f} | {_x(base['one_call_us'], r['one_call_us'])} "
+            f"| {r['vmap_per_s']:.3g} | {_x(r['vmap_per_s'], base['vmap_per_s'])} "
+            f"| {r['first_call_s']:.1f} | {r['max_abs_du_vs_xla']:.1e} "
+            f"| {100 * r['same_status']:.0f} % |"
         )
-    for key, us in solvers.items():
-        print(f"| {key} (rows prebuilt, from Python) | {us:.1f} | "
-              f"{base['one_us'] / us:.1f}x | | | | | |")  # fmt: skip
-    print(
-        f"\njvp of u, one state in a user's jit: xla {jvp_us['xla']:.1f} us, ffi "
-        f"{jvp_us['ffi']:.1f} us; max |du tangent - XLA's| {jvp_du:.1e} (solved states)"
+    for key, us in p["solvers_us"].items():
+        lines.append(f"| {key} (rows prebuilt, from Python) | {us:.1f} "
+                     f"| {_x(base['one_call_us'], us)} | | | | | |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def markdown(r: dict) -> str:
+    """The block of docs/performance.md made of the saved results."""
+    m = r["machine"]
+    robot, acc = r["problems"]
+    ffi, daqp = robot["candidates"]["ffi"], robot["solvers_us"].get("daqp")
+    lines = [
+        BEGIN,
+        "## The filter inside a user's jit: the native kernel",
+        "",
+        "`safestab.export.native_step(filter)` runs a `SafetyFilter`'s whole exported C step "
+        "(rows from the state, the dual active-set solver, statuses) as one XLA custom call "
+        "(`jax.ffi`, a C++ handler built with the system compilers on first use and kept in "
+        "the compilation cache's folder), composes with `jax.jit` and `jax.vmap` (a batch is "
+        "one loop in C), and attaches the derivative of the optimum on the final active set "
+        "(`custom_jvp`). Opt-in; the JAX step stays the default and the only path on other "
+        "backends. Regenerate with `python benchmarks/run.py --only filter-kernel` (or "
+        "`python benchmarks/filter_kernel.py --json docs/performance_filter_kernel.json`); "
+        f"results in `docs/performance_filter_kernel.json`. Measured {r['date']} on "
+        f"{m['platform']}, {m['cpus']} CPUs, JAX {m['jax']}, load average "
+        f"{m['load_average_at_start']:.1f} at the start and {r['load_average_at_end']:.1f} at "
+        "the end (a shared machine: ratios are within one run). *One call*: "
+        f"{r['settings']['one_call']} ({r['settings']['calls']} calls, "
+        f"{r['settings']['rounds']} rounds); *vmap*: {r['settings']['vmap']}; *first call*: "
+        "from nothing to the first answer (export and C/C++ compilation for the native "
+        "candidates, tracing and XLA compilation for each; the compilation cache off). daqp "
+        "and quadprog solve the same rows, prebuilt, from Python.",
+        "",
+        problem_table(robot),
+        "",
+        problem_table(acc),
+        "",
+    ]
+    jr, ja = robot["jvp_one_call_us"], acc["jvp_one_call_us"]
+    lines.append(
+        f"A `jvp` of `u` on one state costs {jr['ffi']:.0f} us with the custom call at 8 discs "
+        f"({jr['xla']:.0f} us for the XLA step) and {ja['ffi']:.0f} us on ACC "
+        f"({ja['xla']:.0f} us): the tangent (the rows' derivatives and a dense KKT solve) "
+        f"runs as XLA operations. Largest difference of the tangent of `u` to the XLA step's, "
+        f"solved states: {robot['jvp_max_abs_du_vs_xla']:.1e} (8 discs), "
+        f"{acc['jvp_max_abs_du_vs_xla']:.1e} (ACC)."
     )
-    if "daqp" in solvers:
-        print(f"ffi / daqp = {rows['ffi']['one_us'] / solvers['daqp']:.2f} (target <= 2)")
-    return rows
+    lines.append("")
+    big = r["large"]
+    shares = ", ".join(f"{100 * v:.0f} % {k}" for k, v in big["formula_status_shares"].items())
+    if big["ffi_vmap_per_s"] is not None:
+        big_line = (f"XLA custom call {big['ffi_vmap_per_s']:.3g} states/s (target "
+                    f"{big['target_per_s']:.0e}), XLA step {big['xla_vmap_per_s']:.3g}/s "
+                    f"({shares}).")  # fmt: skip
+    else:
+        big_line = (
+            f"the XLA step {big['xla_vmap_per_s']:.3g} states/s ({shares}; target "
+            f"{big['target_per_s']:.0e}); no custom-call row: `native_step` refuses the filter "
+            f"({big['ffi_refused']}). The exported step keeps its temporaries on the stack, "
+            "and the custom call runs on a thread of XLA's, whose stack safestab cannot size."
+        )
+    lines.append(f"Point robot, {big['discs']} discs ({big['rows']} rows), vmap over "
+                 f"{big['batch']:,} states of the whole step (rows from the state by autodiff; "
+                 "the filter block's *batched* column times the solver alone, on prebuilt "
+                 f"rows): {big_line}")  # fmt: skip
+    lines.append("")
+    cb = r["cached_build"]
+    lines.append(
+        f"Build from the disk cache: the first call of `native_step` at 8 discs in a fresh "
+        f"process took {cb['empty_cache_s']:.1f} s with an empty cache and "
+        f"{cb['from_disk_cache_s']:.1f} s when an earlier process had stored the built object "
+        "(loaded, no compiler run; the rest is the export's trace of the filter and XLA's "
+        "compilation of the user's function)."
+    )
+    lines.append("")
+    targets = [f"one call at 8 discs {ffi['one_call_us']:.1f} us"]
+    if daqp:
+        targets[0] += f", {ffi['one_call_us'] / daqp:.2f}x daqp's {daqp:.1f} us (target at most 2x)"
+    targets.append(f"vmap at 8 discs {ffi['vmap_per_s']:.3g} states/s (target 1e6)")
+    lines.append("Read against the targets: " + "; ".join(targets) + ".")
+    lines += ["", END]
+    return "\n".join(lines)
 
 
-def main() -> None:
+def write_results(path: Path, results: dict) -> None:
+    """``results`` as strict JSON at ``path`` (atomically); the block into a performance.md beside it."""
+    import json
+
+    from _page import update_block
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+    tmp.replace(path)
+    page = path.parent / "performance.md"
+    if page.exists():
+        update_block(page, path, markdown, BEGIN, END)
+
+
+def update_markdown(md_path: Path, json_path: Path) -> None:
+    """Rewrite the block from the saved results (``benchmarks/run.py --page``)."""
+    from _page import update_block
+
+    update_block(md_path, json_path, markdown, BEGIN, END)
+
+
+def main(out: Path | None = None, calls: int = 500) -> None:
+    """``benchmarks/run.py --only filter-kernel``: measure, write ``out``'s JSON and block."""
+    results = bench(calls)
+    if out is not None:
+        write_results(out / "performance_filter_kernel.json", results)
+    print(markdown(results))
+
+
+def cli() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--calls", type=int, default=500)
+    parser.add_argument("--json", type=Path, help="write the results here (strict JSON)")
+    parser.add_argument("--build-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    rng = np.random.default_rng(0)
-    print(f"JAX {jax.__version__}, {os.cpu_count()} CPUs, load average "
-          f"{os.getloadavg()[0]:.2f} at the start")  # fmt: skip
-    obstacles = rng.uniform(-6, 6, (8, 2))
-    run_problem("point robot, 8 discs", robot_filter(obstacles),
-                robot_states(rng, obstacles, BATCH), args.calls)  # fmt: skip
-    run_problem("ACC (CBF-CLF-Helper)", acc_filter(), acc_states(rng, BATCH), args.calls)
-    print(f"\nload average {os.getloadavg()[0]:.2f} at the end")
+    if args.build_child:
+        build_child()
+        return
+    results = bench(args.calls)
+    if args.json is not None:
+        write_results(args.json, results)
+    print(markdown(results))
 
 
 if __name__ == "__main__":
-    main()
+    cli()

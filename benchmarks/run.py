@@ -307,12 +307,15 @@ def main():
     parser.add_argument("--no-full-fit", action="store_true", help="skip the slow full-data GP fit")
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument(
-        "--only", choices=("all", "gp", "export", "multi", "filter", "jax"), default="all",
+        "--only", choices=("all", "gp", "export", "multi", "filter", "filter-kernel", "jax"),
+        default="all",
         help="'gp': rerun only the GP fit-scaling section; 'export': only the "
         "native controller rows; each merged into the existing performance.json; 'multi': only "
         "the several-CBF rows (benchmarks/multi.py, saved to performance_multi.json); 'filter': "
         "only the safety filter's solver against daqp, quadprog, Clarabel and qpax "
-        "(benchmarks/filter.py, saved to performance_filter.json); 'jax': the formulas in a "
+        "(benchmarks/filter.py, saved to performance_filter.json); 'filter-kernel': the filter "
+        "inside a user's jit, XLA against the native kernel (benchmarks/filter_kernel.py, "
+        "saved to performance_filter_kernel.json); 'jax': the formulas in a "
         "user's jit and their gradients against qpax (benchmarks/jax_native.py, saved to "
         "performance_jax.json)",
     )  # fmt: skip
@@ -347,6 +350,11 @@ def main():
         import filter as filter_rows
 
         filter_rows.main(args.out)
+        return
+    if args.only == "filter-kernel":
+        import filter_kernel
+
+        filter_kernel.main(args.out)
         return
     if args.only == "jax":
         import jax_native
@@ -648,10 +656,11 @@ def write_page(results, out):
 
     The Monte Carlo, several-CBF, filter and first-run blocks come from their own runs
     (performance_mc.json, performance_multi.json, performance_filter.json,
-    performance_first_run.json, performance_sparse.json, performance_gp_step.json,
+    performance_filter_kernel.json, performance_first_run.json, performance_sparse.json, performance_gp_step.json,
     performance_xla_flags.json) and are put back, so a partial rerun loses none.
     """
     import filter as filter_rows
+    import filter_kernel
     import first_run
     import gp_step
     import mc_rows
@@ -664,6 +673,9 @@ def write_page(results, out):
     mc_rows.update_markdown(out / "performance.md", out / "performance_mc.json")
     multi.update_markdown(out / "performance.md", out / "performance_multi.json")
     filter_rows.update_markdown(out / "performance.md", out / "performance_filter.json")
+    filter_kernel.update_markdown(
+        out / "performance.md", out / "performance_filter_kernel.json"
+    )  # fmt: skip
     update_block(
         out / "performance.md", out / "performance_first_run.json", first_run.markdown,
         first_run.BEGIN, first_run.END,

@@ -168,3 +168,69 @@ def test_a_missing_compiler_raises_or_falls_back():
         step = native_step(filt, name="ns_nocxx", cxx_compiler="no-such-compiler++", fallback=True)
     x = jnp.asarray(_states()[:5])
     np.testing.assert_array_equal(step(x).u, filt.step_fn(x).u)
+
+
+#: A child process: builds ``native_step`` of a three-disc filter with the compilers and cache
+#: of its environment, and saves its outputs on 220 states.
+_CHILD = """
+import sys, time
+import jax, jax.numpy as jnp, numpy as np
+import safestab as ss
+from safestab.export import native_step
+o = np.array([[0.0, 0.0], [3.0, 0.0], [1.5, 2.0]])
+sysm = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="robot")
+cbfs = [ss.CBF(lambda x, c=c: jnp.sum((x - c) ** 2) - 1.0, beta=1.0) for c in o]
+clf = ss.CLF(lambda x: jnp.sum((x - jnp.array([6.0, 0.0])) ** 2), lam=0.2)
+filt = ss.SafetyFilter(sysm, cbfs, clfs=clf, u_nom=lambda x: 0.3 * (jnp.array([6.0, 0.0]) - x),
+                       u_min=-1.0, u_max=1.0)
+t = time.perf_counter()
+step = native_step(filt, name="ns_cached")
+print("build", time.perf_counter() - t)
+x = np.random.default_rng(3).uniform([-2.5, -2.5], [8.0, 4.0], (220, 2))
+out = jax.jit(step)(jnp.asarray(x))
+np.savez(sys.argv[1], u=out.u, multipliers=out.multipliers, active=out.active,
+         status=out.status, formula_status=out.formula_status)
+"""
+
+
+def test_a_later_process_loads_the_build_from_the_disk_cache(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    log = tmp_path / "compiler-calls.log"
+    tools = {}
+    for var, real in (("CC", shutil.which("cc")), ("CXX", shutil.which("c++"))):
+        wrapper = tmp_path / f"logged-{var.lower()}"
+        wrapper.write_text(f'#!/bin/sh\necho "{var} $*" >> "{log}"\nexec "{real}" "$@"\n')
+        wrapper.chmod(0o755)
+        tools[var] = str(wrapper)
+    cache = tmp_path / "cache"
+    script = tmp_path / "child.py"
+    script.write_text(_CHILD)
+
+    def run(name, cache_setting):
+        env = {**os.environ, **tools, "SAFESTAB_COMPILATION_CACHE": cache_setting}
+        before = log.read_text().count("\n") if log.exists() else 0
+        proc = subprocess.run([sys.executable, str(script), str(tmp_path / name)], env=env,
+                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        calls = (log.read_text().count("\n") if log.exists() else 0) - before
+        return dict(np.load(tmp_path / f"{name}.npz")), calls
+
+    first, calls_first = run("first", str(cache))
+    stored = sorted((cache / "native").glob("*.so"))
+    assert len(stored) == 1 and calls_first >= 2  # the C step, the C++ handler (and probes)
+    second, calls_second = run("second", str(cache))
+    assert calls_second == 0  # loaded: neither compiler ran
+    for key, value in first.items():  # the same object: the same bits
+        np.testing.assert_array_equal(second[key], value, key)
+    # an object that cannot be loaded is built again and replaced
+    stored[0].write_bytes(b"not a shared object")
+    third, calls_third = run("third", str(cache))
+    assert calls_third >= 2 and stored[0].stat().st_size > 1000
+    np.testing.assert_array_equal(third["u"], first["u"])
+    # off: built in a temporary folder, nothing stored
+    _, calls_off = run("off", "off")
+    assert calls_off >= 2 and sorted((cache / "native").glob("*.so")) == stored
+    assert not list((cache / "native").glob("*-writing"))

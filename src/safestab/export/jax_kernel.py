@@ -6,7 +6,9 @@ foreign function interface (the headers of ``jax.ffi.include_dir()``), loads it 
 it with XLA. The result is a JAX function of states ``(..., n)`` that composes with
 ``jax.jit`` and ``jax.vmap`` (a batch is one loop in C, one thread) and runs the same machine
 code as :class:`~safestab.export.NativeController`: one XLA custom call instead of the
-hundreds of small operations XLA makes of the solver's loop.
+hundreds of small operations XLA makes of the solver's loop. The built shared object is kept
+on disk under the compilation cache's folder (:mod:`._so_cache`), so a later process loads it
+instead of compiling.
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import CompilationError, ParameterError
+from ._so_cache import build_key, lookup, native_cache_dir, store
 from .exporter import ExportedC
-from .native import compile_object, find_compiler, run_tool
+from .native import compile_object, find_compiler, requested_flags, run_tool
 
 __all__ = ["jax_function", "find_cxx_compiler", "MAX_STACK_BYTES"]
 
@@ -99,32 +102,62 @@ def _handler_source(exported: ExportedC, symbol: str) -> tuple[str, list[int]]:
     return "\n".join(lines), used
 
 
+#: The C++ compiler's flags for the handler (and the link with the step's object).
+HANDLER_FLAGS = ("-std=c++17", "-O2", "-fPIC", "-shared")
+
+
 def _build(exported: ExportedC, cc: str, cxx: str, march_native: bool) -> tuple[Any, str, list]:
-    """Compile, link and load the step with its handler; register it with XLA (once)."""
-    digest = hashlib.sha1((exported.source + cc + cxx + str(march_native)).encode()).hexdigest()[
-        :16
-    ]
+    """Load the step with its handler, built or from the disk cache; register it with XLA.
+
+    Once per process and build. The shared object is looked up in :mod:`._so_cache` first
+    (no compiler is run then), else compiled, linked and stored there.
+    """
+    ident = exported.source + cc + cxx + str(march_native)
+    digest = hashlib.sha1(ident.encode()).hexdigest()[:16]
     symbol = f"safestab_ffi_{exported.name}_{digest}"
     handler, used = _handler_source(exported, symbol)
     with _LOCK:
         if digest in _LOADED:
             return _LOADED[digest][0], symbol, used
-        with tempfile.TemporaryDirectory(prefix="safestab-ffi-") as tmp:
-            build = Path(tmp)
-            exported.write(build)
-            obj = compile_object(exported, cc, build, march_native=march_native)
-            src = build / "handler.cc"
-            src.write_text(handler)
-            lib_path = build / f"lib{symbol}.so"
-            run_tool(
-                [cxx, "-std=c++17", "-O2", "-fPIC", "-shared", f"-I{jax.ffi.include_dir()}",
-                 str(src), str(obj), "-lm", "-o", str(lib_path)],
-                build,
-            )  # fmt: skip
-            lib = ctypes.CDLL(str(lib_path))  # stays mapped after the file is removed
+        folder = native_cache_dir()
+        key = build_key(
+            [exported.source, exported.header, handler], [cc, cxx],
+            [*requested_flags(march_native=march_native), "|", *HANDLER_FLAGS],
+        )  # fmt: skip
+        lib = None
+        cached = None if folder is None else lookup(folder, key)
+        if cached is not None:
+            lib = _open(cached, symbol)  # None: unreadable, built again below
+        if lib is None:
+            with tempfile.TemporaryDirectory(prefix="safestab-ffi-") as tmp:
+                build = Path(tmp)
+                exported.write(build)
+                obj = compile_object(exported, cc, build, march_native=march_native)
+                src = build / "handler.cc"
+                src.write_text(handler)
+                lib_path = build / f"lib{symbol}.so"
+                run_tool(
+                    [cxx, *HANDLER_FLAGS, f"-I{jax.ffi.include_dir()}", str(src), str(obj),
+                     "-lm", "-o", str(lib_path)],
+                    build,
+                )  # fmt: skip
+                stored = None if folder is None else store(folder, key, lib_path)
+                lib = _open(stored, symbol) if stored is not None else None
+                if lib is None:
+                    lib = ctypes.CDLL(str(lib_path))  # stays mapped after the file is removed
         jax.ffi.register_ffi_target(symbol, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
         _LOADED[digest] = (lib, symbol)
     return lib, symbol, used
+
+
+def _open(path: Path, symbol: str) -> Any:
+    """The library at ``path`` if it loads and has ``symbol``, else None."""
+    try:
+        lib = ctypes.CDLL(str(path))
+        getattr(lib, symbol)
+    except (OSError, AttributeError):
+        return None
+    return lib
 
 
 def jax_function(
@@ -153,7 +186,7 @@ def jax_function(
         ``fn(x)`` for states ``x`` of shape (..., n), float64, returning the exported
         function's output pytree with leaves of shape (..., *leaf_shape), as the JAX function
         that was exported. Composes with ``jax.jit`` and ``jax.vmap`` (a batch is one loop in
-        C). It is not differentiable by itself: see :func:`safestab.export.native_filter_step`
+        C). It is not differentiable by itself: see :func:`safestab.export.native_step`
         for a filter with derivatives.
 
     Raises
@@ -163,6 +196,13 @@ def jax_function(
     ParameterError
         If ``exported`` is in float precision or needs more than :data:`MAX_STACK_BYTES` of
         stack.
+
+    Notes
+    -----
+    The built code is stored in ``native/`` under the compilation cache's folder
+    (:func:`safestab.compilation_cache_dir`), keyed by a SHA-256 of the sources, the
+    compilers, their flags, JAX's and jaxlib's versions and the CPU; a later process loads it
+    without running a compiler. ``SAFESTAB_COMPILATION_CACHE=off`` builds afresh each time.
     """
     if not isinstance(exported, ExportedC):
         raise ParameterError(f"exported must be an ExportedC, got {type(exported).__name__}")

@@ -63,6 +63,15 @@ _FLAG_CACHE: dict[tuple[str, bool], tuple[str, ...]] = {}
 _FALLBACK_FLAGS = ["-fno-tree-loop-vectorize"]
 
 
+def requested_flags(*, march_native: bool = True) -> tuple[str, ...]:
+    """The flags :func:`native_flags` asks of a compiler (it keeps those the compiler accepts).
+
+    A function of the compiler and of these alone, so a cache of built code can be keyed by
+    them without running the compiler.
+    """
+    return (*C_FLAGS, *_SPEED_FLAGS) + (("-march=native",) if march_native else ())
+
+
 def native_flags(cc: str, *, march_native: bool = True) -> tuple[str, ...]:
     """The flags :class:`NativeFunction` compiles with.
 

@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import CompilationError, ParameterError
+from ..errors import ParameterError
 from ._so_cache import build_key, lookup, native_cache_dir, store
 from .exporter import ExportedC
-from .native import compile_object, find_compiler, requested_flags, run_tool
+from .native import compile_object, find_compiler, find_tool, requested_flags, run_tool
 
 __all__ = ["jax_function", "find_cxx_compiler", "MAX_STACK_BYTES"]
 
@@ -53,17 +53,11 @@ def find_cxx_compiler(compiler: str | None = None) -> str:
     CompilationError
         If none is found.
     """
-    import os
-    import shutil
-
-    candidates = [compiler] if compiler else [os.environ.get("CXX"), "c++", "g++", "clang++"]
-    for cand in candidates:
-        if cand and shutil.which(cand):
-            return str(shutil.which(cand))
-    raise CompilationError(
-        f"no C++ compiler found (tried {[c for c in candidates if c]}) for the XLA custom "
-        "call; install one (on Debian or Ubuntu: apt-get install g++) or set CXX"
-    )
+    return find_tool(
+        compiler, "CXX", ("c++", "g++", "clang++"),
+        "no C++ compiler found (tried {tried}) for the XLA custom call; install one (on "
+        "Debian or Ubuntu: apt-get install g++) or set CXX",
+    )  # fmt: skip
 
 
 def _handler_source(exported: ExportedC, symbol: str) -> tuple[str, list[int]]:

@@ -36,14 +36,26 @@ def find_compiler(compiler: str | None = None) -> str:
     CompilationError
         If none is found.
     """
-    candidates = [compiler] if compiler else [os.environ.get("CC"), "cc", "gcc", "clang"]
+    return find_tool(
+        compiler, "CC", ("cc", "gcc", "clang"),
+        "no C compiler found (tried {tried}); install one (on Debian or Ubuntu: apt-get "
+        "install gcc; scripts/_venv.sh does this) or set CC",
+    )  # fmt: skip
+
+
+def find_tool(given: str | None, env: str, names: tuple[str, ...], message: str) -> str:
+    """The path of ``given``, else of ``$env``, else of the first of ``names`` on the PATH.
+
+    Raises
+    ------
+    CompilationError
+        With ``message`` (``{tried}`` replaced by the candidates) if none is found.
+    """
+    candidates = [given] if given else [os.environ.get(env), *names]
     for cand in candidates:
         if cand and shutil.which(cand):
             return str(shutil.which(cand))
-    raise CompilationError(
-        f"no C compiler found (tried {[c for c in candidates if c]}); install one (on Debian "
-        "or Ubuntu: apt-get install gcc; scripts/_venv.sh does this) or set CC"
-    )
+    raise CompilationError(message.format(tried=[c for c in candidates if c]))
 
 
 #: Speed flags tried on top of ``C_FLAGS``; none changes a result (no fast-math, no
@@ -123,6 +135,9 @@ def compile_object(exported: ExportedC, cc: str, build: Path, *, march_native: b
     try:
         _run(cmd, build)
     except CompilationError as exc:
+        # GCC 12 stops with an internal error on some large float steps (a solver's loops)
+        # when it vectorises loops for this CPU; without loop vectorisation it compiles them
+        # (the results are the same: no flag here changes one)
         if "internal compiler error" not in str(exc):
             raise
         _run(cmd[:1] + _FALLBACK_FLAGS + cmd[1:], build)
@@ -238,24 +253,7 @@ class NativeFunction:
         with tempfile.TemporaryDirectory(prefix="safestab-native-") as tmp:
             build = Path(tmp)
             exported.write(build)
-            obj = build / f"{exported.name}.o"
-            flags = [*native_flags(cc, march_native=march_native), "-fPIC"]
-            cmd = [cc, *flags, "-c", f"{exported.name}.c", "-o", str(obj)]
-            try:
-                _run(cmd, build)
-            except CompilationError as exc:
-                # GCC 12 stops with an internal error on some large float steps (a solver's
-                # loops) when it vectorises loops for this CPU; without loop vectorisation
-                # it compiles them (the results are the same: no flag here changes one)
-                if "internal compiler error" not in str(exc):
-                    raise
-                _run(cmd[:1] + _FALLBACK_FLAGS + cmd[1:], build)
-                warnings.warn(
-                    f"{cc} failed with an internal compiler error on {exported.name}.c; "
-                    f"compiled it again with {' '.join(_FALLBACK_FLAGS)}",
-                    RuntimeWarning,
-                    stacklevel=2,
-                )
+            obj = compile_object(exported, cc, build, march_native=march_native)
             module = f"_safestab_native_{exported.name}_{digest}"
             try:
                 self._ffi, self._lib = _load_api_module(exported, cc, obj, build, module)

@@ -246,31 +246,3 @@ def test_a_law_that_is_not_finite_or_not_jax_is_named():
         trial_function(mine, plant=SYSTEM, n_steps=5, dt=0.1)
     monitored = mine.step(jnp.array([0.2, 0.0]), u_nom=jnp.array([5.0, 0.0]))  # another action
     assert float(monitored.u[0]) == 5.0 and int(monitored.status) == S.CBF_UNMET
-
-
-def test_controllers_that_differ_in_numbers_run_as_one_vmapped_family():
-    """Three filters of one structure (other limits and rates) and a law: the family's
-    records equal those of each controller run alone, and the family is traced once."""
-    fam = [
-        ss.SafetyFilter(SYSTEM, (DISC, WALL), clfs=CLF, slack_weight=w, u_min=-lim, u_max=lim)
-        for w, lim in ((10.0, 1.0), (3.0, 0.5), (30.0, 2.0))
-    ]
-    law_ctrl = _controllers()["policy"]
-    ctrls = [fam[0], law_ctrl, fam[1], fam[2]]
-    x0 = jnp.array([[0.3, -0.5], [-0.6, 0.1]])
-    kw = {"plant": SYSTEM, "n_steps": 40, "dt": 0.05, "clf": CLF, "cbfs": (DISC, WALL)}
-    together = jax.jit(jax.vmap(trial_function(ctrls, **kw), in_axes=(0, None)))(x0, None)
-    for j, c in enumerate(ctrls):
-        alone = jax.jit(jax.vmap(trial_function([c], **kw), in_axes=(0, None)))(x0, None)
-        for key in ("min_h", "final_V", "limit_steps", "barrier_unmet_steps", "clf_true_fraction"):
-            np.testing.assert_allclose(
-                np.asarray(together[key])[:, j],
-                np.asarray(alone[key])[:, 0],
-                rtol=1e-10,
-                atol=1e-12,
-            )
-    v = np.asarray(together["final_V"])[0, [0, 2, 3]]
-    assert np.min(np.abs(np.diff(np.sort(v)))) > 1e-6  # the members' numbers matter
-    from safestab.montecarlo.loop import families  # one family of three, the law alone
-
-    assert families(tuple(ctrls), (None,) * 4) == [[0, 2, 3], [1]]

@@ -360,78 +360,34 @@ def trial_function(
     def watch(t, x, p):  # the least barrier value inside each hold interval
         return cbf.fn(x) if cbf is not None else jnp.min(jnp.stack([c.fn(x) for c in cbfs]))
 
-    def loop_of(ctrl, check):
-        return closed_loop(
+    loops = [
+        closed_loop(
             stepper(ctrl, check),
             rhs,
             StatisticsRecorder(
-                plant, clf, cbfs, exo, omega, None if check is None else check[1], n_steps, dt,
+                plant,
+                clf,
+                cbfs,
+                exo,
+                omega,
+                None if check is None else check[1],
+                n_steps,
+                dt,
                 price=reference is not None,
             ),
             n_steps=n_steps,
             dt=dt,
             substeps=substeps,
             watch=None if substeps == 1 else watch,
-        )  # fmt: skip
-
-    runs = [(idx, _family_run(loop_of, [ctrls[i] for i in idx], [checks[i] for i in idx]))
-            for idx in families(ctrls, checks)]  # fmt: skip
+        )
+        for ctrl, check in zip(ctrls, checks, strict=True)
+    ]
 
     def run(x0: jax.Array, params: Any) -> dict[str, jax.Array]:
-        per: list[Any] = [None] * len(ctrls)
-        for idx, fam in runs:
-            out = fam(x0, params)
-            for j, i in enumerate(idx):
-                per[i] = {key: out[key][j] for key in RECORD_FIELDS}
+        per = [loop(x0, params) for loop in loops]
         return {key: jnp.stack([jnp.asarray(r[key]) for r in per]) for key in RECORD_FIELDS}
 
     return run
-
-
-def families(ctrls: tuple, checks: tuple) -> list[list[int]]:
-    """The controllers that run as one ``vmap``-ed closed loop: indices, in first-seen order.
-
-    A family shares the tree structure (class, options, certificates, model kind and
-    shapes: only the numbers differ, the GP-robust controllers' betas, say) and the kind of
-    Lemma-2 check (none, or the controller's own model with its beta); a check of another
-    model runs alone.
-    """
-    groups: dict[Any, list[int]] = {}
-    for i, (ctrl, check) in enumerate(zip(ctrls, checks, strict=True)):
-        own = check is not None and check[0] is ctrl.uncertainty
-        alone = check is not None and not own
-        key = ("alone", i) if alone else (jax.tree_util.tree_structure(ctrl), own)
-        groups.setdefault(key, []).append(i)
-    return list(groups.values())
-
-
-def _family_run(loop_of: Callable, members: list, checks: list) -> Callable:
-    """``run(x0, params)`` -> records with a leading axis over ``members`` (one or more).
-
-    Several members run as one closed loop ``vmap``-ed over their numbers (leaves that are
-    the same object in every member, a shared GP cache, stay unbatched): one loop traced and
-    compiled instead of one per controller.
-    """
-    if len(members) == 1:
-        loop = loop_of(members[0], checks[0])
-        return lambda x0, params: jax.tree_util.tree_map(lambda v: jnp.asarray(v)[None],
-                                                         loop(x0, params))  # fmt: skip
-    treedef = jax.tree_util.tree_structure(members[0])
-    columns = zip(*(jax.tree_util.tree_leaves(m) for m in members), strict=True)
-    leaves, axes = [], []
-    for col in columns:
-        shared = all(v is col[0] for v in col)
-        leaves.append(col[0] if shared else jnp.stack([jnp.asarray(v) for v in col]))
-        axes.append(None if shared else 0)
-    own = checks[0] is not None
-    betas = jnp.stack([jnp.asarray(c[1]) for c in checks]) if own else None
-
-    def one(leaves_, beta, x0, params):
-        ctrl = jax.tree_util.tree_unflatten(treedef, leaves_)
-        return loop_of(ctrl, (ctrl.uncertainty, beta) if own else None)(x0, params)
-
-    in_axes = (axes, 0 if own else None, None, None)
-    return lambda x0, params: jax.vmap(one, in_axes=in_axes)(leaves, betas, x0, params)
 
 
 def _record_certificates(

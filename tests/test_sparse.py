@@ -17,11 +17,14 @@ def _data(q, seed=0, noise=0.05):
 
 def test_with_every_training_input_inducing_it_is_the_exact_gp():
     x, y, _ = _data(120)
-    # all rows for the hyperparameters, no stopping rule: Z = X, and DTC is exact
+    # all rows for the hyperparameters, no stopping rule: the pivoted Cholesky takes rows
+    # until the prior is resolved to rounding at every training input (114 and 39 of them;
+    # it used to reach 120 by choosing rows again), and DTC is exact
     sp = SparseGP(120, hyper_subset=120, pivot_tol=0.0, noise_tol=0.0).fit(x, y, seed=3)
     exact = GaussianProcessModel().fit(x, y, hyper_subset=120, seed=3)
     np.testing.assert_allclose(sp.model.amplitude_, exact.amplitude_, rtol=1e-12)
-    assert list(sp.n_inducing_) == [120, 120]
+    for j, m in enumerate(sp.n_inducing_):
+        assert len(np.unique(sp.inducing_[j, :m], axis=0)) == m  # distinct rows
     xt = np.random.default_rng(1).uniform(-3, 3, size=(200, 2))
     m_s, s_s = sp.predict(xt, return_std=True)
     m_e, s_e = exact.predict(xt, return_std=True)

@@ -76,7 +76,13 @@ _STD_SAMPLE = 128
 
 
 def pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor: float = 0.0):
-    """Greedy choice of ``m`` rows maximising the residual prior variance (pivoted Cholesky).
+    """Pivoted Cholesky: greedy choice of ``m`` distinct rows of largest residual prior variance.
+
+    A chosen row's residual is exactly zero: it is set so, not left to the rounding of the
+    update (which leaves it at a few ``u amp2`` and, with ``tol = 0``, let the row be chosen
+    again; a repeated inducing input broke the cache's ``Cov(f_Z | data)``, whose formula
+    takes the chosen rows as distinct). Stops early where no unchosen row's residual exceeds
+    ``tol amp2`` (or, after the first, ``floor``).
 
     Returns the chosen indices and the residual prior variance left at every row.
     """
@@ -93,6 +99,7 @@ def pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor
         col = np.asarray(kfn(xs, xs[j : j + 1]))[:, 0] - rows[:i].T @ rows[:i, j]
         rows[i] = col / np.sqrt(diag[j])
         diag = np.maximum(diag - rows[i] ** 2, 0.0)
+        diag[chosen] = 0.0  # exactly resolved: never chosen again
     return np.array(chosen), diag
 
 
@@ -263,14 +270,18 @@ def _component(model, j, xs, n_inducing, pivot_tol, floor):
     _, z, kzz, lj, _, idx = inducing_inputs(model, j, xs, n_inducing, pivot_tol, floor)
     m = len(z)
     li = scipy.linalg.solve_triangular(lj, np.eye(m), lower=True)  # Lj^-1
-    # Cov(f_Z | data) = s^2 (I - s^2 [(K + s^2 I)^-1]_ZZ) (Z is among the training
-    # inputs): a difference at the scale s^2, not amp^2; its rounding (the triangular
-    # solve's forward error, cond(L) <= sqrt(Q amp^2 + s^2) / s) is added on the
-    # diagonal
+    # Cov(f_Z | data) = s^2 (E_Z^T E_Z - s^2 E_Z^T (K + s^2 I)^-1 E_Z) (Z is among the
+    # training inputs, E_Z their unit columns; E_Z^T E_Z = I for distinct rows, which
+    # pivoted_cholesky chooses, and exact for any): a difference at the scale s^2, not
+    # amp^2; its rounding (the triangular solve's forward error, cond(L) <= sqrt(Q amp^2 +
+    # s^2) / s) is added on the diagonal. Not in it: the model's factor is the exact factor
+    # of a matrix within rounding of K + s^2 I, an error of S up to about cond(K + s^2 I) u
+    # s^2 (measured 2.5e-8 s^2 at cond 1e9, 15 times this allowance; far inside the band's
+    # other allowances there)
     ez = np.zeros((q, m))
     ez[idx, np.arange(m)] = 1.0
     v = scipy.linalg.solve_triangular(np.asarray(model.chol_[j]), ez, lower=True)
-    cov = s2 * (np.eye(m) - s2 * (v.T @ v))
+    cov = s2 * (ez.T @ ez - s2 * (v.T @ v))
     cond = np.sqrt(q * amp * amp + s2) / np.sqrt(s2)
     g = _psd_root(cov + 4 * (q + m) * _U * cond * s2 * np.eye(m))
     ek = kernel_error_coefficient(model.kernel, np.max(np.abs(z), 0) / ls)
@@ -533,7 +544,8 @@ class FastGP(InducingBand):
         grow with ``cond(K_ZZ)`` (module docstring), so the pivoted Cholesky may resolve the
         prior far below the amplitude: on the stress preset's drag (exact std 5e-5 of an
         amplitude 34) 1e-10 stopped at 8 inducing inputs and a band 3.2 times the exact std,
-        1e-14 at 12 and 1.27 times.
+        1e-14 at 12 and 1.27 times. Any value >= 0 keeps the band proven: 0 adds inputs until
+        the prior is resolved to rounding (or the cap), never a training row twice.
     std_tol : float
         Also stop (after the first inducing input) once the largest residual prior std at
         the training inputs is below ``std_tol`` times the exact posterior std there (its

@@ -302,6 +302,10 @@ class SafetyFilter(Controller):
         if formula is not None and not monitor:
             self._check_smooth(formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H)
         max_iter = check_max_iter(max_iter)
+        if sample_time is not None and not self.cbfs:
+            raise ParameterError(
+                "sample_time shifts the barriers' conditions: give cbfs= (none were given)"
+            )
         sample_time, ddh_bound = check_sampled(sample_time, ddh_bound, len(self.cbfs))
         check_params((), kappa=kappa, rho=rho, phi=phi, varphi=varphi)
         if slack_weight is not None:

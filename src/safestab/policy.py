@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from ._params import trace_shape
 from ._validation import check_real
 from .certificates import CBF, CLF
-from .errors import DimensionError, InputTypeError, ParameterError
+from .errors import DimensionError, InputTypeError
 from .filters import SafetyFilter
 from .formulas.passthrough import PassThrough
 from .systems import ControlAffineSystem
@@ -142,10 +142,6 @@ class PolicyController(SafetyFilter):
             raise InputTypeError(
                 f"cbfs must be a CBF or a sequence of them, got {type(cbfs).__name__}"
             ) from None
-        if sample_time is not None and not cbf_list:
-            raise ParameterError(
-                "sample_time shifts the barriers' conditions: give cbfs= (none were given)"
-            )
         self.policy, self.weights = policy, weights
         SafetyFilter.__init__(
             self,

@@ -77,7 +77,8 @@ class Trajectory:
         apply at the final state).
     V, h : arrays of shape (..., T)
         CLF and CBF values at ``x`` (NaN where a controller has no CLF, or no CBF); for a
-        :class:`~safestab.SafetyFilter`, shapes (..., T, p) and (..., T, k): one value per
+        :class:`~safestab.SafetyFilter` (any formula) or a
+        :class:`~safestab.PolicyController`, shapes (..., T, p) and (..., T, k): one value per
         CLF and per CBF.
     region : int array of shape (..., T)
         :class:`~safestab.formulas.Region` per step; for a filter its

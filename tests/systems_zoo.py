@@ -1,6 +1,7 @@
 """Small systems used across the tests."""
 
 import jax.numpy as jnp
+import numpy as np
 
 from safestab import CBF, CLF, ControlAffineSystem
 
@@ -54,3 +55,40 @@ def small_stress_gp():
         noise=np.full(3, 0.01), lengthscale=np.tile([25.0, 25.0, 250.0], (3, 1)),
     )  # fmt: skip
     return sc, gp, rng
+
+
+#: The three-disc scene of the filter export tests: obstacles, their radius and the goal.
+DISC_OBSTACLES = np.array([[0.0, 0.0], [3.0, 0.0], [1.5, 2.0]])
+DISC_RADIUS = 1.0
+DISC_GOAL = np.array([6.0, 0.0])
+
+
+def disc_robot():
+    """A point robot (single integrator, n = m = 2) and a CBF per disc (beta = 1)."""
+    system = ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="robot")
+    cbfs = [CBF(lambda x, o=o: jnp.sum((x - o) ** 2) - DISC_RADIUS**2, beta=1.0)
+            for o in DISC_OBSTACLES]  # fmt: skip
+    return system, cbfs
+
+
+def disc_clf():
+    """``|x - goal|^2`` with rate 0.2."""
+    return CLF(lambda x: jnp.sum((x - DISC_GOAL) ** 2), lam=0.2)
+
+
+def disc_filter():
+    """The three discs, a hard CLF to the goal, |u_i| <= 1: every phase of the solver."""
+    from safestab import SafetyFilter
+
+    system, cbfs = disc_robot()
+    return SafetyFilter(system, cbfs, clfs=disc_clf(), u_nom=lambda x: 0.3 * (DISC_GOAL - x),
+                        u_min=-1.0, u_max=1.0)  # fmt: skip
+
+
+def disc_states() -> np.ndarray:
+    """220 states: spread over the scene, near the goal, and inside the discs."""
+    rng = np.random.default_rng(3)
+    spread = rng.uniform([-2.5, -2.5], [8.0, 4.0], (150, 2))
+    near_goal = DISC_GOAL + rng.normal(scale=0.8, size=(30, 2))
+    inside = DISC_OBSTACLES[rng.integers(0, 3, 40)] + rng.normal(scale=0.3, size=(40, 2))
+    return np.concatenate([spread, near_goal, inside])

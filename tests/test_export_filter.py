@@ -18,41 +18,20 @@ import numpy as np
 import pytest
 from jax import lax
 
-import safestab as ss
 from safestab.errors import InfeasibleError, UnsupportedPrimitiveError
 from safestab.export import NativeController, compile_native, export_c, export_function
 from safestab.export.harness import HARNESS_FLAGS, compare, comparison_scales, write_harness
 from safestab.formulas import MultiStatus
 
+from .systems_zoo import disc_filter, disc_states
+
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
-
-OBSTACLES = np.array([[0.0, 0.0], [3.0, 0.0], [1.5, 2.0]])
-RADIUS = 1.0
-GOAL = np.array([6.0, 0.0])
-
-
-def _filter() -> ss.SafetyFilter:
-    """A point robot (single integrator) among three discs, a hard CLF to a goal, |u_i| <= 1."""
-    system = ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="robot")
-    cbfs = [ss.CBF(lambda x, o=o: jnp.sum((x - o) ** 2) - RADIUS**2, beta=1.0) for o in OBSTACLES]
-    clf = ss.CLF(lambda x: jnp.sum((x - GOAL) ** 2), lam=0.2)
-    return ss.SafetyFilter(
-        system, cbfs, clfs=clf, u_nom=lambda x: 0.3 * (GOAL - x), u_min=-1.0, u_max=1.0
-    )
-
-
-def _states() -> np.ndarray:
-    rng = np.random.default_rng(3)
-    spread = rng.uniform([-2.5, -2.5], [8.0, 4.0], (150, 2))
-    near_goal = GOAL + rng.normal(scale=0.8, size=(30, 2))
-    inside = OBSTACLES[rng.integers(0, 3, 40)] + rng.normal(scale=0.3, size=(40, 2))
-    return np.concatenate([spread, near_goal, inside])
 
 
 @pytest.fixture(scope="module")
 def case():
-    filt = _filter()
-    x = _states()
+    filt = disc_filter()
+    x = disc_states()
     out = filt.step_fn(jnp.asarray(x))
     return filt, x, out
 

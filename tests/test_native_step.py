@@ -21,51 +21,25 @@ from safestab.errors import CompilationError, DimensionError, ParameterError
 from safestab.export import export_c, jax_function, native_step
 from safestab.formulas import MultiStatus
 
+from .systems_zoo import DISC_GOAL, disc_clf, disc_filter, disc_robot, disc_states
+
 pytestmark = pytest.mark.skipif(
     shutil.which("cc") is None or shutil.which("c++") is None, reason="no C/C++ compiler"
 )
 
-OBSTACLES = np.array([[0.0, 0.0], [3.0, 0.0], [1.5, 2.0]])
-RADIUS = 1.0
-GOAL = np.array([6.0, 0.0])
-
-
-def _system():
-    return ss.ControlAffineSystem(lambda x: jnp.zeros(2), lambda x: jnp.eye(2), 2, name="robot")
-
-
-def _cbfs():
-    return [ss.CBF(lambda x, o=o: jnp.sum((x - o) ** 2) - RADIUS**2, beta=1.0) for o in OBSTACLES]
-
-
-def _hard_filter() -> ss.SafetyFilter:
-    """Three discs, a hard CLF to a goal, |u_i| <= 1: every phase of the solver is reached."""
-    clf = ss.CLF(lambda x: jnp.sum((x - GOAL) ** 2), lam=0.2)
-    return ss.SafetyFilter(
-        _system(), _cbfs(), clfs=clf, u_nom=lambda x: 0.3 * (GOAL - x), u_min=-1.0, u_max=1.0
-    )
-
 
 def _soft_filter() -> ss.SafetyFilter:
     """A soft CLF, a weight H, phi and varphi, one-sided limits."""
-    clf = ss.CLF(lambda x: jnp.sum((x - GOAL) ** 2), lam=0.2)
+    system, cbfs = disc_robot()
     return ss.SafetyFilter(
-        _system(), _cbfs(), clfs=clf, u_nom=lambda x: 0.3 * (GOAL - x), slack_weight=3.0,
+        system, cbfs, clfs=disc_clf(), u_nom=lambda x: 0.3 * (DISC_GOAL - x), slack_weight=3.0,
         H=np.array([[2.0, 0.3], [0.3, 1.0]]), phi=0.5, varphi=0.2, rho=0.1, u_max=1.2,
     )  # fmt: skip
 
 
-def _states() -> np.ndarray:
-    rng = np.random.default_rng(3)
-    spread = rng.uniform([-2.5, -2.5], [8.0, 4.0], (150, 2))
-    near_goal = GOAL + rng.normal(scale=0.8, size=(30, 2))
-    inside = OBSTACLES[rng.integers(0, 3, 40)] + rng.normal(scale=0.3, size=(40, 2))
-    return np.concatenate([spread, near_goal, inside])
-
-
 @pytest.fixture(scope="module", params=["hard", "soft"])
 def case(request):
-    filt = _hard_filter() if request.param == "hard" else _soft_filter()
+    filt = disc_filter() if request.param == "hard" else _soft_filter()
     return request.param, filt, native_step(filt, name=f"ns_{request.param}")
 
 
@@ -80,14 +54,14 @@ def _assert_same(got, ref):
 
 
 def test_the_states_reach_every_phase():
-    out = _hard_filter().step_fn(jnp.asarray(_states()))
+    out = disc_filter().step_fn(jnp.asarray(disc_states()))
     seen = set(np.asarray(out.formula_status).tolist())
     assert {MultiStatus.SOLVED, MultiStatus.CLF_DROPPED, MultiStatus.CBF_RELAXED} <= seen
 
 
 def test_values_equal_the_jax_step(case):
     _, filt, step = case
-    x = jnp.asarray(_states())
+    x = jnp.asarray(disc_states())
     ref = filt.step_fn(x)
     _assert_same(jax.jit(step)(x), ref)  # a batch: one loop in C
     _assert_same(jax.jit(jax.vmap(step))(x), ref)  # a user's vmap
@@ -100,7 +74,7 @@ def test_values_equal_the_jax_step(case):
 
 def test_derivative_equals_the_jax_steps_jvp(case):
     kind, filt, step = case
-    x = jnp.asarray(_states())
+    x = jnp.asarray(disc_states())
     dx = jnp.asarray(np.random.default_rng(1).normal(size=x.shape))
     ref_out, ref = jax.jvp(filt.step_fn, (x,), (dx,))
     _, got = jax.jit(lambda x, dx: jax.jvp(step, (x,), (dx,)))(x, dx)
@@ -126,7 +100,7 @@ def test_derivative_equals_the_jax_steps_jvp(case):
 
 def test_derivative_equals_finite_differences_of_the_c_step(case):
     _, filt, step = case
-    x = _states()
+    x = disc_states()
     out = filt.step_fn(jnp.asarray(x))
     # interior points of an active set: the set is the same at x +- h in both directions
     h = 1e-6
@@ -150,7 +124,7 @@ def test_derivative_equals_finite_differences_of_the_c_step(case):
 
 
 def test_bad_arguments_are_named():
-    filt = _hard_filter()
+    filt = disc_filter()
     with pytest.raises(ParameterError, match="SafetyFilter"):
         native_step(object())
     with pytest.raises(ParameterError, match="double precision"):
@@ -161,12 +135,12 @@ def test_bad_arguments_are_named():
 
 
 def test_a_missing_compiler_raises_or_falls_back():
-    filt = _hard_filter()
+    filt = disc_filter()
     with pytest.raises(CompilationError, match="no C\\+\\+ compiler"):
         native_step(filt, name="ns_nocxx", cxx_compiler="no-such-compiler++")
     with pytest.warns(RuntimeWarning, match="falls back on the JAX step"):
         step = native_step(filt, name="ns_nocxx", cxx_compiler="no-such-compiler++", fallback=True)
-    x = jnp.asarray(_states()[:5])
+    x = jnp.asarray(disc_states()[:5])
     np.testing.assert_array_equal(step(x).u, filt.step_fn(x).u)
 
 

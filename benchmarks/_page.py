@@ -75,6 +75,23 @@ def median_us(fn, args, repeat):
     return float(np.median(times) * 1e6)
 
 
+def states_per_second(fn, x, repeat=5):
+    """States per second of ``fn(x)`` on a batch ``x`` (the median of ``repeat`` calls after a
+    warm-up, each waited for with ``jax.block_until_ready``)."""
+    import time
+
+    import jax
+    import numpy as np
+
+    jax.block_until_ready(fn(x))
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(x))
+        times.append(time.perf_counter() - t0)
+    return len(x) / float(np.median(times))
+
+
 def measured(r: dict) -> str:
     """ "Measured DATE, N CPUs, load average X at the start" for a result with ``machine``."""
     m = r["machine"]

@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 import safestab as ss  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
+from _page import states_per_second  # noqa: E402
 from filter import RADIUS, robot_filter  # noqa: E402
 
 BATCH = 1_000
@@ -125,16 +126,6 @@ def one_call_us(fn, states, calls):
             ts[i] = time.perf_counter() - t
         rounds.append(np.median(ts))
     return 1e6 * float(np.median(rounds))
-
-
-def per_second(fn, x):
-    jax.block_until_ready(fn(x))
-    ts = []
-    for _ in range(5):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(x))
-        ts.append(time.perf_counter() - t)
-    return x.shape[0] / float(np.median(ts))
 
 
 def qp_rows(filt, states):
@@ -224,7 +215,7 @@ def run_problem(name, filt, states, calls):
         )  # fmt: skip
         r["one_call_us"] = one_call_us(jax.jit(lambda s, fn=fn: fn(s).u), one, calls)
         vm = jax.jit(jax.vmap(lambda s, fn=fn: fn(s).u))
-        r["vmap_per_s"] = per_second(vm, x)
+        r["vmap_per_s"] = states_per_second(vm, x)
         print(f"  {key}: one call {r['one_call_us']:.1f} us, vmap {r['vmap_per_s']:.3g}/s, "
               f"first call {r['first_call_s']:.1f} s", flush=True)  # fmt: skip
     # the derivative: jvp of u inside a user's jit, one state
@@ -279,7 +270,7 @@ def large_problem(rng):
     x = jnp.asarray(robot_states(rng, obstacles, BATCH, oversample=40))
     out = {"discs": LARGE_DISCS, "rows": LARGE_DISCS + 4, "batch": int(x.shape[0]),
            "target_per_s": LARGE_TARGET}  # fmt: skip
-    out["xla_vmap_per_s"] = per_second(jax.jit(jax.vmap(lambda s: filt.step_fn(s).u)), x)
+    out["xla_vmap_per_s"] = states_per_second(jax.jit(jax.vmap(lambda s: filt.step_fn(s).u)), x)
     fs = np.asarray(jax.jit(jax.vmap(filt.step_fn))(x).formula_status)
     out["formula_status_shares"] = {
         ss.formulas.MultiStatus(int(v)).name: float(np.mean(fs == v)) for v in np.unique(fs)
@@ -290,7 +281,7 @@ def large_problem(rng):
         out["ffi_vmap_per_s"] = None
         out["ffi_refused"] = str(exc)
     else:
-        out["ffi_vmap_per_s"] = per_second(jax.jit(jax.vmap(lambda s: ffi(s).u)), x)
+        out["ffi_vmap_per_s"] = states_per_second(jax.jit(jax.vmap(lambda s: ffi(s).u)), x)
         out["ffi_refused"] = None
     print(f"  xla vmap {out['xla_vmap_per_s']:.3g}/s; ffi "
           f"{out['ffi_vmap_per_s'] or out['ffi_refused']}", flush=True)  # fmt: skip

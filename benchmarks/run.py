@@ -213,6 +213,8 @@ def bench_export(c_fast, c_nom, states_1, xb, repeat):
         "GP-robust, portable flags of the harness": c_loop_ns(c_fast, states_np[:200], False),
         "nominal, flags of NativeController": c_loop_ns(c_nom, states_np[:200], True),
     }
+    from _page import states_per_second
+
     thr = {}
     xb_np = np.asarray(xb)
     for name, fn, arg in [
@@ -221,13 +223,7 @@ def bench_export(c_fast, c_nom, states_1, xb, repeat):
         ("JAX batched nominal step (input_fn)", c_nom.input_fn, xb),
         ("native batched nominal step", n_nom, xb_np),
     ]:
-        jax.block_until_ready(fn(arg))
-        reps = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(arg))
-            reps.append(time.perf_counter() - t0)
-        thr[name] = {"states_per_second": len(arg) / float(np.median(reps)), "batch": len(arg)}
+        thr[name] = {"states_per_second": states_per_second(fn, arg), "batch": len(arg)}
     out["throughput"] = thr
     return out
 

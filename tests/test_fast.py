@@ -490,3 +490,51 @@ def test_pivoted_cholesky_never_chooses_a_row_twice(n, lengthscale, tol, repeats
     assert len(set(idx.tolist())) == len(idx)  # distinct rows
     assert np.all(resid[idx] == 0.0)  # a chosen row is resolved exactly
     assert len(idx) == n or resid.max() <= tol  # stopped at the cap or at the tolerance
+
+
+def test_size_bucket_covers_the_size_with_at_most_a_quarter_more():
+    from safestab.learning.fast import size_bucket
+
+    sizes = np.arange(1, 5000)
+    buckets = np.array([size_bucket(n) for n in sizes])
+    assert np.all(buckets >= sizes)
+    assert np.all(np.diff(buckets) >= 0)
+    big = sizes > 16
+    assert np.all(buckets[big] <= 1.25 * sizes[big])
+    assert len(np.unique(buckets[(sizes > 64) & (sizes <= 128)])) == 4  # four per octave
+
+
+@pytest.mark.parametrize("kind", ["se", "matern52"])
+def test_padded_kernel_rows_equal_the_unpadded_kernel_matrix(kind):
+    from safestab.learning._posterior import kernel_matrix
+    from safestab.learning.fast import kernel_rows
+
+    rng = np.random.default_rng(3)
+    ls = np.array([0.7, 1.3])
+    for n1, n2 in [(75, 400), (83, 83), (17, 5), (1, 30)]:
+        x1, x2 = rng.normal(size=(n1, 2)), rng.normal(size=(n2, 2))
+        exact = np.asarray(kernel_matrix(1.3, jnp.asarray(ls), jnp.asarray(x1), jnp.asarray(x2),
+                                         kind=kind))  # fmt: skip
+        got = kernel_rows(1.3, ls, x1, x2, kind)
+        assert got.shape == (n1, n2)
+        # the same pairwise evaluation; XLA may vectorise another loop length (the last bit)
+        np.testing.assert_allclose(got, exact, rtol=4e-16 * 8, atol=0)
+
+
+def test_a_new_number_of_inducing_inputs_in_the_same_bucket_compiles_nothing(acc_gp):
+    """A Monte Carlo study fits a cache per data set, each stopping at its own size: the
+    kernel matrices and the batched band run the programs compiled for the first."""
+    from tests.jax_events import traces_while
+
+    _, gp, test = acc_gp
+    FastGP(gp, 21, pivot_tol=0.0, std_tol=0.0, warn=False).predict(test.x[:7], return_std=True)
+    built = []
+    traces = traces_while(
+        lambda: built.append(
+            FastGP(gp, 23, pivot_tol=0.0, std_tol=0.0, warn=False).predict(
+                test.x[:7], return_std=True
+            )
+        )
+    )
+    assert list(built[0][0].shape) == [7, gp.x_train_.shape[1]]
+    assert traces == [], traces

@@ -9,6 +9,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def over_batch(fn: Callable[[jax.Array], Any], x: jax.Array) -> Any:
@@ -25,9 +26,21 @@ def over_batch(fn: Callable[[jax.Array], Any], x: jax.Array) -> Any:
     return jax.tree_util.tree_map(lambda leaf: leaf.reshape(batch + leaf.shape[1:]), out)
 
 
+def device_array(x: Any, dtype: Any = None) -> jax.Array:
+    """``x`` as a JAX array (of ``dtype`` if given), without compiling a program for it.
+
+    ``jnp.asarray`` of host data compiles (and caches) a small conversion program per shape
+    and dtype; ``jax.device_put`` of a numpy array compiles nothing. Host data (numpy arrays,
+    lists, numbers) goes by the latter; a JAX array or a tracer by ``jnp.asarray``.
+    """
+    if isinstance(x, jax.Array):  # tracers included
+        return jnp.asarray(x, dtype=dtype)
+    return jax.device_put(np.asarray(x, dtype=dtype))
+
+
 def as_float_array(x: Any) -> jax.Array:
-    """Return ``x`` as a float64 JAX array."""
-    return jnp.asarray(x, dtype=jnp.float64)
+    """Return ``x`` as a float64 JAX array (host data without compiling, :func:`device_array`)."""
+    return device_array(x, jnp.float64)
 
 
 def in_threads(fn: Callable[[Any], Any], items: Any, workers: int, done: Callable) -> list:

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from .._batching import device_array
 from .._validation import check_finite, check_scalar_range
 from .._values import register_model
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
@@ -101,6 +102,66 @@ def pivoted_cholesky(kfn, xs: np.ndarray, amp2: float, m: int, tol: float, floor
         diag = np.maximum(diag - rows[i] ** 2, 0.0)
         diag[chosen] = 0.0  # exactly resolved: never chosen again
     return np.array(chosen), diag
+
+
+def size_bucket(n: int) -> int:
+    """``n`` rounded up to one of four sizes per octave (16, 20, 24, 28, 32, 40, ...).
+
+    The host-side kernel matrices and batched band evaluations are padded to these sizes, so
+    that a data set whose pivoted Cholesky stops at a new number of inducing inputs runs a
+    program compiled for an earlier one: one compilation per bucket, not per size (a Monte
+    Carlo study of 1,000 data sets otherwise compiled a handful of programs for each, until
+    the process ran out of memory maps), at most 25 % more work.
+    """
+    n = int(n)
+    if n <= 16:
+        return 16
+    step = 1 << (n.bit_length() - 3)
+    return -(-n // step) * step
+
+
+def kernel_rows(
+    amp: float, ls, x1: np.ndarray, x2: np.ndarray, kind: str, pad: tuple[bool, bool] = (True, True)
+) -> np.ndarray:
+    """The kernel matrix ``(N1, N2)`` of ``x1`` (N1, n) and ``x2`` (N2, n), as a numpy array.
+
+    :func:`kernel_matrix` with the rows of the arguments flagged in ``pad`` padded (by
+    repeating the last) to :func:`size_bucket` sizes, then cut back. Pad what varies from call
+    to call (the inducing inputs), not what a study keeps fixed (its training rows, one
+    pivot's column). An entry may differ from the unpadded call's in its last bit (XLA
+    vectorises a different loop length).
+    """
+    x1, x2 = np.asarray(x1, float), np.asarray(x2, float)
+    n1, n2 = x1.shape[0], x2.shape[0]
+
+    def padded(x, flag):
+        extra = size_bucket(len(x)) - len(x) if flag else 0
+        return np.concatenate([x, np.repeat(x[-1:], extra, 0)]) if extra else x
+
+    k = kernel_matrix(amp, device_array(ls), device_array(padded(x1, pad[0])),
+                      device_array(padded(x2, pad[1])), kind=kind)  # fmt: skip
+    return np.asarray(k)[:n1, :n2]
+
+
+def pad_inducing(p: dict, m: int) -> dict:
+    """A cache's arrays (``FastGP.arrays`` layout) with the inducing axis padded to ``m``.
+
+    Padded rows are what :meth:`FastGP._pack` gives a component with fewer inducing inputs
+    than the largest: zero inputs, weights and maps, and ``mask`` False.
+    """
+    have = p["z"].shape[1]
+    if m == have:
+        return p
+    out = dict(p)
+    grow = m - have
+    # numpy's pad (an eager jnp.pad would compile a program per size)
+    out["z"] = device_array(np.pad(np.asarray(p["z"]), ((0, 0), (0, grow), (0, 0))))
+    out["mask"] = device_array(np.pad(np.asarray(p["mask"]), ((0, 0), (0, grow))))
+    for key in ("li", "kzz", "g", "cm"):
+        out[key] = device_array(np.pad(np.asarray(p[key]), ((0, 0), (0, grow), (0, grow))))
+    for key in ("b", "rho_b"):
+        out[key] = device_array(np.pad(np.asarray(p[key]), ((0, 0), (0, grow))))
+    return out
 
 
 def _psd_root(mat: np.ndarray) -> np.ndarray:
@@ -189,10 +250,7 @@ def _cross_terms(model, j, xs, z, idx, li, kzz, v, ek):
     gam[idx, np.arange(m)] += 1.0
     cm = np.linalg.qr(gam, mode="r")
     cm = cm * (1.0 + 4 * (q + m) * _U)
-    kzx = np.asarray(
-        kernel_matrix(amp, jnp.asarray(model.lengthscale_std_[j]), jnp.asarray(z), jnp.asarray(xs),
-                      kind=model.kernel)
-    )  # fmt: skip
+    kzx = kernel_rows(amp, model.lengthscale_std_[j], z, xs, model.kernel, pad=(True, False))
     wx = li.T @ (li @ kzx)
     qx = amp * amp - 2.0 * np.sum(wx * kzx, 0) + np.sum(wx * (kzz @ wx), 0)
     c1 = np.sum(np.abs(wx), 0)
@@ -231,7 +289,8 @@ def inducing_inputs(model, j, xs, n_inducing, pivot_tol, floor_std):
     Returns
     -------
     kfn : callable
-        ``kfn(x1, x2)``: the component's kernel matrix of standardised inputs.
+        ``kfn(x1, x2, pad=(False, False))``: the component's kernel matrix of standardised
+        inputs (a numpy array; ``pad`` as :func:`kernel_rows`).
     z : array of shape (M, n)
     kzz : array of shape (M, M)
     lj : array of shape (M, M)
@@ -242,14 +301,14 @@ def inducing_inputs(model, j, xs, n_inducing, pivot_tol, floor_std):
         The rows of ``xs`` chosen.
     """
     amp = float(model.amplitude_[j])
-    ls_j = jnp.asarray(model.lengthscale_std_[j])
+    ls_j = np.asarray(model.lengthscale_std_[j])
 
-    def kfn(x1, x2):
-        return kernel_matrix(amp, ls_j, jnp.asarray(x1), jnp.asarray(x2), kind=model.kernel)
+    def kfn(x1, x2, pad=(False, False)):
+        return kernel_rows(amp, ls_j, x1, x2, model.kernel, pad)
 
     idx, _ = pivoted_cholesky(kfn, xs, amp * amp, n_inducing, pivot_tol, floor_std**2)
     z = xs[idx]
-    kzz = np.asarray(kfn(z, z))
+    kzz = kfn(z, z, pad=(True, True))  # z's size varies from data set to data set
     # The pivoted Cholesky kept pivots >= pivot_tol amp^2, so K_ZZ is positive definite as it
     # usually is; the jitter is the fallback (any factor keeps the band proven: it only
     # makes the projection weights c, whose quadratic q is evaluated as it is)
@@ -351,21 +410,21 @@ class InducingBand(Predictor):
 
         # padded rows get zero kernel values (masked), zero weights and zero maps
         self._params = {
-            "offset": jnp.asarray(model.x_offset_),
-            "scale": jnp.asarray(model.x_scale_),
-            "amp": jnp.asarray(model.amplitude_),
-            "ls": jnp.asarray(model.lengthscale_std_),
-            "z": jnp.asarray(np.stack([pad(z, (m_max, n)) for z in zs])),
-            "mask": jnp.asarray(np.stack([np.arange(m_max) < len(z) for z in zs])),
-            "mu": jnp.asarray(model.mean_, dtype=float),
+            "offset": device_array(model.x_offset_),
+            "scale": device_array(model.x_scale_),
+            "amp": device_array(model.amplitude_),
+            "ls": device_array(model.lengthscale_std_),
+            "z": device_array(np.stack([pad(z, (m_max, n)) for z in zs])),
+            "mask": device_array(np.stack([np.arange(m_max) < len(z) for z in zs])),
+            "mu": device_array(model.mean_, dtype=float),
         }
         for key in ("li", "kzz", "g", "cm"):
-            self._params[key] = jnp.asarray(np.stack([pad(c[key], (m_max, m_max)) for c in comps]))
+            self._params[key] = device_array(np.stack([pad(c[key], (m_max, m_max)) for c in comps]))
         for key in ("b", "rho_b"):
-            self._params[key] = jnp.asarray(np.stack([pad(c[key], (m_max,)) for c in comps]))
+            self._params[key] = device_array(np.stack([pad(c[key], (m_max,)) for c in comps]))
         for key in ("err", "ek", "gnorm", "bnorm", "rho_err", "rho", "wnorm", "cnorm"):
-            self._params[key] = jnp.asarray(np.array([float(c[key]) for c in comps]))
-        self._mu = jnp.asarray(model.mean_, dtype=float)
+            self._params[key] = device_array(np.array([float(c[key]) for c in comps]))
+        self._mu = device_array(model.mean_, dtype=float)
         self._m = m_max
         self.n_inducing_ = np.array([len(z) for z in zs])
         self.inducing_ = np.asarray(self._params["z"]) * model.x_scale_ + model.x_offset_
@@ -432,7 +491,10 @@ class InducingBand(Predictor):
         return band_point(self._params, x, kind, self.unit, self.proven)
 
     def _parts_batch(self, x: np.ndarray):
-        return band_batch(self._params, jnp.asarray(x), self.model.kernel, self.unit, self.proven)
+        # the inducing axis padded to its bucket (masked rows add exact zeros): one program
+        # per bucket, not per number of inducing inputs
+        p = pad_inducing(self._params, size_bucket(self._params["z"].shape[1]))
+        return band_batch(p, jnp.asarray(x), self.model.kernel, self.unit, self.proven)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Copies of the cache's arrays, for evaluating the same band elsewhere (batched).

@@ -180,7 +180,7 @@ class SparseGP(InducingBand):
                 vvt, vy = np.zeros((m, m)), np.zeros(m)
                 for s in range(0, q, self.chunk):
                     v = scipy.linalg.solve_triangular(
-                        lj, np.asarray(kfn(z, xs[s : s + self.chunk])), lower=True
+                        lj, kfn(z, xs[s : s + self.chunk], pad=(True, False)), lower=True
                     )
                     vvt += v @ v.T
                     vy += v @ target[s : s + self.chunk]

@@ -32,11 +32,10 @@ bound ``M`` from the hand derivation (disc: ``-h'' = 2 |u|^2 <= 4``), the closed
 ``braking_ddh_bound`` (``stress-limited``'s ``montecarlo.ddh_bound``, a proof), or estimated
 by ``safestab.sampled.ddh_bound`` over the stated box (the ``acc`` loop, the obstacle).
 docs/deployed.md's tables come from this file's output (``scripts/reproduce-docs.sh``, step
-``deployed``; with ``--long``, step ``deployed-long``: ``--no-loops --datasets 1000``,
-the Monte Carlo part at 1,000 data sets x 10 trials: about 2 h on a shared 2-core machine,
-projected linearly from the normal step's 7.1 s per data set with JAX's compilation cache
-warm (19.5 s, so 5.4 h, with it cold and the machine loaded); the normal step writes its own
-measurement and projection in docs/deployed.md, block ``deployed-mc-time``).
+``deployed``; with ``--long``, step ``deployed-long``: ``--no-loops --datasets 1000
+--obstacle-trials-per-dataset 10``, the Monte Carlo part at 1,000 data sets x 10 trials, whose
+measured time docs/deployed.md states beside its table, block ``deployed-mc-long-time``; the
+normal step writes its own measurement and projection there, block ``deployed-mc-time``).
 """
 
 from __future__ import annotations

@@ -212,3 +212,19 @@ def test_exported_gp_controller_runs_with_the_studys_beta_method():
     ctrl, description, _ = scenario_controller(chosen, "gp", n_inducing=8)
     np.testing.assert_array_equal(np.asarray(ctrl.gp_beta), sc.gp_beta)
     assert "GP beta = 2 (learning.gp_beta)" in description
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::safestab.errors.InducingPointsWarning")
+def test_a_float_target_build_of_an_unresolvable_gp_picks_double_and_says_so(tmp_path, tools):
+    # benchmarks/embedded.py's stress, gp, cortex-m4 row runs the same export
+    said = []
+    rep = export_scenario("stress", tmp_path, controller="gp", precision="float", cases=8,
+                          target="cortex-m4", progress=said.append)  # fmt: skip
+    assert rep.exported.precision == "double"
+    assert rep.embedded.precision == "double"
+    assert len(rep.notes) == 1 and "cannot evaluate this GP cache" in rep.notes[0]
+    assert "in double instead" in rep.notes[0] and rep.notes[0] in said
+    assert "Double, not float" in next(tmp_path.glob("*.h")).read_text()
+    _check(rep)
+    assert rep.embedded.harness_mismatches == 0

@@ -501,6 +501,8 @@ def export_cmd(
     except SafeStabError as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(code=2) from None
+    for note in report.notes:
+        console.print(f"[yellow]note:[/yellow] {note}")
     for path in report.files:
         console.print(f"wrote {path}")
     console.print(f"build the harness: {report.build_command}")

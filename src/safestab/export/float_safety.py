@@ -15,7 +15,13 @@ import numpy as np
 from ..errors import ParameterError
 from .harness import DEFAULT_RTOL, cbf_condition_scale
 
-__all__ = ["FLOAT_WIDENING_LIMIT", "box_test_states", "float_safe_controller"]
+__all__ = [
+    "FLOAT_WIDENING_LIMIT",
+    "box_test_states",
+    "float_check_states",
+    "float_refusal",
+    "float_safe_controller",
+]
 
 
 def _corners(low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -42,6 +48,52 @@ def box_test_states(low: Any, high: Any, n: int = 4000, seed: int = 5) -> np.nda
 #: The float export of a GP cache is refused when float rounding widens its std by more
 #: than this factor somewhere in the box (:func:`float_safe_controller`).
 FLOAT_WIDENING_LIMIT = 10.0
+
+
+def float_check_states(
+    low: Any, high: Any, *, extra_states: Any = None, n_states: int = 4096, seed: int = 0
+) -> np.ndarray:
+    """The states a float export is checked at, shape (N, n).
+
+    ``n_states`` uniform states of the box ``low <= x <= high``, its corners and
+    ``extra_states``, rounded to float (what a float step is given).
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    rng = np.random.default_rng(seed)
+    parts = [rng.uniform(low, high, size=(n_states, len(low))), _corners(low, high)]
+    if extra_states is not None:
+        parts.append(np.asarray(extra_states, float))
+    return np.concatenate(parts).astype(np.float32).astype(np.float64)
+
+
+def float_refusal(controller: Any, x: Any) -> str | None:
+    """Why a float step cannot carry the controller's GP cache at states ``x``, or None.
+
+    The reason (the message :func:`float_safe_controller` raises) when float rounding alone
+    widens the cache's std by more than :data:`FLOAT_WIDENING_LIMIT` at some state of ``x``
+    (N, n): the posterior variance is so far below the prior's that ``amp^2 - |a|^2`` cancels
+    more digits than float has. None for a controller without such a cache.
+    """
+    unc = controller.uncertainty
+    if unc is None or not hasattr(unc, "for_precision"):
+        return None
+    x = np.asarray(x, float)
+    _, std = unc.predict(x, return_std=True)
+    _, std_f = unc.for_precision("float").predict(x, return_std=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(std > 0, std_f / std, 1.0).max(0)
+    worst = int(np.argmax(ratio))
+    if ratio[worst] <= FLOAT_WIDENING_LIMIT:
+        return None
+    return (
+        "precision='float' cannot evaluate this GP cache: for state component "
+        f"{worst}, float rounding alone widens the std up to {ratio[worst]:.3g} times "
+        f"the float64 cache's (to {std_f[:, worst].max():.3g} where the float64 "
+        f"cache's is at most {std[:, worst].max():.3g}): the posterior variance is far "
+        "below the prior one there, and amp^2 - |a|^2 cancels more digits than float "
+        "has. Export in double (a Cortex-M7 with a double-precision FPU), or use a "
+        "GP whose posterior std is closer to its prior (docs/export.md)"
+    )
 
 
 def float_safe_controller(
@@ -82,31 +134,13 @@ def float_safe_controller(
     -------
     (controller, margin)
     """
-    low, high = np.asarray(low, float), np.asarray(high, float)
-    rng = np.random.default_rng(seed)
-    corners = _corners(low, high)
-    parts = [rng.uniform(low, high, size=(n_states, len(low))), corners]
-    if extra_states is not None:
-        parts.append(np.asarray(extra_states, float))
-    x = np.concatenate(parts).astype(np.float32).astype(np.float64)
+    x = float_check_states(low, high, extra_states=extra_states, n_states=n_states, seed=seed)
+    reason = float_refusal(controller, x)
+    if reason is not None:
+        raise ParameterError(reason)
     unc = controller.uncertainty
     if unc is not None and hasattr(unc, "for_precision"):
         unc_f = unc.for_precision("float")
-        _, std = unc.predict(x, return_std=True)
-        _, std_f = unc_f.predict(x, return_std=True)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(std > 0, std_f / std, 1.0).max(0)
-        worst = int(np.argmax(ratio))
-        if ratio[worst] > FLOAT_WIDENING_LIMIT:
-            raise ParameterError(
-                "precision='float' cannot evaluate this GP cache: for state component "
-                f"{worst}, float rounding alone widens the std up to {ratio[worst]:.3g} times "
-                f"the float64 cache's (to {std_f[:, worst].max():.3g} where the float64 "
-                f"cache's is at most {std[:, worst].max():.3g}): the posterior variance is far "
-                "below the prior one there, and amp^2 - |a|^2 cancels more digits than float "
-                "has. Export in double (a Cortex-M7 with a double-precision FPU), or use a "
-                "GP whose posterior std is closer to its prior (docs/export.md)"
-            )
         controller = controller.replace(uncertainty=unc_f)
     margin = 0.0
     for _ in range(3):  # the margin moves u a little: recompute the scale at the new u

@@ -19,7 +19,7 @@ from ..controller_names import EXPORT_CHOICES
 from ..errors import CompilationError, ParameterError
 from ..export.embedded import TARGETS, run_on_target
 from ..export.exporter import check_name, check_precision, export_c
-from ..export.float_safety import float_safe_controller
+from ..export.float_safety import float_check_states, float_refusal, float_safe_controller
 from ..export.harness import HARNESS_FLAGS, comparison_scales, write_harness
 from ..export.native import find_compiler
 from ..learning import FastGP
@@ -47,6 +47,9 @@ class ExportReport:
     exported: Any = None  #: the ExportedC
     states: Any = None  #: the harness's recorded states, (N, n)
     embedded: Any = None  #: with ``target``, the EmbeddedReport
+    #: What the export decided on its own and why (a microcontroller's build in double where
+    #: float cannot carry the GP cache)
+    notes: tuple[str, ...] = ()
 
 
 def _writable_folder(out: str | Path) -> Path:
@@ -103,7 +106,9 @@ def export_scenario(
         Prefix of the C names and files (default ``"acc"`` or ``"obstacle"``).
     precision : {"double", "float"}, optional
         Default: the target's (``"float"`` for ``cortex-m4``, ``"double"`` for
-        ``cortex-m7``), else ``"double"``.
+        ``cortex-m7``), else ``"double"``. With a ``target``, float where float cannot carry
+        the GP cache (:func:`~safestab.export.float_safety.float_refusal`) becomes double,
+        said in the progress and the report's ``notes``; without one it is refused.
     cases : int
         Number of recorded states, >= 1.
     n_samples : int, optional
@@ -169,6 +174,21 @@ def export_scenario(
     states = rng.uniform(sc.x0_low, sc.x0_high, size=(int(cases), len(sc.x0_low)))
     if target is not None and hasattr(ctrl.uncertainty, "unpadded"):
         ctrl = ctrl.replace(uncertainty=ctrl.uncertainty.unpadded())  # fewer operations
+    notes: list[str] = []
+    if precision == "float" and target is not None:
+        # a microcontroller's build picks double where float cannot carry the GP cache (the
+        # Cortex-M4F runs it in software: its instruction count says what that costs)
+        as_float = states.astype(np.float32).astype(np.float64)
+        box = float_check_states(sc.x0_low, sc.x0_high, extra_states=as_float)
+        reason = float_refusal(ctrl, box)
+        if reason is not None:
+            precision = "double"
+            notes.append(
+                f"{reason}. The build for {target} is in double instead (in software where "
+                "the FPU is single precision: its instruction count says what that costs)"
+            )
+            say(notes[-1])
+            description += f" Double, not float: {notes[-1]}."
     if precision == "float":
         # the float step sees float states: record those, so that the comparison is of
         # the step's arithmetic, not of the rounding of its input
@@ -193,7 +213,7 @@ def export_scenario(
         f"-o {name}_harness && ./{name}_harness"
     )
     if not check:
-        return ExportReport(files, build, None, None, exported, states)
+        return ExportReport(files, build, None, None, exported, states, notes=tuple(notes))
     say("compiling and running the harness")
     cc = find_compiler()
     exe = out / f"{name}_harness"
@@ -209,7 +229,14 @@ def export_scenario(
     if target is not None:
         embedded = run_on_target(out, name, exported, states, target, progress=say)
     return ExportReport(
-        files, build, run.stdout + run.stderr, run.returncode == 0, exported, states, embedded
+        files,
+        build,
+        run.stdout + run.stderr,
+        run.returncode == 0,
+        exported,
+        states,
+        embedded,
+        tuple(notes),
     )
 
 

@@ -4,7 +4,8 @@
     bash scripts/reproduce-docs.sh --long          # also the 1,000-data-set Monte Carlo (15 min),
                                                    # the deployed study at 1,000 data sets
                                                    # (deployed-long: about 1 h here)
-                                                   # and the price of robustness
+                                                   # and the price of robustness (price,
+                                                   # price-obstacle)
     bash scripts/reproduce-docs.sh --only mc-presets obstacle
     bash scripts/reproduce-docs.sh --check         # write nothing, fail if a table would change
 
@@ -760,17 +761,19 @@ def datasets_summary(folder: Path) -> str:
     return json.dumps(summary, indent=1, allow_nan=False) + "\n"
 
 
-def step_price(out: Path) -> dict[str, tuple[str, str]]:
-    """The price-of-robustness study (--long): stress and obstacle, tables and figures."""
-    folder = out / "price"
-    tables = {}
-    for scenario, extra in PRICE_RUNS.items():
+def _price_step(scenario: str, extra: list[str]):
+    """The price-of-robustness study of one scenario (--long): its table and figure."""
+
+    def step(out: Path) -> dict[str, tuple[str, str]]:
+        folder = out / "price"
         _run([sys.executable, "benchmarks/price_of_robustness.py", "--scenario", scenario,
               "--out", str(folder), *extra])  # fmt: skip
         _copy(folder / f"price_{scenario}.png", f"figures/price_{scenario}.png")
         doc = _load(folder / f"price_{scenario}.json")
-        tables[f"price-{scenario}"] = ("docs/price.md", price_table(doc))
-    return tables
+        return {f"price-{scenario}": ("docs/price.md", price_table(doc))}
+
+    step.__doc__ = f"benchmarks/price_of_robustness.py --scenario {scenario} (--long)."
+    return step
 
 
 def step_price_limited(out: Path) -> dict[str, tuple[str, str]]:
@@ -787,11 +790,14 @@ def step_price_limited(out: Path) -> dict[str, tuple[str, str]]:
 PRICE_LIMITED_ARGS = ["--q", "25", "100", "500", "2000", "--datasets", "10",
                       "--trials-per-dataset", "2"]  # fmt: skip
 
-#: The price study's runs: scenario and arguments beyond the script's defaults.
+#: The price study's runs: scenario and arguments beyond the script's defaults (steps
+#: ``price`` and ``price-obstacle``).
 PRICE_RUNS = {
     "stress": [],
     "obstacle": ["--q", "25", "50", "100", "200", "400", "800", "1600", "--datasets", "20"],
 }
+step_price = _price_step("stress", PRICE_RUNS["stress"])
+step_price_obstacle = _price_step("obstacle", PRICE_RUNS["obstacle"])
 
 
 def step_gp_coverage(out: Path) -> dict[str, tuple[str, str]]:
@@ -877,9 +883,10 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "mc-datasets": step_mc_datasets,
     "deployed-long": step_deployed_long,
     "price": step_price,
+    "price-obstacle": step_price_obstacle,
     "price-limited": step_price_limited,
 }
-LONG = {"mc-datasets", "deployed-long", "price"}
+LONG = {"mc-datasets", "deployed-long", "price", "price-obstacle"}
 #: Blocks that state a measured time: written like the others, but a difference is reported,
 #: not failed, by --check (a time depends on the machine and its load, like a figure's bytes).
 MEASURED_TIMES = {"deployed-mc-time", "deployed-mc-long-time"}
@@ -907,7 +914,8 @@ PRODUCES = {
     "gallery": [],
     "mc-datasets": ["mc-datasets"],
     "deployed-long": ["deployed-mc-long", "deployed-mc-long-time"],
-    "price": ["price-stress", "price-obstacle"],
+    "price": ["price-stress"],
+    "price-obstacle": ["price-obstacle"],
     "price-limited": ["price-limited"],
 }
 

@@ -9,7 +9,8 @@ where this process may; else the error names them).
 Rows: the GP-robust ACC controller (presets paper and stress) and the obstacle scenario's
 GP-robust controller on a Cortex-M4F (float) and a Cortex-M7 (double), the stress preset's
 nominal controller in float, and a safety filter (a point robot among 8 discs, a CLF, input
-limits: the filter issue's problem). Each row: the harness under QEMU against the JAX step,
+limits) on the M7 in double and on the M4F in double and in float (``float_safe_controller``:
+float's tolerances and the CBF margin). Each row: the harness under QEMU against the JAX step,
 bit agreement with the host build of the same C, flash, RAM, stack (static call graph and
 measured), instructions per step. Then the float variant: its error against the float64
 step (relative to the harness's scales) on the recorded and on extreme states, and how often
@@ -71,6 +72,10 @@ def filter_row(target, out, precision=None):
 
     filt, states = robot_filter()
     t0 = time.perf_counter()
+    if precision == "float":  # float's tolerances and the CBF margin, over the scene's box
+        from safestab.export.float_safety import float_safe_controller
+
+        filt, _ = float_safe_controller(filt, [-6.0, -6.0], [6.0, 6.0], extra_states=states)
     rep = export_for_target(filt, "robot", out, states, target, precision=precision)
     row = {"problem": "safety filter: robot, 8 discs, CLF, limits", **rep.row()}
     row["seconds"] = time.perf_counter() - t0
@@ -286,7 +291,7 @@ def main() -> None:
                    "precision": "float", "refused": str(exc).split(":")[0]}  # fmt: skip
         print(json.dumps({k: v for k, v in row.items() if k != "flags"}), flush=True)
         res["rows"].append(row)
-    for target, precision in (("cortex-m7", None), ("cortex-m4", "double")):
+    for target, precision in (("cortex-m7", None), ("cortex-m4", "double"), ("cortex-m4", "float")):
         row = filter_row(target, args.build / f"filter_{target}", precision)
         print(json.dumps({k: v for k, v in row.items() if k != "flags"}), flush=True)
         res["rows"].append(row)

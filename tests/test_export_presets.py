@@ -228,3 +228,70 @@ def test_a_float_target_build_of_an_unresolvable_gp_picks_double_and_says_so(tmp
     assert "Double, not float" in next(tmp_path.glob("*.h")).read_text()
     _check(rep)
     assert rep.embedded.harness_mismatches == 0
+
+
+# -- the float safety filter --------------------------------------------------------------
+
+
+def _filter_condition_holds(filt, x, u):
+    """Every CBF condition of ``filt`` (float64 rows, no margin) at ``u``: (N, k)."""
+    _, _, c, d, _ = jax.vmap(filt.rows)(jnp.asarray(x))
+    c, d = np.asarray(c), np.asarray(d)
+    du = d * u[:, None, :]
+    return c + du.sum(-1) >= -1e-13 * (np.abs(c) + np.abs(du).sum(-1))  # rho = 0 here
+
+
+@pytest.mark.parametrize("margin", [True, False])
+# the host gcc's vectoriser crashes on the float filter (an internal compiler error); the
+# export compiles it again without it and says so (safestab/export/native.py)
+@pytest.mark.filterwarnings("ignore:.*internal compiler error:RuntimeWarning")
+def test_float_filter_flag_never_claims_a_violated_condition(margin):
+    from tests.systems_zoo import disc_filter
+
+    exact = disc_filter()
+    lo, hi = [-2.5, -2.5], [8.0, 4.0]
+    ctrl_f, m = float_safe_controller(exact, lo, hi)
+    assert ctrl_f.precision == "float" and m > 0
+    if not margin:  # float's tolerances without the margin: the test can fail
+        ctrl_f = ctrl_f.replace(cbf_margin=None)
+    native = NativeController(ctrl_f, name=f"ffilt{int(margin)}", precision="float")
+    x = box_test_states(lo, hi)
+    out_f = native.step(x)
+    u_f = np.asarray(out_f.u, dtype=np.float64)
+    ok = np.asarray(out_f.status) == 0
+    flag = np.asarray(out_f.cbf_satisfied) & ok[:, None]
+    holds = _filter_condition_holds(exact, x, np.where(ok[:, None], u_f, 0.0))
+    lied = flag & ~holds
+    if margin:
+        assert ok.mean() > 0.5, np.unique(np.asarray(out_f.status), return_counts=True)
+        assert not lied.any(), x[lied.any(-1)][:5]
+    else:
+        assert lied.any()  # a tight row in float misses the float64 condition by rounding
+
+
+def test_float_filter_takes_floats_tolerances_and_the_double_filters_decisions():
+    """precision="float" scales the solver's tolerances to float's rounding: in float64
+    arithmetic it ends on the double filter's active sets and statuses at these states."""
+    from tests.systems_zoo import disc_filter, disc_states
+
+    exact = disc_filter()
+    x = disc_states()
+    out, out_f = exact.step_fn(x), exact.replace(precision="float").step_fn(x)
+    np.testing.assert_array_equal(np.asarray(out_f.status), np.asarray(out.status))
+    np.testing.assert_array_equal(np.asarray(out_f.active), np.asarray(out.active))
+    np.testing.assert_allclose(np.asarray(out_f.u), np.asarray(out.u), rtol=0, atol=1e-4)
+    with pytest.raises(ParameterError, match="precision must be one of"):
+        exact.replace(precision="half")
+
+
+@pytest.mark.slow
+def test_float_filter_passes_its_harness_on_the_cortex_m4f(tmp_path, tools):
+    # benchmarks/embedded.py's float filter row runs the same export (8 discs)
+    from safestab.export.embedded import export_for_target
+    from tests.systems_zoo import disc_filter, disc_states
+
+    ctrl_f, _ = float_safe_controller(disc_filter(), [-2.5, -2.5], [8.0, 4.0])
+    rep = export_for_target(ctrl_f, "ffilt", tmp_path, disc_states()[:64], "cortex-m4",
+                            precision="float")  # fmt: skip
+    assert rep.precision == "float"
+    assert rep.harness_mismatches == 0, rep.harness_output[-2000:]

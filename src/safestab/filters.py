@@ -28,7 +28,7 @@ from .formulas import SATISFIED_RTOL, MultiStatus
 from .formulas._checks import check_max_iter, check_params
 from .formulas._kernels import condition_flags, margins
 from .formulas.passthrough import PassThrough
-from .formulas.problem import MultiFormula, Problem
+from .formulas.problem import UNITS, MultiFormula, Problem
 from .formulas.smooth import SmoothFilter
 from .robust import UncertaintyModel, robust_margins
 from .sampled import check_sampled, sampled_shift
@@ -262,6 +262,19 @@ class SafetyFilter(Controller):
         Iteration bound of the solver per phase (default: as
         :func:`~safestab.formulas.clf_cbf_multi`); where it is reached, ``formula_status`` is
         ``ITERATION_LIMIT``.
+    cbf_margin : float, optional
+        A tightening of every CBF condition, in the units of ``dh/dt``: the problem enforces
+        ``c + d.u >= rho Gamma + cbf_margin``, and ``cbf_satisfied`` reports
+        ``c + d.u - rho Gamma >= cbf_margin / 2`` (as for
+        :class:`~safestab.UniversalController`). With twice a bound on the error of
+        evaluating the condition, a step whose flag says satisfied keeps the exact condition
+        (:func:`~safestab.export.float_safety.float_safe_controller` sets it for a float
+        export). Default: none.
+    precision : {"double", "float"}
+        The precision the step is evaluated in: the solver's tolerances, its certificate and
+        the flags' tolerance are those of its rounding. ``"float"`` for a step exported in
+        float (the JAX step still computes in float64, with float's tolerances, so that the
+        two take the same decisions); default ``"double"``.
 
     Raises
     ------
@@ -292,6 +305,8 @@ class SafetyFilter(Controller):
         sample_time: float | None = None,
         ddh_bound: Any = None,
         formula: SmoothFilter | None = None,
+        cbf_margin: float | None = None,
+        precision: str = "double",
     ) -> None:
         init_args = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.cbfs = _as_tuple(cbfs, CBF, "cbfs")
@@ -302,6 +317,10 @@ class SafetyFilter(Controller):
         if formula is not None and not monitor:
             self._check_smooth(formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H)
         max_iter = check_max_iter(max_iter)
+        if precision not in UNITS:
+            raise ParameterError(f"precision must be one of {sorted(UNITS)}, got {precision!r}")
+        if cbf_margin is not None:
+            self._check_nonnegative_scalar("cbf_margin", cbf_margin)
         if sample_time is not None and not self.cbfs:
             raise ParameterError(
                 "sample_time shifts the barriers' conditions: give cbfs= (none were given)"
@@ -367,7 +386,10 @@ class SafetyFilter(Controller):
         self.ddh_bound = ddh_bound
         #: The formula object that solves each step's problem: the several-row QP
         #: (:class:`~safestab.formulas.problem.MultiFormula`), or a smooth one-barrier filter.
-        self.formula = MultiFormula(max_iter) if formula is None else formula
+        self.formula = MultiFormula(max_iter, precision) if formula is None else formula
+        #: The precision the step is evaluated in (its tolerances), and the CBF margin (None).
+        self.precision = precision
+        self.cbf_margin = None if cbf_margin is None else as_scalar(cbf_margin)
         self._remember(SafetyFilter, init_args)
 
     _CHILDREN = ("clfs", "cbfs")
@@ -380,6 +402,7 @@ class SafetyFilter(Controller):
         names += ["gp_beta"] if self.uncertainty is not None else []
         names += ["robust_clf_layer"] if self.robust_clf_layer is not None else []
         names += ["sample_time", "ddh_bound"] if self.sample_time is not None else []
+        names += ["cbf_margin"] if self.cbf_margin is not None else []
         return tuple(names)
 
     def _point(self, x: jax.Array, p: Any = None, given: tuple | None = None):
@@ -492,17 +515,22 @@ class SafetyFilter(Controller):
             lo = jnp.broadcast_to(jnp.asarray(self.u_min), batch + (m,))
             hi = jnp.broadcast_to(jnp.asarray(self.u_max), batch + (m,))
         H = None if self.H is None else jnp.broadcast_to(jnp.asarray(self.H), batch + self.H.shape)
+        # the CBF margin: the problem's conditions tightened by it, the flags' by half
+        margin = self.cbf_margin
+        c_solve = c if margin is None else c - margin
         problem = Problem(
-            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"],
+            a, b, c_solve, d, p["kappa"], p["rho"], p["phi"], p["varphi"],
             slack_weight=self.slack_weight, u_min=lo, u_max=hi, u_nom=u_nom, H=H,
         )  # fmt: skip
         res = self.formula.solve(problem)
         u = res.u
         ub = u[..., None, :]
+        rtol = SATISFIED_RTOL * UNITS[self.precision] / UNITS["double"]
+        c = c if margin is None else c - 0.5 * margin
         mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
-        _, cbf_ok = condition_flags(c, d, c, d, ub, mg_c, 0.0, p["rho"], SATISFIED_RTOL)
+        _, cbf_ok = condition_flags(c, d, c, d, ub, mg_c, 0.0, p["rho"], rtol)
         mg_v = margins(a, b, a, b, p["kappa"], 0.0, p["phi"], 0.0)
-        clf_ok, _ = condition_flags(a, b, a, b, ub, mg_v, p["kappa"], 0.0, SATISFIED_RTOL)
+        clf_ok, _ = condition_flags(a, b, a, b, ub, mg_v, p["kappa"], 0.0, rtol)
         finite = jnp.all(jnp.isfinite(u), -1)
         if u_nom is not None:  # a non-finite nominal input is named, not clipped or solved
             finite = finite & jnp.all(jnp.isfinite(u_nom), -1)
@@ -513,7 +541,7 @@ class SafetyFilter(Controller):
             # each barrier alone, at the box input that maximises d_i.u (0 where d_ij = 0;
             # an infinite corner meets the condition)
             best = jnp.where(d > 0, hi[..., None, :], jnp.where(d < 0, lo[..., None, :], 0.0))
-            _, box_ok = condition_flags(c, d, c, d, best, mg_c, 0.0, p["rho"], SATISFIED_RTOL)
+            _, box_ok = condition_flags(c, d, c, d, best, mg_c, 0.0, p["rho"], rtol)
         status = _barrier_status(status, res.status, cbf_ok, d, box_ok)
         return FilterOutput(
             u=jnp.where(ok[..., None], u, jnp.nan),

@@ -96,6 +96,41 @@ def float_refusal(controller: Any, x: Any) -> str | None:
     )
 
 
+def filter_condition_scale(filt: Any, out: Any, states: Any) -> np.ndarray:
+    """Per state and barrier, the magnitude a filter's CBF condition is rounded relative to.
+
+    Shape (N, k). As :func:`~safestab.export.harness.cbf_condition_scale` for each of the
+    filter's rows: ``|c_i| + sum_j |dh_i/dx_j| |f_j| + |alpha_i(h_i)| + rho Gamma_i +
+    sum_l (|d_il| + sum_j |dh_i/dx_j| |g_jl|) |u_l|`` at the step's own ``u``, with the GP's
+    ``|dh_i/dx| (|mean| + beta std)`` where the filter has an uncertainty model.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.asarray(np.asarray(states, float))
+    sys_ = filt.system
+
+    def one(s):
+        f, g = sys_.f(s), sys_.g(s)
+        grads = jnp.stack([cb.gradient(s) for cb in filt.cbfs])  # (k, n)
+        alphas = jnp.stack([cb.rate_term(cb.value(s)) for cb in filt.cbfs])
+        _, _, c, d, _ = filt.rows(s)
+        spread = jnp.zeros_like(s)
+        if filt.uncertainty is not None:
+            mean, std = filt.uncertainty.mean_std(s)
+            spread = jnp.abs(mean) + jnp.asarray(filt.gp_beta) * std
+        c_sum = jnp.abs(grads) @ (jnp.abs(f) + spread) + jnp.abs(alphas)
+        d_mag = jnp.abs(d) + jnp.abs(grads) @ jnp.abs(g)
+        return jnp.abs(c) + c_sum, d_mag, c, d
+
+    c_mag, d_mag, c, d = (np.asarray(v) for v in jax.vmap(one)(x))
+    u = np.abs(np.nan_to_num(np.asarray(out.u)))[:, None, :]
+    varphi = float(filt.params["varphi"])
+    gamma = np.sqrt(c * c + varphi * np.sum(d * d, -1) ** 2)
+    rho = float(filt.params["rho"])
+    return c_mag + rho * gamma + np.sum(d_mag * u, -1)
+
+
 def float_safe_controller(
     controller: Any,
     low: Any,
@@ -142,10 +177,16 @@ def float_safe_controller(
     if unc is not None and hasattr(unc, "for_precision"):
         unc_f = unc.for_precision("float")
         controller = controller.replace(uncertainty=unc_f)
+    is_filter = hasattr(controller, "cbfs")
+    if is_filter:  # the solver's tolerances and the flags' to float's rounding
+        controller = controller.replace(precision="float")
     margin = 0.0
     for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
         ctrl = controller.replace(cbf_margin=margin)
-        scale = cbf_condition_scale(ctrl, ctrl.step_fn(x), x)
+        out = ctrl.step_fn(x)
+        scale = (
+            filter_condition_scale(ctrl, out, x) if is_filter else cbf_condition_scale(ctrl, out, x)
+        )
         need = 2.0 * DEFAULT_RTOL["float"] * float(np.nanmax(scale))
         if need <= margin:
             break

@@ -40,12 +40,16 @@ from ._kernels import scaled_norm
 
 __all__ = [
     "DualSolution", "solve_dual", "placeholder", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT",
-    "ADD_RTOL",
+    "ADD_RTOL", "UNIT_DOUBLE", "UNIT_FLOAT", "Tolerances", "tolerances",
 ]  # fmt: skip
 
 OPTIMAL, INFEASIBLE, ITERATION_LIMIT = 0, 1, 2
 
 _EPS = float(np.finfo(float).eps)
+#: Unit roundoff of float64, the default precision of the solver's tolerances.
+UNIT_DOUBLE = _EPS / 2
+#: Unit roundoff of float32: the tolerances of a step exported in float.
+UNIT_FLOAT = float(np.finfo(np.float32).eps) / 2
 #: A row is taken into the active set only if it is violated by more than this fraction of its
 #: own magnitudes ``|r_i| + sum_j |G_ij w_j|`` (rounding of evaluating it is about ``D eps``
 #: of that): a row violated only by rounding (a duplicate of an active row, say) is left out.
@@ -56,6 +60,37 @@ DEP_TOL = 1e3 * _EPS
 #: Primal tolerance of the certificate, relative to each row's own magnitudes (the same as the
 #: controllers' condition flags, :data:`safestab.formulas.SATISFIED_RTOL`).
 CERT_RTOL = 1e-13
+
+
+class Tolerances(NamedTuple):
+    """The solver's tolerances for the precision its step is evaluated in (unit ``u``).
+
+    The constants above are float64's (``u = 2^-53``); each is a multiple of ``eps = 2 u``
+    (``CERT_RTOL`` about ``450 eps``), and a step exported in float (``u = 2^-24``) takes the
+    same multiples of float's ``eps``: its rounding is ``2^29`` times larger, and tolerances
+    fixed at float64's would call every float answer uncertified.
+    """
+
+    add: float  #: :data:`ADD_RTOL`
+    dep: float  #: :data:`DEP_TOL`
+    cert: float  #: :data:`CERT_RTOL`
+    eps: float  #: ``2 u``, of the dual and stationarity checks
+
+
+def tolerances(unit: float = UNIT_DOUBLE) -> Tolerances:
+    """:class:`Tolerances` for unit roundoff ``unit`` (a Python float: a static setting).
+
+    The dependency test is the exception to "the same multiple": at most ``64 eps`` where
+    that is below :data:`DEP_TOL`'s ``1000 eps``. In float, ``1000 eps`` is ``1.2e-4``: the
+    last-resort phase's rows (a CBF row with its slack column, weight
+    ``1 / sqrt(FALLBACK_WEIGHT)``) lie that close to the span of the active ones at a
+    condition number of ``1e4``, and were called dependent (the phase then said
+    infeasible); ``Q^T n`` errs by a few ``eps``, which ``64 eps`` still covers.
+    """
+    scale = float(unit) / UNIT_DOUBLE
+    eps = 2.0 * float(unit)
+    return Tolerances(ADD_RTOL * scale, min(DEP_TOL * scale, max(DEP_TOL, 64 * eps)),
+                      CERT_RTOL * scale, eps)  # fmt: skip
 
 
 class DualSolution(NamedTuple):
@@ -140,7 +175,13 @@ def _loop(n: int, step, init):
 
 
 def solve_dual(
-    G: Any, r: Any, w0: Any, use: Any, max_iter: int, batched: bool = True
+    G: Any,
+    r: Any,
+    w0: Any,
+    use: Any,
+    max_iter: int,
+    batched: bool = True,
+    unit: float = UNIT_DOUBLE,
 ) -> DualSolution:
     """Minimise ``1/2 |w - w0|^2`` subject to ``G_i w <= r_i`` for the rows with ``use_i``.
 
@@ -149,6 +190,8 @@ def solve_dual(
     problem infeasible otherwise. ``batched`` (static): whether the caller maps this function
     over a batch. Then a row is picked by a mask (a dense operation over the batch); otherwise
     by its index (``O(D)`` instead of ``O(N D)``; under vmap an index becomes a gather).
+    ``unit`` (static): the unit roundoff of the precision the step runs in
+    (:func:`tolerances`; :data:`UNIT_FLOAT` for a step exported in float).
     """
     n_rows, dim = G.shape
     if n_rows == 0:  # nothing to satisfy: the unconstrained minimiser
@@ -162,7 +205,7 @@ def solve_dual(
     # or not (a custom derivative of the whole solver traced it twice under differentiation:
     # once as the function, once inside its derivative rule)
     stop = jax.lax.stop_gradient
-    sol = _solve_dual(stop(G), stop(r), stop(w0), use, max_iter, batched)
+    sol = _solve_dual(stop(G), stop(r), stop(w0), use, max_iter, batched, tolerances(unit))
     w, mult = _on_active_set(G, r, w0, sol.w, sol.multipliers, sol.active, sol.status)
     return sol._replace(w=w, multipliers=mult)
 
@@ -210,7 +253,7 @@ def _on_active_set_jvp(primals, tangents):
     return (w, mult), (dw, dmu)
 
 
-def _solve_dual(G, r, w0, use, max_iter, batched):
+def _solve_dual(G, r, w0, use, max_iter, batched, tols):
     """The solver itself (see :func:`solve_dual`)."""
     n_rows, dim = G.shape
     norms = scaled_norm(G)
@@ -227,7 +270,7 @@ def _solve_dual(G, r, w0, use, max_iter, batched):
     # scatters: under vmap a mask is a dense operation, a gather per problem is not.
 
     def violations(w):
-        return Gn @ w - rn, ADD_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))
+        return Gn @ w - rn, tols.add * (jnp.abs(rn) + absG @ jnp.abs(w))
 
     def row(M, p):
         if batched:
@@ -312,7 +355,7 @@ def _solve_dual(G, r, w0, use, max_iter, batched):
         d1 = jnp.where(idx < q, d, 0.0)
         d2 = jnp.where(idx >= q, d, 0.0)
         nd2 = d2 @ d2
-        dependent = jnp.sqrt(nd2) <= DEP_TOL
+        dependent = jnp.sqrt(nd2) <= tols.dep
         dz = jnp.where(dependent, 0.0, -(Q @ d2))
         rvec = _upper_solve(R, d1)
         blocking = (idx < q) & (rvec > 0)
@@ -406,12 +449,12 @@ def _solve_dual(G, r, w0, use, max_iter, batched):
     )
     # the certificate of this problem
     viol = Gn @ w - rn
-    primal_ok = jnp.all(~use | (viol <= CERT_RTOL * (jnp.abs(rn) + absG @ jnp.abs(w))))
+    primal_ok = jnp.all(~use | (viol <= tols.cert * (jnp.abs(rn) + absG @ jnp.abs(w))))
     # multipliers: their sign is as accurate as the triangular solve, eps times cond(R);
     # stationarity and the active rows' slackness only carry the factors' drift over the
     # updates, eps times the iterations, with no cond factor (backward stable solves)
-    dual_tol = 64 * _EPS * cond_est
-    drift_tol = 64 * _EPS * (it + dim)
+    dual_tol = 64 * tols.eps * cond_est
+    drift_tol = 64 * tols.eps * (it + dim)
     lam_used = jnp.where(used, lam_act, 0.0)
     lam_max = jnp.max(jnp.abs(lam_used))
     dual_ok = jnp.all(~used | (lam_act >= -dual_tol * lam_max))
@@ -423,7 +466,7 @@ def _solve_dual(G, r, w0, use, max_iter, batched):
     stat_ok = stat <= drift_tol * stat_scale
     slack_rows = rows @ w - rhs
     tight_ok = jnp.all(
-        ~used | (jnp.abs(slack_rows) <= CERT_RTOL * (jnp.abs(rhs) + jnp.abs(rows) @ jnp.abs(w)))
+        ~used | (jnp.abs(slack_rows) <= tols.cert * (jnp.abs(rhs) + jnp.abs(rows) @ jnp.abs(w)))
     )
     certified = optimal & primal_ok & dual_ok & stat_ok & tight_ok
     lam_act = jnp.maximum(lam_act, 0.0)

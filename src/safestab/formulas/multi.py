@@ -35,6 +35,7 @@ from ._checks import as_float, check_box, check_max_iter, check_output_finite, c
 from ._dual_active_set import (
     INFEASIBLE,
     ITERATION_LIMIT,
+    UNIT_DOUBLE,
     default_max_iter,
     placeholder,
     solve_dual,
@@ -115,9 +116,9 @@ def _unwhiten(H: Any, v: Any) -> Any:
     ]
 
 
-def _own_scale_ok(res: Any, scale: Any) -> Any:
-    """A condition ``res <= 0`` holds up to the rounding of its own terms."""
-    return res <= SATISFIED_RTOL * scale
+def _own_scale_ok(res: Any, scale: Any, unit: float = UNIT_DOUBLE) -> Any:
+    """A condition ``res <= 0`` holds up to the rounding of its own terms (unit ``unit``)."""
+    return res <= SATISFIED_RTOL * (unit / UNIT_DOUBLE) * scale
 
 
 class _Problem(NamedTuple):
@@ -164,32 +165,34 @@ def _input(pr: _Problem, w: Any, m: int, lo: Any, hi: Any) -> Any:
     return u if lo is None else jnp.clip(u, lo, hi)
 
 
-def _conditions_hold(pr: _Problem, b, d, u, chi, with_clf: bool) -> Any:
+def _conditions_hold(pr: _Problem, b, d, u, chi, with_clf: bool, unit: float) -> Any:
     """Every CBF (and CLF) condition at ``u`` within the rounding of its own terms."""
     bu, du = b * u, d * u
-    ok = jnp.all(_own_scale_ok(pr.B - jnp.sum(du, -1), pr.cbf_scale + jnp.sum(jnp.abs(du), -1)))
+    cbf_res, cbf_scale = pr.B - jnp.sum(du, -1), pr.cbf_scale + jnp.sum(jnp.abs(du), -1)
+    ok = jnp.all(_own_scale_ok(cbf_res, cbf_scale, unit))
     if with_clf:
         clf_res = pr.A + jnp.sum(bu, -1) - chi
         clf_scale = pr.clf_scale + jnp.sum(jnp.abs(bu), -1) + jnp.abs(chi)
-        ok = ok & jnp.all(_own_scale_ok(clf_res, clf_scale))
+        ok = ok & jnp.all(_own_scale_ok(clf_res, clf_scale, unit))
     return ok
 
 
-def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter, batched=True):
+def _phase_full(pr: _Problem, b, d, inv_sqrt_slack, lo, hi, max_iter, unit, batched=True):
     """Phase 1: the whole problem. Returns (solution, u, chi, certified)."""
-    sol = solve_dual(pr.Gw, pr.r, pr.w0, jnp.ones(pr.r.shape[0], bool), max_iter, batched)
-    return (sol, *_full_outputs(pr, b, d, sol, inv_sqrt_slack, lo, hi))
+    use = jnp.ones(pr.r.shape[0], bool)
+    sol = solve_dual(pr.Gw, pr.r, pr.w0, use, max_iter, batched, unit)
+    return (sol, *_full_outputs(pr, b, d, sol, inv_sqrt_slack, lo, hi, unit))
 
 
-def _full_outputs(pr: _Problem, b, d, sol, inv_sqrt_slack, lo, hi):
+def _full_outputs(pr: _Problem, b, d, sol, inv_sqrt_slack, lo, hi, unit):
     """Phase 1's ``(u, chi, certified)`` from its solution."""
     p, m = b.shape
     u = _input(pr, sol.w, m, lo, hi)
     chi = sol.w[m:] * inv_sqrt_slack if inv_sqrt_slack is not None else jnp.zeros(p)
-    return u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True)
+    return u, chi, sol.certified & _conditions_hold(pr, b, d, u, chi, True, unit)
 
 
-def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
+def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, unit, batched=True):
     """Phase 3: limits kept, CBF rows relaxed by slacks, CLF rows dropped.
 
     The slack of CBF ``i`` enters its normalised whitened row with weight
@@ -210,11 +213,11 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, batched=True):
     G3 = jnp.concatenate([Gu, relax], axis=1)
     w03 = jnp.concatenate([pr.w0[:m], jnp.zeros(k)])
     use = jnp.arange(n_rows) >= p
-    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0), batched)
+    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0), batched, unit)
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 
-def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
+def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter, unit):
     """Phases 1 and 2 (hard CLFs) with one instance of the solver, in a loop of one or two.
 
     Both phases solve problems of the same shapes (phase 2 leaves the CLF rows out by
@@ -230,7 +233,7 @@ def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
     rows = jnp.arange(n_rows)
 
     def solve(pr, use, run):
-        return solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0), batched)
+        return solve_dual(pr.Gw, pr.r, pr.w0, use, jnp.where(run, max_iter, 0), batched, unit)
 
     solve_all = _map(solve, flat)
 
@@ -260,9 +263,9 @@ def _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter):
     ran2 = jnp.any(full.status == INFEASIBLE)
 
     def finish(pr, b, d, lo, hi, full, safe):
-        u1, chi1, ok1 = _full_outputs(pr, b, d, full, None, lo, hi)
+        u1, chi1, ok1 = _full_outputs(pr, b, d, full, None, lo, hi, unit)
         u2 = _input(pr, safe.w, m, lo, hi)
-        ok2 = safe.certified & _conditions_hold(pr, b, d, u2, jnp.zeros(p), False)
+        ok2 = safe.certified & _conditions_hold(pr, b, d, u2, jnp.zeros(p), False, unit)
         return u1, chi1, ok1, u2, ok2
 
     u1, chi1, ok1, u2, ok2 = _map(finish, flat)(pr, b, d, lo, hi, full, safe)
@@ -300,12 +303,14 @@ def _map(fn, flat: int):
     return one
 
 
-def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
+def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out, unit):
     """Phase 3 for the problems with ``need``, in chunks; ``out`` holds the other answers."""
     flat, (k, m) = need.shape[0], d.shape[-2:]
     if flat == 1:  # one problem: no gathering (and no index that depends on the data)
         sol, u, ok = _map(
-            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter, False),
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(
+                pr, b, d, lo, hi, run, max_iter, unit, False
+            ),
             1,
         )(pr, b, d, lo, hi, need)
         return sol._replace(w=sol.w[:, :m]), u, ok
@@ -322,7 +327,7 @@ def _relaxed_in_chunks(pr, b, d, lo, hi, need, max_iter, out):
         lanes = jax.lax.dynamic_slice(order, (start,), (size,))
         run = start + jnp.arange(size) < count
         sol, u, ok = jax.vmap(
-            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter)
+            lambda pr, b, d, lo, hi, run: _phase_relaxed(pr, b, d, lo, hi, run, max_iter, unit)
         )(take(pr, lanes), b[lanes], d[lanes], take(lo, lanes), take(hi, lanes), run)
         new = (sol._replace(w=sol.w[:, :m]), u, ok)
 
@@ -354,9 +359,13 @@ def _default_bound(p: int, m: int, k: int, limits: bool, soft: bool) -> int:
 
 
 def multi_kernel(
-    a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None
-):
+    a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None,
+    unit=UNIT_DOUBLE,
+):  # fmt: skip
     """Unchecked kernel of :func:`clf_cbf_multi` (``lo``/``hi``/``u_nom``/``H`` may be None).
+
+    ``unit`` (static): the unit roundoff the step runs in, which scales the solver's
+    tolerances and the certificate's (:func:`~safestab.formulas._dual_active_set.tolerances`).
 
     Batched over the leading axes of ``b``; the parameters broadcast against that batch. The
     fallback phases run only where some problem of the batch needs them (a batch-level
@@ -379,12 +388,16 @@ def multi_kernel(
     # phase 2 drops hard CLFs: known before any data (no CLF, or soft ones, leave none to drop)
     hard_clfs = p > 0 and inv_sqrt_slack is None
     if hard_clfs:
-        full, u1, chi1, ok1, safe, u2, ok2 = _phases_full_and_no_clf(pr, b, d, lo, hi, max_iter)
+        full, u1, chi1, ok1, safe, u2, ok2 = _phases_full_and_no_clf(
+            pr, b, d, lo, hi, max_iter, unit
+        )
         infeasible = full.status == INFEASIBLE
         need2 = infeasible
     else:
         full, u1, chi1, ok1 = _map(
-            lambda pr, b, d, sw, lo, hi: _phase_full(pr, b, d, sw, lo, hi, max_iter, flat != 1),
+            lambda pr, b, d, sw, lo, hi: _phase_full(
+                pr, b, d, sw, lo, hi, max_iter, unit, flat != 1
+            ),
             flat,
         )(pr, b, d, sw, lo, hi)
         infeasible = full.status == INFEASIBLE
@@ -397,7 +410,7 @@ def multi_kernel(
     skipped3 = (full._replace(w=full.w[:, :m]), u1, jnp.zeros(flat, bool))
     relaxed, u3, ok3 = jax.lax.cond(
         jnp.any(need3),
-        lambda _: _relaxed_in_chunks(pr, b, d, lo, hi, need3, max_iter, skipped3),
+        lambda _: _relaxed_in_chunks(pr, b, d, lo, hi, need3, max_iter, skipped3, unit),
         lambda _: skipped3,
         None,
     )

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 
 from .._numerics import inv_sqrt
 from ..errors import ParameterError
+from ._dual_active_set import UNIT_DOUBLE, UNIT_FLOAT
 from ._kernels import (
     DEFAULT_PARALLEL_RTOL,
     Margins,
@@ -54,6 +55,9 @@ __all__ = [
     "MultiFormula",
     "register_formula",
 ]
+
+#: The unit roundoff of each precision a step may be evaluated in.
+UNITS = {"double": UNIT_DOUBLE, "float": UNIT_FLOAT}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,10 +284,26 @@ class MultiFormula(Formula):
     ----------
     max_iter : int, optional
         Iteration bound of the active-set solver per phase (default from the problem's size).
+    precision : {"double", "float"}
+        The precision the step is evaluated in: it scales the solver's tolerances and its
+        certificate to that precision's rounding (``"float"`` for a step exported in float;
+        the JAX step still computes in float64, with float's tolerances).
     """
 
     max_iter: int | None = None
+    precision: str = "double"
     uses: ClassVar[tuple[str, ...]] = ("slack_weight", "u_min", "u_max", "u_nom", "H")
+
+    def __post_init__(self) -> None:
+        if self.precision not in UNITS:
+            raise ParameterError(
+                f"precision must be one of {sorted(UNITS)}, got {self.precision!r}"
+            )
+
+    @property
+    def unit(self) -> float:
+        """The unit roundoff of :attr:`precision`."""
+        return UNITS[self.precision]
 
     def solve(self, problem: Problem) -> MultiResult:
         """The optimum for ``problem`` (rows on the axis before the input's)."""
@@ -296,5 +316,5 @@ class MultiFormula(Formula):
             problem.a, problem.b, problem.c, problem.d,
             problem.kappa, problem.rho, problem.phi, problem.varphi,
             inv, problem.u_min, problem.u_max, problem.u_nom, problem.H,
-            max_iter=self.max_iter,
+            max_iter=self.max_iter, unit=self.unit,
         )  # fmt: skip

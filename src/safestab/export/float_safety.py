@@ -177,7 +177,9 @@ def float_safe_controller(
     if unc is not None and hasattr(unc, "for_precision"):
         unc_f = unc.for_precision("float")
         controller = controller.replace(uncertainty=unc_f)
-    is_filter = hasattr(controller, "cbfs")
+    from ..filters import SafetyFilter
+
+    is_filter = isinstance(controller, SafetyFilter)
     if is_filter:  # the solver's tolerances and the flags' to float's rounding
         controller = controller.replace(precision="float")
     margin = 0.0

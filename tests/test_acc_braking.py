@@ -11,7 +11,7 @@ import safestab as ss
 from safestab.errors import ParameterError, ScenarioError
 from safestab.scenarios import load_scenario
 from safestab.scenarios.acc_braking import braking_ddh_bound
-from safestab.scenarios.trials import ACCTrials
+from safestab.scenarios.trial_studies import ACCTrials
 
 G = 9.81
 

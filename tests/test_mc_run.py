@@ -21,7 +21,7 @@ from safestab.montecarlo import (
 from safestab.montecarlo.report import study_settings
 from safestab.montecarlo.trials import calibration_draw, dataset_draw, fit_dataset, run_chunk
 from safestab.scenarios import load_scenario
-from safestab.scenarios.trials import lead_acceleration
+from safestab.scenarios.trial_studies import lead_acceleration
 
 # tiny: 60 GP samples, 0.3 s horizon (30 steps), two controllers; the point is the machinery
 SC = load_scenario("stress").replace(n_samples=60, hyper_subset=30, t_final=0.3)

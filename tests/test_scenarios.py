@@ -7,7 +7,7 @@ from importlib import resources
 import pytest
 
 from safestab import ScenarioError
-from safestab.scenarios import LIMITS, acc_study, load_scenario, trials
+from safestab.scenarios import LIMITS, acc_study, load_scenario, trial_studies
 
 
 def _paper_text():
@@ -316,8 +316,8 @@ def test_run_study_rejects_bad_overrides_before_any_work(monkeypatch):
     def no_work(*args, **kwargs):
         raise AssertionError("data collection started for an invalid override")
 
-    # the study collects its data through the scenario's trial study (scenarios/trials.py)
-    monkeypatch.setattr(trials, "collect_data", no_work)
+    # the study collects its data through the scenario's trial study (scenarios/trial_studies.py)
+    monkeypatch.setattr(trial_studies, "collect_data", no_work)
     sc = load_scenario("stress")
     with pytest.raises(ScenarioError, match=r"learning\.n_samples must be an integer .*, got 10"):
         acc_study.run_study(sc, n_samples=10**12)

@@ -30,10 +30,10 @@ they are never NaN where the value is finite (docs/jax.md).
 """
 
 from ._kernels import DEFAULT_PARALLEL_RTOL, SATISFIED_RTOL
-from .certificate import conditions_satisfied, kkt_residuals
-from .compat import compatibility
+from .compatibility_check import compatibility
 from .limits import project_box, saturate_safety_first
 from .multi import MultiResult, MultiStatus, clf_cbf_multi
+from .output_checks import conditions_satisfied, kkt_residuals
 from .passthrough import PassThrough
 from .problem import (
     CBFFormula,

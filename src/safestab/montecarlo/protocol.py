@@ -3,7 +3,7 @@
 :func:`~safestab.montecarlo.run_montecarlo` takes any scenario with a method
 ``trial_study(spec) -> TrialStudy``; the Monte Carlo package reads the study through these
 members only, so it knows no scenario by name. The ACC and obstacle scenarios provide theirs
-in :mod:`safestab.scenarios.trials`.
+in :mod:`safestab.scenarios.trial_studies`.
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ class TrialStudy(Protocol):
 
     # optional: ``controller_settings() -> dict``, the compared controllers' settings as JSON
     # data (numbers, lists, strings; ``limit_method`` among them), recorded in the Monte Carlo
-    # and price documents (:meth:`safestab.scenarios.trials.ScenarioTrials.controller_settings`)
+    # and price documents
+    # (:meth:`safestab.scenarios.trial_studies.ScenarioTrials.controller_settings`)
 
     def omega(self, x: Any) -> Any:
         """The true model error, shape (..., n)."""

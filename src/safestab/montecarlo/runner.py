@@ -40,7 +40,7 @@ __all__ = ["BACKENDS", "MonteCarloRun", "plan_chunks", "run_montecarlo", "start_
 
 BACKENDS = ("local", "ray")
 #: Called after each finished chunk as ``progress(chunks_done, chunks_total)``.
-Progress = Callable[[int, int], None]
+CountProgress = Callable[[int, int], None]
 
 
 @dataclasses.dataclass
@@ -133,9 +133,9 @@ def run_montecarlo(
     spec: MonteCarloSpec | None = None,
     chunk_size: int | None = None,
     address: str | None = None,
-    progress: Progress | None = None,
+    progress: CountProgress | None = None,
     workers: int | None = None,
-    dataset_progress: Progress | None = None,
+    dataset_progress: CountProgress | None = None,
 ) -> MonteCarloRun:
     """Run ``trials`` closed loops of every controller over ``datasets`` fitted GPs.
 

@@ -4,7 +4,7 @@ Every piece is a pure function of its arguments (the trial study of
 :mod:`~safestab.montecarlo.protocol`, the seed, trial indices and a fitted data set), so the
 local and the Ray backend call the same functions and get the same bits. The scenario's side
 (its systems, how it collects data, how a trial draws its initial state and exogenous data)
-is the study's: :mod:`safestab.scenarios.trials` for the ACC and the obstacle.
+is the study's: :mod:`safestab.scenarios.trial_studies` for the ACC and the obstacle.
 
 Randomness: trial ``i`` draws its initial state and per-trial data (the ACC's lead profile)
 from ``jax.random.fold_in(PRNGKey(seed), i)`` alone; data set ``j`` collects its data with the

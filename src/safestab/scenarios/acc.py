@@ -33,7 +33,7 @@ from ._acc_schema import LIMITS, ScenarioLimits, check_structure, check_values
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._schema import LEARNING_KEYS, load_flat
 from .acc_braking import braking_barrier, braking_lie_terms, check_lead_bound, worst_lead
-from .trials import ACCTrials
+from .trial_studies import ACCTrials
 
 __all__ = [
     "ACCScenario", "MonteCarloSpec", "load_scenario", "PRESETS", "LIMITS", "ScenarioLimits",

@@ -22,7 +22,7 @@ from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
 from .pipeline import (
     MetricsWriter,
-    Progress,
+    StepProgress,
     Study,
     Summary,
     collect_study_data,
@@ -195,7 +195,7 @@ def run_study(
     scenario: ACCScenario,
     *,
     seed: int | None = None,
-    progress: Progress | None = None,
+    progress: StepProgress | None = None,
     n_samples: int | None = None,
     t_final: float | None = None,
 ) -> StudyResult:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ScenarioError
-from .pipeline import Progress, Study, Summary, silent, write_outputs
+from .pipeline import StepProgress, Study, Summary, silent, write_outputs
 
 __all__ = [
     "StudyOutputs",
@@ -179,7 +179,7 @@ def run(
     scenario: Any,
     out_dir: str | Path,
     *,
-    progress: Progress | None = None,
+    progress: StepProgress | None = None,
     command: str | None = None,
 ) -> StudyOutputs:
     """Run a scenario's study and write its outputs.

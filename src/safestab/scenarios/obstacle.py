@@ -37,7 +37,7 @@ from ..systems import ControlAffineSystem
 from ._mc_schema import MonteCarloSpec, check_montecarlo
 from ._obstacle_schema import KIND, check_structure, check_values
 from ._schema import LEARNING_KEYS, load_flat
-from .trials import ObstacleTrials
+from .trial_studies import ObstacleTrials
 
 __all__ = ["ObstacleScenario", "load_obstacle_scenario", "PRESETS"]
 

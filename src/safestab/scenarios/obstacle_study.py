@@ -40,7 +40,7 @@ from ..simulation import simulate
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
 from .pipeline import (
     MetricsWriter,
-    Progress,
+    StepProgress,
     Study,
     Summary,
     collect_study_data,
@@ -568,7 +568,7 @@ def fit_obstacle_gp(
     sc: ObstacleScenario,
     *,
     timings: dict[str, float] | None = None,
-    report: Progress | None = None,
+    report: StepProgress | None = None,
 ) -> tuple[Any, GaussianProcessModel, Any, InputGain | None]:
     """Collect the scenario's data and fit its GP as the study does (the pipeline's steps).
 
@@ -688,7 +688,7 @@ def run_obstacle_study(
     scenario: ObstacleScenario,
     *,
     seed: int | None = None,
-    progress: Progress | None = None,
+    progress: StepProgress | None = None,
     n_samples: int | None = None,
     t_final: float | None = None,
 ) -> ObstacleStudyResult:

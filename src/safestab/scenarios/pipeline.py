@@ -33,7 +33,7 @@ import numpy as np
 
 __all__ = [
     "MetricsWriter",
-    "Progress",
+    "StepProgress",
     "Study",
     "Summary",
     "collect_study_data",
@@ -47,11 +47,11 @@ __all__ = [
 ]
 
 #: ``progress(message, fraction_done)``, fraction in [0, 1].
-Progress = Callable[[str, float], None]
+StepProgress = Callable[[str, float], None]
 
 
 def silent(message: str, fraction: float) -> None:
-    """A :data:`Progress` that reports nothing.
+    """A :data:`StepProgress` that reports nothing.
 
     Parameters
     ----------
@@ -135,7 +135,7 @@ class Study:
     scenario_type: type
     presets: tuple[str, ...]
     load: Callable[..., Any]
-    run: Callable[[Any, Progress], Any]
+    run: Callable[[Any, StepProgress], Any]
     figures: Callable[[Any], dict[str, Any]]
     summary: Callable[[Any, dict[str, Any]], Summary]
     table_width: int = 100

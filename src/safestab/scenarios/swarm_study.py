@@ -20,7 +20,7 @@ import numpy as np
 
 from .._io import with_finite_status
 from ..formulas import MultiStatus
-from .pipeline import MetricsWriter, Progress, Study, Summary, silent
+from .pipeline import MetricsWriter, StepProgress, Study, Summary, silent
 from .swarm import PRESETS, SwarmRun, SwarmScenario, load_swarm_scenario, pair_terms, simulate_swarm
 
 __all__ = ["STUDY", "SwarmStudy", "run_swarm_study", "MODES"]
@@ -127,7 +127,7 @@ class SwarmStudy(MetricsWriter):
         return with_finite_status(doc)
 
 
-def run_swarm_study(scenario: SwarmScenario, *, progress: Progress | None = None) -> SwarmStudy:
+def run_swarm_study(scenario: SwarmScenario, *, progress: StepProgress | None = None) -> SwarmStudy:
     """Run the centralized, decentralized and unfiltered swarms, and the loose-solver check.
 
     Parameters

@@ -272,11 +272,14 @@ def test_float_filter_flag_never_claims_a_violated_condition(margin):
 def test_float_filter_takes_floats_tolerances_and_the_double_filters_decisions():
     """precision="float" scales the solver's tolerances to float's rounding: in float64
     arithmetic it ends on the double filter's active sets and statuses at these states."""
+    from safestab.formulas._dual_active_set import UNIT_FLOAT
     from tests.systems_zoo import disc_filter, disc_states
 
     exact = disc_filter()
     x = disc_states()
-    out, out_f = exact.step_fn(x), exact.replace(precision="float").step_fn(x)
+    as_float = exact.replace(precision="float")
+    assert as_float.formula.unit == UNIT_FLOAT and as_float.precision == "float"
+    out, out_f = exact.step_fn(x), as_float.step_fn(x)
     np.testing.assert_array_equal(np.asarray(out_f.status), np.asarray(out.status))
     np.testing.assert_array_equal(np.asarray(out_f.active), np.asarray(out.active))
     np.testing.assert_allclose(np.asarray(out_f.u), np.asarray(out.u), rtol=0, atol=1e-4)
@@ -286,7 +289,7 @@ def test_float_filter_takes_floats_tolerances_and_the_double_filters_decisions()
 
 @pytest.mark.slow
 def test_float_filter_passes_its_harness_on_the_cortex_m4f(tmp_path, tools):
-    # benchmarks/embedded.py's float filter row runs the same export (8 discs)
+    # benchmarks/embedded.py's float filter row runs such an export (8 discs, its own box)
     from safestab.export.embedded import export_for_target
     from tests.systems_zoo import disc_filter, disc_states
 
@@ -295,3 +298,56 @@ def test_float_filter_passes_its_harness_on_the_cortex_m4f(tmp_path, tools):
                             precision="float")  # fmt: skip
     assert rep.precision == "float"
     assert rep.harness_mismatches == 0, rep.harness_output[-2000:]
+
+
+def _rho_filter(**kw):
+    from tests.systems_zoo import disc_robot
+
+    system, cbfs = disc_robot()
+    return ss.SafetyFilter(system, cbfs, u_nom=lambda x: jnp.array([1.0, 0.0]), rho=0.5,
+                           varphi=0.3, u_min=-1.0, u_max=1.0, **kw)  # fmt: skip
+
+
+def test_filter_cbf_margin_tightens_each_condition_by_the_margin_and_flags_at_half():
+    """With rho > 0 (Gamma depends on c) the margin is added after Gamma, as the controllers'
+    cbf_margin: the binding row sits at rho Gamma + m exactly, and the flag is judged at m/2
+    (a hand check of each row against the rows' own terms)."""
+    m = 0.05
+    plain, tight = _rho_filter(), _rho_filter(cbf_margin=m)
+    x = np.array([[-1.6, 0.1], [-1.3, -0.4], [1.5, 3.4], [-2.5, 0.0]])  # outside the discs
+    out = tight.step_fn(x)
+    assert np.all(np.asarray(out.status) == 0)
+    _, _, c, d, _ = jax.vmap(tight.rows)(jnp.asarray(x))
+    c, d, u = np.asarray(c), np.asarray(d), np.asarray(out.u)
+    gamma = np.sqrt(c * c + 0.3 * np.sum(d * d, -1) ** 2)
+    slack = c + np.sum(d * u[:, None, :], -1) - 0.5 * gamma  # c + d.u - rho Gamma
+    active = np.asarray(out.active)[:, : c.shape[1]]
+    assert active.any()  # some barrier binds
+    np.testing.assert_allclose(slack[active], m, rtol=0, atol=1e-12)
+    assert np.all(slack >= m - 1e-12)
+    # the same states without the margin: the binding rows sit at 0
+    out0 = plain.step_fn(x)
+    act0 = np.asarray(out0.active)[:, : c.shape[1]]
+    slack0 = c + np.sum(d * np.asarray(out0.u)[:, None, :], -1) - 0.5 * gamma
+    np.testing.assert_allclose(slack0[act0], 0.0, rtol=0, atol=1e-12)
+    # the flag is the hand check at m/2 (the binding rows, at m, are flagged)
+    flags = np.asarray(out.cbf_satisfied)
+    np.testing.assert_array_equal(flags, slack >= 0.5 * m - 1e-12)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), [0.1, 0.2]])
+def test_filter_cbf_margin_bad_values_are_named(bad):
+    with pytest.raises((ParameterError, ss.errors.DimensionError), match="cbf_margin"):
+        _rho_filter(cbf_margin=bad)
+
+
+def test_filter_cbf_margin_is_refused_with_a_smooth_formula_and_float_safety_refuses_a_policy():
+    from tests.systems_zoo import disc_robot
+
+    system, cbfs = disc_robot()
+    with pytest.raises(ParameterError, match="cbf_margin"):
+        ss.SafetyFilter(system, cbfs[0], u_nom=lambda x: jnp.array([1.0, 0.0]),
+                        formula=ss.formulas.ExplicitFilter(), cbf_margin=0.1)  # fmt: skip
+    policy = ss.PolicyController(system, lambda x: jnp.array([1.0, 0.0]), cbfs=cbfs)
+    with pytest.raises(ParameterError, match="PolicyController"):
+        float_safe_controller(policy, [-1.0, -1.0], [1.0, 1.0])

@@ -524,17 +524,21 @@ def test_padded_kernel_rows_equal_the_unpadded_kernel_matrix(kind):
 def test_a_new_number_of_inducing_inputs_in_the_same_bucket_compiles_nothing(acc_gp):
     """A Monte Carlo study fits a cache per data set, each stopping at its own size: the
     kernel matrices and the batched band run the programs compiled for the first."""
+    from safestab.learning.fast import size_bucket
     from tests.jax_events import traces_while
 
     _, gp, test = acc_gp
-    FastGP(gp, 21, pivot_tol=0.0, std_tol=0.0, warn=False).predict(test.x[:7], return_std=True)
+    first = FastGP(gp, 21, pivot_tol=0.0, std_tol=0.0, warn=False)
+    first.predict(test.x[:7], return_std=True)
     built = []
-    traces = traces_while(
-        lambda: built.append(
-            FastGP(gp, 23, pivot_tol=0.0, std_tol=0.0, warn=False).predict(
-                test.x[:7], return_std=True
-            )
-        )
-    )
-    assert list(built[0][0].shape) == [7, gp.x_train_.shape[1]]
+
+    def second():
+        fast = FastGP(gp, 23, pivot_tol=0.0, std_tol=0.0, warn=False)
+        built.append((fast, fast.predict(test.x[:7], return_std=True)))
+
+    traces = traces_while(second)
+    fast, (mean, _) = built[0]
+    assert first.n_inducing_.max() == 21 and fast.n_inducing_.max() == 23  # two sizes...
+    assert size_bucket(21) == size_bucket(23)  # ...in one bucket
+    assert list(mean.shape) == [7, gp.x_train_.shape[1]]
     assert traces == [], traces

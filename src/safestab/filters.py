@@ -315,7 +315,9 @@ class SafetyFilter(Controller):
         if not self.cbfs and not monitor:
             raise ParameterError("give at least one CBF")
         if formula is not None and not monitor:
-            self._check_smooth(formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H)
+            self._check_smooth(
+                formula, self.clfs, self.cbfs, rho, slack_weight, u_min, u_max, H, cbf_margin
+            )
         max_iter = check_max_iter(max_iter)
         if precision not in UNITS:
             raise ParameterError(f"precision must be one of {sorted(UNITS)}, got {precision!r}")
@@ -454,7 +456,9 @@ class SafetyFilter(Controller):
 
         ``a`` (p,), ``b`` (p, m) of the CLFs, ``c`` (k,), ``d`` (k, m) of the CBFs (robust
         terms and the sampled-data shift included) and the nominal input (m,) or None: what
-        the solver receives at ``x``. Differentiable (the native step's derivative uses it).
+        the solver receives at ``x`` (a ``cbf_margin`` is added to each CBF condition's
+        right-hand side there, not to ``c``). Differentiable (the native step's derivative
+        uses it).
         """
         return self._point(x, p)[0]
 
@@ -464,8 +468,10 @@ class SafetyFilter(Controller):
         return getattr(self.formula, "max_iter", None)
 
     @staticmethod
-    def _check_smooth(formula, clfs, cbfs, rho, slack_weight, u_min, u_max, H) -> None:
-        """A smooth filter formula: one CBF, no CLF, limits, weight, slack or ``rho``."""
+    def _check_smooth(
+        formula, clfs, cbfs, rho, slack_weight, u_min, u_max, H, cbf_margin=None
+    ) -> None:
+        """A smooth filter formula: one CBF, no CLF, limits, weight, slack, ``rho`` or margin."""
         if not isinstance(formula, SmoothFilter):
             raise ParameterError(
                 "formula must be None (the exact QP) or a smooth filter of "
@@ -481,6 +487,7 @@ class SafetyFilter(Controller):
                 ("H", H is not None),
                 ("slack_weight", slack_weight is not None),
                 ("rho > 0", is_concrete(rho) and float(rho) != 0.0),
+                ("cbf_margin", cbf_margin is not None),
             )
             if given
         ]
@@ -517,17 +524,18 @@ class SafetyFilter(Controller):
         H = None if self.H is None else jnp.broadcast_to(jnp.asarray(self.H), batch + self.H.shape)
         # the CBF margin: the problem's conditions tightened by it, the flags' by half
         margin = self.cbf_margin
-        c_solve = c if margin is None else c - margin
         problem = Problem(
-            a, b, c_solve, d, p["kappa"], p["rho"], p["phi"], p["varphi"],
+            a, b, c, d, p["kappa"], p["rho"], p["phi"], p["varphi"],
             slack_weight=self.slack_weight, u_min=lo, u_max=hi, u_nom=u_nom, H=H,
+            cbf_margin=margin,
         )  # fmt: skip
         res = self.formula.solve(problem)
         u = res.u
         ub = u[..., None, :]
         rtol = SATISFIED_RTOL * UNITS[self.precision] / UNITS["double"]
-        c = c if margin is None else c - 0.5 * margin
         mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
+        if margin is not None:
+            mg_c = mg_c._replace(B=mg_c.B + 0.5 * margin)
         _, cbf_ok = condition_flags(c, d, c, d, ub, mg_c, 0.0, p["rho"], rtol)
         mg_v = margins(a, b, a, b, p["kappa"], 0.0, p["phi"], 0.0)
         clf_ok, _ = condition_flags(a, b, a, b, ub, mg_v, p["kappa"], 0.0, rtol)

@@ -417,6 +417,16 @@ def _describe_filter(filt: Any) -> str:
             f"beta = {np.asarray(filt.gp_beta).tolist()}."
         )
         lines += _layer_lines(filt)
+    if getattr(filt, "cbf_margin", None) is not None:
+        lines.append(
+            f"CBF margin {float(filt.cbf_margin)!r}: every CBF row enforces c + d.u >= "
+            "rho Gamma + margin, and cbf_satisfied reports it with half the margin."
+        )
+    if getattr(filt, "precision", "double") != "double":
+        lines.append(
+            f"Solver and flag tolerances for {filt.precision} precision (the same multiples "
+            "of its rounding as float64's)."
+        )
     return "\n".join(lines)
 
 

@@ -107,6 +107,8 @@ def filter_condition_scale(filt: Any, out: Any, states: Any) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
+    from ..sampled import sampled_shift
+
     x = jnp.asarray(np.asarray(states, float))
     sys_ = filt.system
 
@@ -120,6 +122,9 @@ def filter_condition_scale(filt: Any, out: Any, states: Any) -> np.ndarray:
             mean, std = filt.uncertainty.mean_std(s)
             spread = jnp.abs(mean) + jnp.asarray(filt.gp_beta) * std
         c_sum = jnp.abs(grads) @ (jnp.abs(f) + spread) + jnp.abs(alphas)
+        if filt.sample_time is not None:  # the sampled-data shift, which c may cancel
+            hs = jnp.stack([cb.value(s) for cb in filt.cbfs])
+            c_sum = c_sum + jnp.abs(sampled_shift(hs, alphas, filt.sample_time, filt.ddh_bound))
         d_mag = jnp.abs(d) + jnp.abs(grads) @ jnp.abs(g)
         return jnp.abs(c) + c_sum, d_mag, c, d
 
@@ -156,6 +161,11 @@ def float_safe_controller(
       and ``cbf_satisfied`` reports it with margin ``E``, so a float step whose flag says
       satisfied satisfies the exact condition (tested in tests/test_embedded.py).
 
+    For a :class:`~safestab.SafetyFilter` it also sets ``precision="float"`` (the solver's
+    tolerances and the flags' at float's rounding) and measures ``E`` on every barrier's
+    row (:func:`filter_condition_scale`), with the flags' own tolerance at that precision
+    added to the float step's error.
+
     Outside the box the margin is not checked: export with the box the controller will see.
 
     Raises
@@ -163,7 +173,9 @@ def float_safe_controller(
     ParameterError
         If float rounding widens the GP cache's std by more than
         :data:`FLOAT_WIDENING_LIMIT` somewhere in the box: float cannot resolve that GP's
-        posterior (the stress preset's drag: 3000 times); export it in double.
+        posterior (the stress preset's drag: 3000 times); export it in double. For a
+        :class:`~safestab.PolicyController` (it enforces nothing a margin could keep), and
+        for a filter with run-time parameters.
 
     Returns
     -------
@@ -178,10 +190,28 @@ def float_safe_controller(
         unc_f = unc.for_precision("float")
         controller = controller.replace(uncertainty=unc_f)
     from ..filters import SafetyFilter
+    from ..formulas import SATISFIED_RTOL
+    from ..formulas._dual_active_set import UNIT_DOUBLE, UNIT_FLOAT
+    from ..policy import PolicyController
 
+    if isinstance(controller, PolicyController):
+        raise ParameterError(
+            "float_safe_controller takes a UniversalController or a SafetyFilter, got a "
+            "PolicyController: it monitors a user's law and enforces no condition that a "
+            "margin could keep; export it as it is"
+        )
     is_filter = isinstance(controller, SafetyFilter)
+    # the error the margin covers: the float step's (the harness's rtol) and, for a filter,
+    # the tolerance its flags and its certificate accept at float's rounding
+    rtol = DEFAULT_RTOL["float"]
     if is_filter:  # the solver's tolerances and the flags' to float's rounding
+        if controller.params_spec is not None:
+            raise ParameterError(
+                "float_safe_controller needs a filter without run-time parameters (params=): "
+                "its margin is measured over the box's states alone"
+            )
         controller = controller.replace(precision="float")
+        rtol += SATISFIED_RTOL * UNIT_FLOAT / UNIT_DOUBLE
     margin = 0.0
     for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
         ctrl = controller.replace(cbf_margin=margin)
@@ -189,7 +219,7 @@ def float_safe_controller(
         scale = (
             filter_condition_scale(ctrl, out, x) if is_filter else cbf_condition_scale(ctrl, out, x)
         )
-        need = 2.0 * DEFAULT_RTOL["float"] * float(np.nanmax(scale))
+        need = 2.0 * rtol * float(np.nanmax(scale))
         if need <= margin:
             break
         margin = 1.25 * need

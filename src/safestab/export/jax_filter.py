@@ -140,6 +140,8 @@ def _problem(filt: Any, a, b, c, d, u_nom, relaxed):
     prm = filt.params
     mg_v = margins(a, b, a, b, prm["kappa"], 0.0, prm["phi"], 0.0)
     mg_c = margins(c, d, c, d, 0.0, prm["rho"], 0.0, prm["varphi"])
+    if filt.cbf_margin is not None:  # as the solver: c + d.u >= rho Gamma + cbf_margin
+        mg_c = mg_c._replace(B=mg_c.B + filt.cbf_margin)
     eye = jnp.eye(m)
     limits = filt.u_min is not None
     Gu = jnp.concatenate([b, -d] + ([eye, -eye] if limits else []), axis=0)

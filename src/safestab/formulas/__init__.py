@@ -15,8 +15,9 @@ Notation used throughout (the paper's, with the corrections listed in ``docs/the
     CLF condition:  b u <= -A            CBF condition:  d u >= B
 
 The package has one idea per module: ``single`` (Sontag's CLF formula and the CBF formula),
-``two_constraint`` (the combined and relaxed formulas), ``compat`` (Lemma 1), ``limits``
-(input limits), ``certificate`` (KKT residuals and the condition flags), ``multi`` (several
+``two_constraint`` (the combined and relaxed formulas), ``compatibility_check`` (Lemma 1),
+``limits`` (input limits), ``output_checks`` (KKT residuals and the condition flags of an
+output), ``multi`` (several
 CLFs and CBFs, limits inside the problem, weighted objectives) and ``results`` (the result
 types). The public functions check their arguments and call the unchecked kernels of
 the internal modules ``_kernels`` and ``_dual_active_set``, which the controllers call as well.

@@ -134,10 +134,14 @@ class _Problem(NamedTuple):
     cbf_scale: Any  # (k,) |c| + rho Gamma
 
 
-def _setup(a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H) -> _Problem:
+def _setup(
+    a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, margin=None
+) -> _Problem:
     p, m = b.shape
     mg_v = margins(a, b, a, b, kappa, 0.0, phi, 0.0)
     mg_c = margins(c, d, c, d, 0.0, rho, 0.0, varphi)
+    if margin is not None:  # c + d.u >= rho Gamma + margin
+        mg_c = mg_c._replace(B=mg_c.B + margin)
     eye = jnp.eye(m)
     G = jnp.concatenate([b, -d] + ([eye, -eye] if lo is not None else []), axis=0)
     r = jnp.concatenate([-mg_v.A, -mg_c.B] + ([hi, -lo] if lo is not None else []), axis=0)
@@ -360,12 +364,13 @@ def _default_bound(p: int, m: int, k: int, limits: bool, soft: bool) -> int:
 
 def multi_kernel(
     a, b, c, d, kappa, rho, phi, varphi, inv_sqrt_slack, lo, hi, u_nom, H, max_iter=None,
-    unit=UNIT_DOUBLE,
+    unit=UNIT_DOUBLE, cbf_margin=None,
 ):  # fmt: skip
     """Unchecked kernel of :func:`clf_cbf_multi` (``lo``/``hi``/``u_nom``/``H`` may be None).
 
     ``unit`` (static): the unit roundoff the step runs in, which scales the solver's
     tolerances and the certificate's (:func:`~safestab.formulas._dual_active_set.tolerances`).
+    ``cbf_margin``: every CBF condition tightened to ``c + d.u >= rho Gamma + cbf_margin``.
 
     Batched over the leading axes of ``b``; the parameters broadcast against that batch. The
     fallback phases run only where some problem of the batch needs them (a batch-level
@@ -384,7 +389,9 @@ def multi_kernel(
     a, b, c, d = bc(a, (p,)), bc(b, (p, m)), bc(c, (k,)), bc(d, (k, m))
     params = [bc(v, ()) for v in (kappa, rho, phi, varphi)]
     sw, lo, hi = bc(inv_sqrt_slack, (p,)), bc(lo, (m,)), bc(hi, (m,))
-    pr = _map(_setup, flat)(a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)))
+    pr = _map(_setup, flat)(
+        a, b, c, d, *params, sw, lo, hi, bc(u_nom, (m,)), bc(H, (m, m)), bc(cbf_margin, ())
+    )
     # phase 2 drops hard CLFs: known before any data (no CLF, or soft ones, leave none to drop)
     hard_clfs = p > 0 and inv_sqrt_slack is None
     if hard_clfs:

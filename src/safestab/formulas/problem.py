@@ -292,7 +292,9 @@ class MultiFormula(Formula):
 
     max_iter: int | None = None
     precision: str = "double"
-    uses: ClassVar[tuple[str, ...]] = ("slack_weight", "u_min", "u_max", "u_nom", "H")
+    uses: ClassVar[tuple[str, ...]] = (
+        "slack_weight", "u_min", "u_max", "u_nom", "H", "cbf_margin",
+    )  # fmt: skip
 
     def __post_init__(self) -> None:
         if self.precision not in UNITS:
@@ -316,5 +318,5 @@ class MultiFormula(Formula):
             problem.a, problem.b, problem.c, problem.d,
             problem.kappa, problem.rho, problem.phi, problem.varphi,
             inv, problem.u_min, problem.u_max, problem.u_nom, problem.H,
-            max_iter=self.max_iter, unit=self.unit,
+            max_iter=self.max_iter, unit=self.unit, cbf_margin=problem.cbf_margin,
         )  # fmt: skip

@@ -494,7 +494,7 @@ class InducingBand(Predictor):
         # the inducing axis padded to its bucket (masked rows add exact zeros): one program
         # per bucket, not per number of inducing inputs
         p = pad_inducing(self._params, size_bucket(self._params["z"].shape[1]))
-        return band_batch(p, jnp.asarray(x), self.model.kernel, self.unit, self.proven)
+        return band_batch(p, device_array(x), self.model.kernel, self.unit, self.proven)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Copies of the cache's arrays, for evaluating the same band elsewhere (batched).
@@ -577,9 +577,8 @@ class InducingBand(Predictor):
         if x.ndim != 2 or x.shape[1] != self.n_states:
             raise DimensionError(f"x must have shape (N, {self.n_states}), got {x.shape}")
         check_finite("x", x)
-        parts = band_magnitudes_batch(
-            self._params, jnp.asarray(x), self.model.kernel, self.unit, self.proven
-        )
+        p = pad_inducing(self._params, size_bucket(self._params["z"].shape[1]))
+        parts = band_magnitudes_batch(p, device_array(x), self.model.kernel, self.unit, self.proven)
         mean_mag, sd_mag, merr_mag = (np.asarray(a) for a in parts)
         comps = list(self.components_)
         mean_scale, std_scale = np.zeros(x.shape), np.zeros(x.shape)

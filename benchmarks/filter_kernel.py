@@ -218,6 +218,16 @@ def run_problem(name, filt, states, calls):
         r["vmap_per_s"] = states_per_second(vm, x)
         print(f"  {key}: one call {r['one_call_us']:.1f} us, vmap {r['vmap_per_s']:.3g}/s, "
               f"first call {r['first_call_s']:.1f} s", flush=True)  # fmt: skip
+    # the eager call a user makes from Python (its argument checks, the dispatch, the
+    # output's checks) against the jitted step on the same host (NumPy) states
+    host = [np.asarray(s) for s in states[:64]]
+    eager = {
+        "eager_step_us": one_call_us(lambda s: filt.step(s).u, host, calls),
+        "jitted_step_us": one_call_us(lambda s: filt.step_fn(s).u, host, calls),
+    }
+    eager["ratio"] = eager["eager_step_us"] / eager["jitted_step_us"]
+    print(f"  eager step {eager['eager_step_us']:.1f} us, jitted {eager['jitted_step_us']:.1f}"
+          f" us: {eager['ratio']:.2f}x", flush=True)  # fmt: skip
     # the derivative: jvp of u inside a user's jit, one state
     _, t_ref = jax.jvp(filt.step_fn, (x,), (jnp.ones_like(x),))
     _, t_ffi = jax.jvp(ffi, (x,), (jnp.ones_like(x),))
@@ -252,7 +262,7 @@ def run_problem(name, filt, states, calls):
     result = {
         "name": name, "n_cbfs": len(filt.cbfs), "n_clfs": len(filt.clfs),
         "n_states_compared": len(states), "candidates": rows, "solvers_us": solvers,
-        "jvp_one_call_us": jvp_us, "jvp_max_abs_du_vs_xla": jvp_du,
+        "jvp_one_call_us": jvp_us, "jvp_max_abs_du_vs_xla": jvp_du, "eager": eager,
         "load_average": [load_start, os.getloadavg()[0]],
     }  # fmt: skip
     print(problem_table(result))
@@ -447,6 +457,16 @@ def markdown(r: dict) -> str:
     if daqp:
         targets[0] += f", {ffi['one_call_us'] / daqp:.2f}x daqp's {daqp:.1f} us (target at most 2x)"
     targets.append(f"vmap at 8 discs {ffi['vmap_per_s']:.3g} states/s (target 1e6)")
+    for p in r["problems"]:
+        if "eager" in p:
+            e = p["eager"]
+            inside = p["candidates"]["xla"]["one_call_us"]
+            targets.append(
+                f"{p['name']}: `filter.step(x)` from Python (checks included) "
+                f"{e['eager_step_us']:.1f} us, {e['eager_step_us'] / inside:.2f}x the call "
+                f"inside a user's jit ({inside:.1f} us) and {e['ratio']:.2f}x `step_fn(x)` on "
+                f"the same NumPy state ({e['jitted_step_us']:.1f} us; target at most 2x)"
+            )
     lines.append("Read against the targets: " + "; ".join(targets) + ".")
     lines += ["", END]
     return "\n".join(lines)

@@ -119,8 +119,10 @@ class ControlAffineSystem:
             f"n_inputs={self.n_inputs})"
         )
 
-    def check_state(self, x: Any, name: str = "x") -> jax.Array:
-        """Return ``x`` as a float array after checking its last axis and finiteness.
+    def check_state(self, x: Any, name: str = "x") -> Any:
+        """Return ``x`` as a float64 array after checking its last axis and finiteness.
+
+        A JAX array (or a tracer) stays one; host data (NumPy, lists) is returned as NumPy.
 
         Raises
         ------
@@ -131,12 +133,12 @@ class ControlAffineSystem:
         """
         return self._check_last_axis(x, self.n_states, name)
 
-    def check_input(self, u: Any, name: str = "u") -> jax.Array:
+    def check_input(self, u: Any, name: str = "u") -> Any:
         """Return ``u`` as a float array after checking its last axis and finiteness."""
         return self._check_last_axis(u, self.n_inputs, name)
 
     @staticmethod
-    def _check_last_axis(value: Any, size: int, name: str) -> jax.Array:
+    def _check_last_axis(value: Any, size: int, name: str) -> Any:
         value = as_float_array(value)
         if value.ndim == 0 or value.shape[-1] != size:
             raise DimensionError(f"{name} must have shape (..., {size}), got shape {value.shape}")

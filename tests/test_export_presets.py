@@ -351,3 +351,17 @@ def test_filter_cbf_margin_is_refused_with_a_smooth_formula_and_float_safety_ref
     policy = ss.PolicyController(system, lambda x: jnp.array([1.0, 0.0]), cbfs=cbfs)
     with pytest.raises(ParameterError, match="PolicyController"):
         float_safe_controller(policy, [-1.0, -1.0], [1.0, 1.0])
+
+
+def test_a_new_filter_cbf_margin_runs_the_same_program():
+    from tests.jax_events import traces_while
+
+    a = _rho_filter(cbf_margin=0.05)
+    b = a.replace(cbf_margin=0.2)
+    assert "cbf_margin" in a.tunables()
+    x = jnp.array([-1.6, 0.1])
+    ua = a.step_fn(x).u
+    traces = []
+    traces += traces_while(lambda: b.step_fn(x).u.block_until_ready())
+    assert traces == [], traces
+    assert not np.allclose(np.asarray(ua), np.asarray(b.step_fn(x).u))  # the numbers reached it

@@ -24,9 +24,9 @@ from ._validation import check_finite, check_real, is_concrete, traced_results
 from .certificates import CBF, CLF, check_actuated
 from .controllers import Controller, StepStatus, barrier_message, has_input
 from .errors import DimensionError, InfeasibleError, ModelError, NonFiniteError, ParameterError
-from .formulas import SATISFIED_RTOL, MultiStatus
+from .formulas import MultiStatus
 from .formulas._checks import check_max_iter, check_params
-from .formulas._kernels import condition_flags, margins
+from .formulas._kernels import condition_flags, margins, satisfied_rtol
 from .formulas.passthrough import PassThrough
 from .formulas.problem import UNITS, MultiFormula, Problem
 from .formulas.smooth import SmoothFilter
@@ -532,7 +532,7 @@ class SafetyFilter(Controller):
         res = self.formula.solve(problem)
         u = res.u
         ub = u[..., None, :]
-        rtol = SATISFIED_RTOL * UNITS[self.precision] / UNITS["double"]
+        rtol = satisfied_rtol(UNITS[self.precision])
         mg_c = margins(c, d, c, d, 0.0, p["rho"], 0.0, p["varphi"])
         if margin is not None:
             mg_c = mg_c._replace(B=mg_c.B + 0.5 * margin)

@@ -181,6 +181,24 @@ def float_safe_controller(
     -------
     (controller, margin)
     """
+    from ..filters import SafetyFilter
+    from ..formulas._dual_active_set import UNIT_FLOAT
+    from ..formulas._kernels import satisfied_rtol
+    from ..policy import PolicyController
+
+    # what cannot be made float-safe is refused before any evaluation
+    if isinstance(controller, PolicyController):
+        raise ParameterError(
+            "float_safe_controller takes a UniversalController or a SafetyFilter, got a "
+            "PolicyController: it monitors a user's law and enforces no condition that a "
+            "margin could keep; export it as it is"
+        )
+    is_filter = isinstance(controller, SafetyFilter)
+    if is_filter and controller.params_spec is not None:
+        raise ParameterError(
+            "float_safe_controller needs a filter without run-time parameters (params=): "
+            "its margin is measured over the box's states alone"
+        )
     x = float_check_states(low, high, extra_states=extra_states, n_states=n_states, seed=seed)
     reason = float_refusal(controller, x)
     if reason is not None:
@@ -189,29 +207,12 @@ def float_safe_controller(
     if unc is not None and hasattr(unc, "for_precision"):
         unc_f = unc.for_precision("float")
         controller = controller.replace(uncertainty=unc_f)
-    from ..filters import SafetyFilter
-    from ..formulas import SATISFIED_RTOL
-    from ..formulas._dual_active_set import UNIT_DOUBLE, UNIT_FLOAT
-    from ..policy import PolicyController
-
-    if isinstance(controller, PolicyController):
-        raise ParameterError(
-            "float_safe_controller takes a UniversalController or a SafetyFilter, got a "
-            "PolicyController: it monitors a user's law and enforces no condition that a "
-            "margin could keep; export it as it is"
-        )
-    is_filter = isinstance(controller, SafetyFilter)
     # the error the margin covers: the float step's (the harness's rtol) and, for a filter,
     # the tolerance its flags and its certificate accept at float's rounding
     rtol = DEFAULT_RTOL["float"]
     if is_filter:  # the solver's tolerances and the flags' to float's rounding
-        if controller.params_spec is not None:
-            raise ParameterError(
-                "float_safe_controller needs a filter without run-time parameters (params=): "
-                "its margin is measured over the box's states alone"
-            )
+        rtol += satisfied_rtol(UNIT_FLOAT)
         controller = controller.replace(precision="float")
-        rtol += SATISFIED_RTOL * UNIT_FLOAT / UNIT_DOUBLE
     margin = 0.0
     for _ in range(3):  # the margin moves u a little: recompute the scale at the new u
         ctrl = controller.replace(cbf_margin=margin)

@@ -36,6 +36,7 @@ from .results import CompatibilityCase, Region
 __all__ = [
     "DEFAULT_PARALLEL_RTOL",
     "SATISFIED_RTOL",
+    "satisfied_rtol",
     "Margins",
     "ANTIPARALLEL_DET",
     "scaled_norm",
@@ -67,6 +68,17 @@ DEFAULT_PARALLEL_RTOL = 1e-12
 #: a few hundred times the rounding of evaluating the condition and of the formulas' own error
 #: (docs/theory.md), and nowhere near any error that matters.
 SATISFIED_RTOL = 1e-13
+_UNIT_DOUBLE = float(np.finfo(float).eps) / 2
+
+
+def satisfied_rtol(unit: float) -> float:
+    """:data:`SATISFIED_RTOL` for a step evaluated with unit roundoff ``unit``.
+
+    The same multiple of its rounding; the units are powers of two, so float64's is exactly
+    :data:`SATISFIED_RTOL`.
+    """
+    return SATISFIED_RTOL * (float(unit) / _UNIT_DOUBLE)
+
 
 #: Below this value of ``sin^2`` of the angle between ``-b`` and ``d`` (about 1e-12 rad), two
 #: anti-parallel rows are treated as exactly anti-parallel: the tighter of the two conditions is

@@ -40,7 +40,7 @@ from ._dual_active_set import (
     placeholder,
     solve_dual,
 )
-from ._kernels import SATISFIED_RTOL, margins, scaled_norm, solve_two
+from ._kernels import margins, satisfied_rtol, scaled_norm, solve_two
 
 __all__ = ["MultiStatus", "MultiResult", "clf_cbf_multi"]
 
@@ -118,7 +118,7 @@ def _unwhiten(H: Any, v: Any) -> Any:
 
 def _own_scale_ok(res: Any, scale: Any, unit: float = UNIT_DOUBLE) -> Any:
     """A condition ``res <= 0`` holds up to the rounding of its own terms (unit ``unit``)."""
-    return res <= SATISFIED_RTOL * (unit / UNIT_DOUBLE) * scale
+    return res <= satisfied_rtol(unit) * scale
 
 
 class _Problem(NamedTuple):

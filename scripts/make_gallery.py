@@ -94,7 +94,7 @@ def formulas(out: Path) -> dict:
     one = np.ones((s.size, 1))
     fig, (ax_v, ax_h) = plt.subplots(1, 2, figsize=(9, 3.4), constrained_layout=True)
     for kappa, colour in ((0.2, "tab:blue"), (1.0, "tab:orange"), (2.0, "tab:green")):
-        u = ss.clf_sontag(s, one, kappa=kappa, phi=1.0)[:, 0]
+        u = ss.clf_sontag(s, one, kappa=kappa, phi=1.0).u[:, 0]
         # The CLF-only QP: a CBF condition that every input meets (c = 10 >= rho Gamma, d = 0).
         qp = ss.clf_cbf(
             s, one, np.full(s.size, 10.0), 0 * one, kappa=kappa, rho=0.0, phi=1.0, varphi=1.0
@@ -108,7 +108,7 @@ def formulas(out: Path) -> dict:
     )
     ax_v.legend(fontsize=7)
     for rho, colour in ((0.0, "tab:blue"), (0.5, "tab:orange"), (1.0, "tab:green")):
-        u = ss.cbf_universal(s, one, rho=rho, varphi=1.0)[:, 0]
+        u = ss.cbf_universal(s, one, rho=rho, varphi=1.0).u[:, 0]
         ax_h.plot(s, u, color=colour, label=f"rho = {rho}")
     ax_h.axhline(0, color="0.6", lw=0.8)
     ax_h.set(xlabel="c = L_f h + beta h", ylabel="u  (d = 1)", title="CBF: eq. (6)")

@@ -107,8 +107,8 @@ def test_single_certificate_controllers_are_the_paper_formulas():
     sontag = SontagController(system, clf, cbf, **P).step(x)
     cbf_ctrl = CBFController(system, clf, cbf, **P).step(x)
     # same kernels, fused differently inside the controller: agreement to the last bits
-    sontag_ref = clf_sontag(t.a, t.b, kappa=P["kappa"], phi=P["phi"])
-    cbf_ref = cbf_universal(t.c, t.d, rho=P["rho"], varphi=P["varphi"])
+    sontag_ref = clf_sontag(t.a, t.b, kappa=P["kappa"], phi=P["phi"]).u
+    cbf_ref = cbf_universal(t.c, t.d, rho=P["rho"], varphi=P["varphi"]).u
     assert np.allclose(np.asarray(sontag.u), np.asarray(sontag_ref), rtol=1e-13, atol=1e-15)
     assert np.allclose(np.asarray(cbf_ctrl.u), np.asarray(cbf_ref), rtol=1e-13, atol=1e-15)
     assert not np.allclose(np.asarray(sontag.u), np.asarray(cbf_ref))  # they differ here

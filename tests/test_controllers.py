@@ -83,7 +83,7 @@ def test_safety_first_rescues_a_cbf_blind_input():
     system, clf, cbf = _wall_system()
     xs = np.random.default_rng(0).uniform([-2, -2], [1, 2], size=(500, 2))
     t = lie_terms(system, clf, cbf, xs)
-    u_clf = clf_sontag(t.a, t.b, kappa=0.2, phi=1.0)  # ignores the barrier
+    u_clf = clf_sontag(t.a, t.b, kappa=0.2, phi=1.0).u  # ignores the barrier
     rho, varphi, lo, hi = 0.1, 0.0, -1.0, 1.0
     u_safe, feasible = saturate_safety_first(
         u_clf, t.c, t.d, rho=rho, varphi=varphi, u_min=[lo], u_max=[hi]

@@ -52,7 +52,7 @@ def test_single_formulas_report_multipliers_that_give_their_input():
         s = SontagFormula().solve(problem)
         np.testing.assert_allclose(np.asarray(s.u), -float(s.multipliers[0]) * b, rtol=1e-13)
         # the public eq. (3), from (a, b) alone: the same input to rounding
-        sontag_u = ss.clf_sontag(a, b, kappa=params["kappa"], phi=params["phi"])
+        sontag_u = ss.clf_sontag(a, b, kappa=params["kappa"], phi=params["phi"]).u
         np.testing.assert_allclose(np.asarray(s.u), np.asarray(sontag_u), rtol=1e-14)
         f = CBFFormula().solve(problem)
         np.testing.assert_allclose(np.asarray(f.u), float(f.multipliers[1]) * d, rtol=1e-13)

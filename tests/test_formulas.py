@@ -148,22 +148,27 @@ def test_sontag_scalar_integrator():
     # xdot = u, V = x^2/2, lambda = 0: a = 0 and b = x. Sontag with kappa = 1, phi = 1:
     # zeta = sqrt(0 + x^4) = x^2, u = -(0 + x^2)/x^2 * x = -x.
     for x in [-3.0, -0.5, 0.25, 2.0]:
-        u = clf_sontag(0.0, [x], kappa=1.0, phi=1.0)
+        u = clf_sontag(0.0, [x], kappa=1.0, phi=1.0).u
         np.testing.assert_allclose(u, [-x], rtol=1e-15)
     # xdot = x + u, V = x^2/2: a = x^2, b = x, zeta = sqrt(x^4 + x^4) = sqrt(2) x^2,
     # u = -(1 + sqrt(2)) x: the classic Sontag feedback of the unstable scalar system.
     x = 1.7
-    u = clf_sontag(x * x, [x], kappa=1.0, phi=1.0)
+    u = clf_sontag(x * x, [x], kappa=1.0, phi=1.0).u
     np.testing.assert_allclose(u, [-(1 + np.sqrt(2)) * x], rtol=1e-14)
-    assert float(clf_sontag(1.0, [0.0], kappa=1.0, phi=1.0)[0]) == 0.0  # b = 0 gives u = 0
+    res = clf_sontag(1.0, [0.0], kappa=1.0, phi=1.0)
+    assert float(res.u[0]) == 0.0  # b = 0 gives u = 0, in the formula's region P4
+    assert int(res.region) == Region.P4
 
 
 def test_cbf_universal_hand_value():
     # c = -1, d = (2, 0), rho = 0: u = (0 - (-1))/4 * d = (0.5, 0), so c + d.u = 0 = rho Gamma.
-    u = cbf_universal(-1.0, [2.0, 0.0], rho=0.0, varphi=1.0)
-    np.testing.assert_allclose(u, [0.5, 0.0], rtol=1e-15)
+    res = cbf_universal(-1.0, [2.0, 0.0], rho=0.0, varphi=1.0)
+    np.testing.assert_allclose(res.u, [0.5, 0.0], rtol=1e-15)
+    # the same result kind as clf_cbf: u = lambda_2 d with lambda_2 = 1/4, region P2
+    assert int(res.region) == Region.P2
+    np.testing.assert_allclose(res.multipliers, [0.0, 0.25], rtol=1e-15)
     # rho = 1, varphi = 0: Gamma = |c|; with c = -1, B = 1 + 1 = 2 and u = 2/4 d = (1, 0).
-    u = cbf_universal(-1.0, [2.0, 0.0], rho=1.0, varphi=0.0)
+    u = cbf_universal(-1.0, [2.0, 0.0], rho=1.0, varphi=0.0).u
     np.testing.assert_allclose(u, [1.0, 0.0], rtol=1e-15)
 
 

@@ -35,8 +35,8 @@ def _u(out):
 # every public function, as a function of one scalar that enters its arguments
 PUBLIC = {
     "zeta": lambda s: ss.zeta(s, B_, 1.0 + s),
-    "clf_sontag": lambda s: ss.clf_sontag(s, B_ * s, kappa=0.5 * s, phi=1.0),
-    "cbf_universal": lambda s: ss.cbf_universal(s, D_, rho=0.2 * s, varphi=0.5),
+    "clf_sontag": lambda s: ss.clf_sontag(s, B_ * s, kappa=0.5 * s, phi=1.0).u,
+    "cbf_universal": lambda s: ss.cbf_universal(s, D_, rho=0.2 * s, varphi=0.5).u,
     "clf_cbf": lambda s: ss.clf_cbf(s, B_, 0.3 * s, D_, **K).u,
     "clf_cbf_relaxed": lambda s: ss.clf_cbf_relaxed(s, B_, 0.3, D_, slack_weight=2 * s, **K).u,
     "compatibility": lambda s: jnp.where(
@@ -109,7 +109,7 @@ def test_concrete_calls_keep_their_checks_and_traced_ones_check_shapes():
     with pytest.raises(ss.InputTypeError):
         jax.jit(lambda a: ss.clf_sontag(a, B_ > 0, kappa=0.5, phi=1.0))(1.0)
     # traced values are not inspected: a NaN passes through as NaN (the docs say so)
-    out = jax.jit(lambda a: ss.clf_sontag(a, B_, kappa=0.5, phi=1.0))(jnp.nan)
+    out = jax.jit(lambda a: ss.clf_sontag(a, B_, kappa=0.5, phi=1.0).u)(jnp.nan)
     assert np.all(np.isnan(np.asarray(out)))
     with pytest.raises(ss.ParameterError):  # a non-PD H is still refused when concrete
         ss.clf_cbf_multi(
@@ -244,8 +244,8 @@ def test_no_nan_gradient_where_the_value_is_finite(a, b, c, d, phi, varphi):
         "relaxed": lambda a, b, c, d, k, r, p, v: (
             ss.clf_cbf_relaxed(a, b, c, d, kappa=k, rho=r, phi=p, varphi=v, slack_weight=3.0).u
         ),
-        "sontag": lambda a, b, c, d, k, r, p, v: ss.clf_sontag(a, b, kappa=k, phi=p),
-        "cbf": lambda a, b, c, d, k, r, p, v: ss.cbf_universal(c, d, rho=r, varphi=v),
+        "sontag": lambda a, b, c, d, k, r, p, v: ss.clf_sontag(a, b, kappa=k, phi=p).u,
+        "cbf": lambda a, b, c, d, k, r, p, v: ss.cbf_universal(c, d, rho=r, varphi=v).u,
         "multi": lambda a, b, c, d, k, r, p, v: (
             ss.clf_cbf_multi(
                 a[None],

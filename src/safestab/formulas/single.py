@@ -13,6 +13,7 @@ import jax
 from ._checks import as_float, check_lie_terms, check_output_finite, check_params
 from ._kernels import margins
 from .problem import CBFFormula, Problem, SontagFormula
+from .results import FormulaResult
 
 __all__ = ["zeta", "clf_sontag", "cbf_universal"]
 
@@ -54,10 +55,10 @@ def zeta(a: Any, b: Any, phi: Any) -> Array:
 def _clf_sontag_jit(a, b, kappa, phi):
     # the CBF side is unused: c = 0 and d = b only give the margins' CBF half valid shapes
     problem = Problem(a, b, 0.0, b, kappa=kappa, rho=0.0, phi=phi, varphi=0.0)
-    return SontagFormula().solve(problem).u
+    return SontagFormula().solve(problem)
 
 
-def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> Array:
+def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> FormulaResult:
     """Sontag-type universal formula for a CLF, eq. (3) ``CLF_Sontag_Law``.
 
     ``u = -(a + kappa zeta) / |b|^2 b`` where ``b != 0`` and ``u = 0`` where ``b = 0``, with
@@ -76,7 +77,11 @@ def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> Array:
 
     Returns
     -------
-    u : array of shape (..., m)
+    FormulaResult
+        ``u`` of shape (..., m); ``region`` is ``P1`` (the formula's one region: the CLF row
+        active; ``P4`` where ``b = 0``), ``multipliers[..., 0] = lambda_1`` with
+        ``u = -lambda_1 b``, the CBF multiplier and the slack 0. The same result kind as
+        :func:`clf_cbf` and every formula object's ``solve``.
 
     Raises
     ------
@@ -104,19 +109,19 @@ def clf_sontag(a: Any, b: Any, *, kappa: Any, phi: Any) -> Array:
     """
     batch = check_lie_terms(a, b)
     check_params(batch, kappa=kappa, phi=phi)
-    u = _clf_sontag_jit(*as_float(a, b), kappa, phi)
-    check_output_finite("clf_sontag", u=u)
-    return u
+    result = _clf_sontag_jit(*as_float(a, b), kappa, phi)
+    check_output_finite("clf_sontag", u=result.u)
+    return result
 
 
 @jax.jit
 def _cbf_universal_jit(c, d, rho, varphi):
     # the CLF side is unused: a = 0 and b = d only give the margins' CLF half valid shapes
     problem = Problem(0.0, d, c, d, kappa=0.0, rho=rho, phi=0.0, varphi=varphi)
-    return CBFFormula().solve(problem).u
+    return CBFFormula().solve(problem)
 
 
-def cbf_universal(c: Any, d: Any, *, rho: Any, varphi: Any) -> Array:
+def cbf_universal(c: Any, d: Any, *, rho: Any, varphi: Any) -> FormulaResult:
     """Universal formula for a CBF, eq. (6) ``CBF_Universal_Law``.
 
     ``u = (rho Gamma - c) / |d|^2 d`` where ``d != 0`` and ``u = 0`` where ``d = 0``, with
@@ -135,7 +140,10 @@ def cbf_universal(c: Any, d: Any, *, rho: Any, varphi: Any) -> Array:
 
     Returns
     -------
-    u : array of shape (..., m)
+    FormulaResult
+        ``u`` of shape (..., m); ``region`` ``P2`` (``P4`` where ``d = 0``),
+        ``multipliers[..., 1] = lambda_2`` with ``u = lambda_2 d``, the CLF multiplier and the
+        slack 0.
 
     Raises
     ------
@@ -149,6 +157,6 @@ def cbf_universal(c: Any, d: Any, *, rho: Any, varphi: Any) -> Array:
     """
     batch = check_lie_terms(c, d, names=("c", "d"))
     check_params(batch, rho=rho, varphi=varphi)
-    u = _cbf_universal_jit(*as_float(c, d), rho, varphi)
-    check_output_finite("cbf_universal", u=u)
-    return u
+    result = _cbf_universal_jit(*as_float(c, d), rho, varphi)
+    check_output_finite("cbf_universal", u=result.u)
+    return result

@@ -76,10 +76,14 @@ def _release_compiled_functions():
 
 # -- the count of XLA programs a run needs (printed at the end of the run) ----------------
 # JAX's backend_compile event marks every program a process builds, compiled by XLA or
-# loaded from the persistent cache (its cache_hits event marks those). Each xdist worker
-# counts its own and hands them to the controller (workeroutput), which prints the sums: the
-# figure the compile-once work is measured by (with an empty cache, all are compiled).
+# loaded from the persistent cache (its cache_hits event marks those). A program is looked up
+# in the persistent cache by its key before it is built (jax._src.compilation_cache's
+# get_executable_and_time, wrapped below), so the keys looked up are the run's distinct
+# programs, the same count with a cold or a warm cache. Each xdist worker counts its own and
+# hands them to the controller (workeroutput), which prints the sums and the distinct count:
+# the figures the compile-once work is measured by.
 _PROGRAMS = {"built": 0, "loaded": 0}
+_KEYS: set[str] = set()
 
 
 def _count_build(event: str, duration: float, **kw) -> None:
@@ -92,19 +96,35 @@ def _count_hit(event: str, **kw) -> None:
         _PROGRAMS["loaded"] += 1
 
 
+def _record_keys() -> None:
+    from jax._src import compilation_cache
+
+    lookup = compilation_cache.get_executable_and_time
+
+    def recorded(cache_key, *args, **kwargs):
+        _KEYS.add(cache_key)
+        return lookup(cache_key, *args, **kwargs)
+
+    compilation_cache.get_executable_and_time = recorded
+
+
 jax.monitoring.register_event_duration_secs_listener(_count_build)
 jax.monitoring.register_event_listener(_count_hit)
+_record_keys()
 
 
 def pytest_sessionfinish(session, exitstatus):
     workeroutput = getattr(session.config, "workeroutput", None)
     if workeroutput is not None:  # an xdist worker: report to the controller
         workeroutput["safestab_programs"] = dict(_PROGRAMS)
+        workeroutput["safestab_program_keys"] = sorted(_KEYS)
 
 
 def pytest_testnodedown(node, error):
-    for key, value in getattr(node, "workeroutput", {}).get("safestab_programs", {}).items():
+    output = getattr(node, "workeroutput", {})
+    for key, value in output.get("safestab_programs", {}).items():
         _PROGRAMS[key] += value
+    _KEYS.update(output.get("safestab_program_keys", ()))
 
 
 def pytest_terminal_summary(terminalreporter):
@@ -112,4 +132,16 @@ def pytest_terminal_summary(terminalreporter):
     terminalreporter.write_line(
         f"XLA programs: {built} built, {built - loaded} compiled by XLA and {loaded} loaded "
         "from the persistent compilation cache (counted by tests/conftest.py)"
+    )
+    if not _KEYS:  # the persistent cache is off (SAFESTAB_COMPILATION_CACHE=off)
+        return
+    names: dict[str, int] = {}
+    for key in _KEYS:  # "<module name>-<hash>"
+        name = key.rsplit("-", 1)[0]
+        names[name] = names.get(name, 0) + 1
+    top = sorted(names.items(), key=lambda item: -item[1])[:6]
+    terminalreporter.write_line(
+        f"distinct XLA programs: {len(_KEYS)} (most: "
+        + ", ".join(f"{name} {count}" for name, count in top)
+        + ")"
     )

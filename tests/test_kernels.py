@@ -1,5 +1,6 @@
 """The kernel objects: formulas against tinygp and 50 digits, derivatives, names, one source."""
 
+import dataclasses
 import io
 import re
 import tokenize
@@ -154,6 +155,16 @@ def test_as_kernel_names_the_argument_what_it_got_and_what_it_expects(bad):
         GaussianProcessModel(kernel=bad)
     with pytest.raises(ParameterError, match=pattern):
         SparseGP(kernel=bad)
+
+
+def test_a_kernel_the_models_cannot_store_by_name_is_refused():
+    @dataclasses.dataclass(frozen=True)
+    class Rational(SquaredExponential):  # a new formula under a name the models know
+        def of_r2(self, r2, xp=jnp):
+            return 1 / (1 + r2 / 2)
+
+    with pytest.raises(ParameterError, match=r"StationaryKernel.*got .*Rational\(\)"):
+        GaussianProcessModel(kernel=Rational())
 
 
 def test_a_kernel_object_fits_the_same_gp_as_its_name():

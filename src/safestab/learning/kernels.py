@@ -39,8 +39,9 @@ __all__ = [
 class StationaryKernel(abc.ABC):
     """A stationary kernel ``amplitude^2 k(r2)`` of the squared scaled distance ``r2``.
 
-    Subclasses define :attr:`name`, :meth:`of_r2`, :meth:`d_of_r2` and the rounding constants
-    of :meth:`error_coefficient`; everything else is shared.
+    Subclasses define :attr:`name`, :meth:`of_r2`, :meth:`d_of_r2` and ``_error_sum`` (the
+    terms of :meth:`error_coefficient`); everything else is shared. The models store a
+    kernel by its name, so they take the kernels of :data:`KERNELS`.
     """
 
     #: The kernel's name in files, JSON and on the command line.
@@ -206,6 +207,7 @@ def as_kernel(kernel: Any) -> StationaryKernel:
     Parameters
     ----------
     kernel : StationaryKernel or {"se", "matern52"}
+        One of :data:`KERNELS` or its name.
 
     Returns
     -------
@@ -214,9 +216,9 @@ def as_kernel(kernel: Any) -> StationaryKernel:
     Raises
     ------
     ParameterError
-        If ``kernel`` is neither a kernel object nor one of :data:`KERNEL_NAMES`.
+        If ``kernel`` is neither one of :data:`KERNELS` nor one of :data:`KERNEL_NAMES`.
     """
-    if isinstance(kernel, StationaryKernel):
+    if isinstance(kernel, StationaryKernel) and _BY_NAME.get(kernel.name) == kernel:
         return kernel
     if isinstance(kernel, str) and kernel in _BY_NAME:
         return _BY_NAME[kernel]

@@ -120,7 +120,7 @@ def test_fewer_inducing_inputs_stay_close_and_a_conformal_beta_covers():
 def test_bad_input_is_refused_with_its_name():
     with pytest.raises(ParameterError, match="n_inducing must be an integer >= 1"):
         SparseGP(0)
-    with pytest.raises(ParameterError, match="kernel must be 'se' or 'matern52', got 'rbf'"):
+    with pytest.raises(ParameterError, match="kernel must be one of 'se', 'matern52' .*'rbf'"):
         SparseGP(kernel="rbf")
     with pytest.raises(ParameterError, match="hyper_subset must be an integer >= 2"):
         SparseGP(hyper_subset=1)

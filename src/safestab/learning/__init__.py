@@ -1,4 +1,4 @@
-"""Learning the unknown dynamics ``omega(x)``: data, GPs, their batched forms, confidence bounds."""
+"""Learning the unknown dynamics ``omega(x)``: data, kernels, GPs, their batched forms, bounds."""
 
 from .batched import (
     BatchedUncertainty,
@@ -21,6 +21,7 @@ from .data import Dataset, collect_data
 from .fast import FastGP
 from .gp import GaussianProcessModel
 from .input_gain import InputGain, estimate_input_gain, fit_input_gain
+from .kernels import Matern52, SquaredExponential, StationaryKernel
 from .sklearn_adapter import SklearnGPAdapter
 from .sparse import SparseGP
 
@@ -35,8 +36,11 @@ __all__ = [
     "Hyperparameters",
     "InputGain",
     "InducingCache",
+    "Matern52",
     "SklearnGPAdapter",
     "SparseGP",
+    "SquaredExponential",
+    "StationaryKernel",
     "beta_lemma2",
     "calibration",
     "collect_data",

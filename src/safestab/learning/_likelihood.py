@@ -27,6 +27,7 @@ from ..errors import ConvergenceWarning, NumericalError
 from ._fit_cache import fit_cache_dir, load, problem_key, store
 from ._posterior import kernel
 from ._threads import blas_single_threaded
+from .kernels import as_kernel
 
 __all__ = [
     "fit_components",
@@ -69,7 +70,7 @@ def nll_value_and_grad(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, *, 
         1.0 for a constant prior mean ``theta[2]``, 0.0 for a zero mean.
     jitter : array of shape ()
         Relative diagonal jitter (times ``amplitude^2``).
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
 
     Returns
     -------
@@ -81,14 +82,9 @@ def nll_value_and_grad(theta, xs, y, fixed_var, use_fixed, use_mean, jitter, *, 
     z = xs / ls
     diff2 = (z[:, None, :] - z[None, :, :]) ** 2  # (Q, Q, n)
     r2 = jnp.sum(diff2, -1)
-    if kind == "se":
-        k0 = jnp.exp(-0.5 * r2)
-        dk0 = k0  # d k0 / d log ls_d = dk0 * diff2_d
-    else:
-        r = jnp.sqrt(5.0 * r2)
-        e = jnp.exp(-r)
-        k0 = (1.0 + r + r * r / 3.0) * e
-        dk0 = (5.0 / 3.0) * (1.0 + r) * e
+    base = as_kernel(kind)
+    k0 = base.of_r2(r2, jnp)
+    dk0 = -2.0 * base.d_of_r2(r2, jnp)  # d k0 / d log ls_d = dk0 * diff2_d
     noise_var = jnp.where(use_fixed, fixed_var, noise**2)
     s2 = noise_var + jitter * amp**2
     kmat = amp**2 * k0 + s2 * jnp.eye(q)

@@ -8,7 +8,8 @@ exact model (:class:`~safestab.learning.GaussianProcessModel`), its inducing-poi
 
 * Kernels: :func:`kernel` and :func:`kernel_matrix` through tinygp (SE or L2 Matern 5/2,
   ``amplitude^2 base(x / lengthscale)``), and :func:`kernel_from_r2` from squared scaled
-  distances (:func:`sq_dist` as a matrix product, :func:`sq_dist_exact` by differences).
+  distances (:func:`sq_dist` as a matrix product, :func:`sq_dist_exact` by differences),
+  both with the formulas of the kernel objects of :mod:`safestab.learning.kernels`.
 * The exact posterior: :func:`factor` (Cholesky factor of ``K + noise^2 I`` and
   ``alpha``), :func:`exact_point` (mean and latent variance at one state, with the factor
   as row :func:`panels` for a closed loop: :func:`solve_panels`),
@@ -37,9 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve, solve_triangular
-from tinygp import kernels, transforms
 
 from .._numerics import safe_sqrt
+from .kernels import as_kernel
 
 __all__ = [
     "BAND_KEYS",
@@ -72,13 +73,13 @@ __all__ = [
 # ------------------------------------------------------------------------------- kernels
 
 
-def kernel(kind: str, amplitude, lengthscale):
+def kernel(kind, amplitude, lengthscale):
     """The tinygp kernel ``amplitude^2 * base(x / lengthscale)``.
 
     Parameters
     ----------
-    kind : {"se", "matern52"}
-        ``base`` is the squared exponential or the (L2) Matern 5/2.
+    kind : StationaryKernel or {"se", "matern52"}
+        ``base``: the squared exponential or the (L2) Matern 5/2 (:mod:`~.kernels`).
     amplitude : array of shape ()
     lengthscale : array of shape (n,)
 
@@ -87,14 +88,7 @@ def kernel(kind: str, amplitude, lengthscale):
     tinygp.kernels.Kernel
         Called on ``(x1, x2)`` of shapes (N1, n) and (N2, n), gives a matrix (N1, N2).
     """
-    # tinygp's Matern kernels default to the L1 distance, which is not positive definite in
-    # more than one dimension; the Matern 5/2 of GP regression (GPML, scikit-learn) is L2.
-    base: kernels.Kernel
-    if kind == "se":
-        base = kernels.ExpSquared()
-    else:
-        base = kernels.Matern52(distance=kernels.distance.L2Distance())
-    return amplitude**2 * transforms.Linear(1.0 / lengthscale, base)
+    return as_kernel(kind).tinygp(amplitude, lengthscale)
 
 
 @functools.partial(jax.jit, static_argnames=("kind",))
@@ -106,12 +100,12 @@ def kernel_matrix(amplitude, lengthscale, x1, x2, *, kind):
     return kernel(kind, amplitude, lengthscale)(x1, x2)
 
 
-def kernel_from_r2(kind: str, amp, r2):
-    """``amp^2 base(r)`` from squared scaled distances, as tinygp's SE and (L2) Matern 5/2.
+def kernel_from_r2(kind, amp, r2):
+    """``amp^2 base(r2)`` from squared scaled distances, the same formula as :func:`kernel`.
 
     Parameters
     ----------
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     amp : array broadcasting against ``r2``
     r2 : array of any shape
         Squared distances of the inputs divided by the lengthscales.
@@ -120,11 +114,7 @@ def kernel_from_r2(kind: str, amp, r2):
     -------
     array of the broadcast shape
     """
-    if kind == "se":
-        return amp**2 * jnp.exp(-0.5 * r2)
-    r = jnp.sqrt(r2)
-    s5 = np.sqrt(5.0)
-    return amp**2 * (1.0 + s5 * r + 5.0 / 3.0 * r2) * jnp.exp(-s5 * r)
+    return amp**2 * as_kernel(kind).of_r2(r2, jnp)
 
 
 def sq_dist(xl, zl, z2):
@@ -186,7 +176,7 @@ def factor(amp, ls, nz, xs, y, mu, *, kind):
     xs : array of shape (Q, n)
         Standardised training inputs.
     y : array of shape (Q,)
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     """
     return chol_alpha(noisy_kernel(amp, ls, nz, xs, kind=kind), y, mu)
 
@@ -244,7 +234,7 @@ def exact_point(post, x, kind, n):
         factors as :func:`panels` (then solved with :func:`solve_panels`: the same values to
         rounding, faster in a closed loop).
     x : array of shape (n,)
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     n : int
         State dimension.
 
@@ -308,7 +298,7 @@ def exact_products(xs, inv_ls, xl, x2, chol, alpha, amplitude, mean, *, kind):
         Cholesky factor of ``K + noise^2 I``.
     alpha : array of shape (C, Q)
     amplitude, mean : arrays of shape (C,)
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
 
     Returns
     -------
@@ -325,39 +315,14 @@ def exact_products(xs, inv_ls, xl, x2, chol, alpha, amplitude, mean, *, kind):
 
 # ---------------------------------------------------------------------------- cache band
 
-#: Kernel evaluation error bounds (``kernel_error_coefficient``): the largest values of
-#: ``sqrt(t) e^(-t/2)`` and ``t e^(-t/2)`` (SE, ``t = r^2``) and of ``r (1 + sqrt5 r)
-#: e^(-sqrt5 r)``, ``r^2 (1 + sqrt5 r) e^(-sqrt5 r)`` and ``t (1 + t + t^2/3) e^(-t)`` (Matern
-#: 5/2, ``t = sqrt5 r``), rounded up.
-_SE_MAX = (0.6066, 0.7358)
-_M52_MAX = (0.3756, 0.3628, 1.1720)
 
-
-def kernel_error_coefficient(kind: str, z_scaled_max: np.ndarray) -> float:
+def kernel_error_coefficient(kind, z_scaled_max: np.ndarray) -> float:
     """``e`` such that a kernel value computed in precision ``u`` is within ``e u amp^2``.
 
-    The query's standardisation (``(x - offset) / scale``), the scaling by the inverse
-    lengthscales (and the inverse lengthscale itself), the differences to the inducing inputs,
-    the sum of squares, ``exp`` (taken as accurate to 2 ulp) and the factors are each rounded
-    once; an error in the scaled difference ``d_i`` is at most ``5 u (Z_i + |d_i|)``, ``Z_i``
-    the largest scaled
-    ``|z_i|`` (``z_scaled_max``). Carried through the kernel's derivative, whose products with
-    powers of the distance are bounded (``_SE_MAX``, ``_M52_MAX``), the bound is independent of
-    the query; 10 % is added for second-order terms. The tests check it against 50-digit
-    kernel values, far from the data too.
-
-    Parameters
-    ----------
-    kind : {"se", "matern52"}
-    z_scaled_max : array of shape (n,)
-        Per coordinate, the largest ``|z_i| / l_i`` over the inducing inputs.
+    :meth:`~.kernels.StationaryKernel.error_coefficient` of ``kind`` (a kernel object or its
+    name) at ``z_scaled_max`` (n,), the largest ``|z_i| / l_i`` over the inducing inputs.
     """
-    n, zsum = len(z_scaled_max), float(np.sum(z_scaled_max))
-    if kind == "se":
-        e = 5 * _SE_MAX[0] * zsum + (n + 11) / 2 * _SE_MAX[1] + 4
-    else:
-        e = 5 / 3 * (5 * _M52_MAX[0] * zsum + (n + 13) / 2 * _M52_MAX[1]) + 2 * _M52_MAX[2] + 8
-    return 1.1 * e
+    return as_kernel(kind).error_coefficient(z_scaled_max)
 
 
 def residual_allowance(amp2, c1, mm, ek, unit):
@@ -409,7 +374,7 @@ def band_component(kind, mm, z0, unit, proven, with_scales):
 
     Parameters
     ----------
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     mm : int
         Inducing inputs ``M`` of the arrays the returned function receives; where they are
         padded (``mask`` given), the allowances count the component's own rows
@@ -524,7 +489,7 @@ def band_point(p, x, kind, unit, proven=True):
         :meth:`FastGP.arrays <safestab.learning.FastGP.arrays>`: ``offset`` and ``scale``
         (n,) and, per learned component padded to a common ``M``, the :data:`BAND_KEYS`.
     x : array of shape (n,)
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     unit : float
         Unit roundoff of the precision the step will be evaluated in (a Python float;
         :meth:`FastGP.for_precision <safestab.learning.FastGP.for_precision>`): every
@@ -620,7 +585,7 @@ def band_products(
         ``amp, mu, E, ek, gnorm, bnorm, rho_err, rho, wnorm, cnorm`` and the component's own
         ``M`` (the rows in use; padded rows are exact zeros and round nothing) as a float.
     min_beta : array of shape ()
-    kind : {"se", "matern52"}
+    kind : StationaryKernel or {"se", "matern52"}
     proven : bool
         FastGP's band, or SparseGP's DTC band (``sqrt(q + allowance + p^2)``).
 

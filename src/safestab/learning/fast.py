@@ -55,6 +55,7 @@ from ._posterior import (
 from ._predict import Predictor
 from ._threads import fit_threads
 from .gp import GaussianProcessModel
+from .kernels import as_kernel
 
 __all__ = ["EXCESS_WARN", "FastGP", "INFLATION_WARN", "STD_RATIO_WARN"]
 
@@ -170,16 +171,13 @@ def _psd_root(mat: np.ndarray) -> np.ndarray:
     return (evecs * np.sqrt(np.maximum(evals, 0.0))).T
 
 
-def _kernel_np(kind: str, amp: float, ls: np.ndarray, x1: np.ndarray, x2: np.ndarray, dtype):
+def _kernel_np(kind, amp: float, ls: np.ndarray, x1: np.ndarray, x2: np.ndarray, dtype):
     """The kernel matrix ``(N1, N2)`` in numpy precision ``dtype`` (``longdouble``: extended)."""
     a, b = x1.astype(dtype) / ls.astype(dtype), x2.astype(dtype) / ls.astype(dtype)
     r2 = np.square(a[:, None, 0] - b[None, :, 0])
     for d in range(1, a.shape[1]):  # by coordinate: no (N1, N2, n) array
         r2 += np.square(a[:, None, d] - b[None, :, d])
-    if kind == "se":
-        return dtype(amp) ** 2 * np.exp(-r2 / 2)
-    t = np.sqrt(dtype(5) * r2)
-    return dtype(amp) ** 2 * (1 + t + t * t / 3) * np.exp(-t)
+    return dtype(amp) ** 2 * as_kernel(kind).of_r2(r2, np)
 
 
 def _quad_form(kind, amp, ls, xs, beta, dtype, unit, chunk: int = 512):

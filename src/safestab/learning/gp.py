@@ -34,17 +34,16 @@ from ._likelihood import fit_components, pose_component
 from ._posterior import exact_point, factor, panels, predict_batch
 from ._predict import Predictor
 from ._threads import fit_threads
+from .kernels import StationaryKernel, as_kernel
 
 __all__ = [
     "GaussianProcessModel",
-    "KERNELS",
     "DEFAULT_JITTER",
     "MIN_ROWS_PER_HYPERPARAMETER",
     "LOO_ROWS",
     "LOO_MIN_COVERAGE",
 ]
 
-KERNELS = ("se", "matern52")
 #: Added to the diagonal, relative to the signal variance ``amplitude^2``, before every
 #: Cholesky factorisation: 1e-10 keeps K + sigma^2 I positive definite in float64 for
 #: Q up to tens of thousands even with sigma = 0. It is part of the model's noise: the
@@ -146,8 +145,11 @@ class GaussianProcessModel(Predictor):
 
     Parameters
     ----------
-    kernel : {"se", "matern52"}
-        ARD squared-exponential or ARD Matern 5/2 kernel.
+    kernel : StationaryKernel or {"se", "matern52"}
+        ARD squared-exponential or ARD Matern 5/2 kernel
+        (:class:`~safestab.learning.SquaredExponential`,
+        :class:`~safestab.learning.Matern52`), as an object or by name. The model stores
+        the name (``kernel``), which its files carry.
     mean : {"zero", "constant"}
         Prior mean: zero, or a constant fitted with the other hyperparameters.
     noise : float or array of shape (k,), optional
@@ -213,7 +215,7 @@ class GaussianProcessModel(Predictor):
 
     def __init__(
         self,
-        kernel: Literal["se", "matern52"] = "se",
+        kernel: StationaryKernel | Literal["se", "matern52"] = "se",
         mean: Literal["zero", "constant"] = "zero",
         noise: Any = None,
         jitter: float = DEFAULT_JITTER,
@@ -221,8 +223,7 @@ class GaussianProcessModel(Predictor):
         n_restarts: int = 2,
         n_threads: int | None = None,
     ) -> None:
-        if kernel not in KERNELS:
-            raise ParameterError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        kernel_name = as_kernel(kernel).name
         if mean not in ("zero", "constant"):
             raise ParameterError(f"mean must be 'zero' or 'constant', got {mean!r}")
         if noise is not None:
@@ -237,7 +238,7 @@ class GaussianProcessModel(Predictor):
             or n_threads < 1
         ):
             raise ParameterError(f"n_threads must be None or an integer >= 1, got {n_threads!r}")
-        self.kernel = kernel
+        self.kernel = kernel_name
         self.mean = mean
         self.noise = noise
         self.jitter = float(jitter)
@@ -422,7 +423,7 @@ class GaussianProcessModel(Predictor):
         noise: Any,
         lengthscale: Any,
         mean: Any = None,
-        kernel: Literal["se", "matern52"] = "se",
+        kernel: StationaryKernel | Literal["se", "matern52"] = "se",
         components: Any = None,
         jitter: float = DEFAULT_JITTER,
         seed: int = 0,
@@ -443,7 +444,7 @@ class GaussianProcessModel(Predictor):
             In the units of ``x`` (as ``lengthscale_``).
         mean : array of shape (k,), optional
             Constant prior mean (default 0; nonzero values make ``mean="constant"``).
-        kernel : {"se", "matern52"}
+        kernel : StationaryKernel or {"se", "matern52"}
         components : sequence of int, optional
             The ``k`` learned components (default: all ``n``).
         jitter : float

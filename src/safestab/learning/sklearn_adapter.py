@@ -20,12 +20,13 @@ import numpy as np
 from ..errors import DimensionError
 from ._posterior import exact_point
 from ._predict import Predictor
+from .kernels import Matern52, SquaredExponential, StationaryKernel
 
 __all__ = ["SklearnGPAdapter"]
 
 
-def _parse_kernel(kernel: Any) -> tuple[str, float, np.ndarray]:
-    """Return (kind, amplitude^2, lengthscale) of ``C * RBF``/``C * Matern(2.5)`` (+ White)."""
+def _parse_kernel(kernel: Any) -> tuple[StationaryKernel, float, np.ndarray]:
+    """Return (kernel, amplitude^2, lengthscale) of ``C * RBF``/``C * Matern(2.5)`` (+ White)."""
     from sklearn.gaussian_process import kernels as K
 
     if isinstance(kernel, K.Sum):
@@ -46,9 +47,9 @@ def _parse_kernel(kernel: Any) -> tuple[str, float, np.ndarray]:
     if isinstance(kernel, K.Matern):
         if kernel.nu != 2.5:
             raise TypeError(f"only Matern(nu=2.5) is supported, got nu={kernel.nu}")
-        return "matern52", amp2, np.atleast_1d(np.asarray(kernel.length_scale, float))
+        return Matern52(), amp2, np.atleast_1d(np.asarray(kernel.length_scale, float))
     if isinstance(kernel, K.RBF):
-        return "se", amp2, np.atleast_1d(np.asarray(kernel.length_scale, float))
+        return SquaredExponential(), amp2, np.atleast_1d(np.asarray(kernel.length_scale, float))
     raise TypeError(f"unsupported kernel {kernel}: expected RBF or Matern(nu=2.5)")
 
 

@@ -40,6 +40,7 @@ from ._posterior import kernel_error_coefficient
 from ._threads import fit_threads
 from .fast import InducingBand, inducing_inputs
 from .gp import DEFAULT_JITTER, GaussianProcessModel
+from .kernels import StationaryKernel, as_kernel
 
 __all__ = ["SparseGP"]
 
@@ -53,7 +54,8 @@ class SparseGP(InducingBand):
         ``M``, most inducing inputs per component (default 256). The pivoted Cholesky stops
         earlier once the prior is resolved at the data (``pivot_tol``; ``noise_tol``: once the
         largest residual prior std at the training inputs is below ``noise_tol`` noise stds).
-    kernel : {"se", "matern52"}
+    kernel : StationaryKernel or {"se", "matern52"}
+        As :class:`~safestab.learning.GaussianProcessModel`'s (stored by name).
     mean : {"zero", "constant"}
         Prior mean, as :class:`~safestab.learning.GaussianProcessModel`'s (``"constant"`` for
         targets with a large offset, which the fit warns about).
@@ -101,7 +103,7 @@ class SparseGP(InducingBand):
         self,
         n_inducing: int = 256,
         *,
-        kernel: str = "se",
+        kernel: StationaryKernel | str = "se",
         mean: str = "zero",
         noise: Any = None,
         jitter: float = DEFAULT_JITTER,
@@ -113,9 +115,7 @@ class SparseGP(InducingBand):
         chunk: int = 8192,
     ) -> None:
         self.n_inducing = check_count("n_inducing", n_inducing)
-        if kernel not in ("se", "matern52"):
-            raise ParameterError(f"kernel must be 'se' or 'matern52', got {kernel!r}")
-        self.kernel = kernel
+        self.kernel = as_kernel(kernel).name
         # checked by the exact model's constructor, which names each argument
         GaussianProcessModel(kernel, mean, noise, jitter, max_iter, n_restarts)  # type: ignore[arg-type]
         self.mean, self.noise, self.jitter = mean, noise, float(jitter)

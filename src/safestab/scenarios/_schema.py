@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ScenarioError
+from ..learning.kernels import KERNEL_NAMES
 
 __all__ = [
     "LIMITS",
@@ -301,8 +302,6 @@ def check_count(source: str, what: str, unit: str, ratio: float) -> None:
 
 # -- what the scenarios that learn omega share -------------------------------------------
 
-#: The kernels of :class:`safestab.learning.GaussianProcessModel`.
-KERNELS = ("se", "matern52")
 #: The ``[learning]`` keys of every scenario that learns ``omega`` (ACC, obstacle), in order;
 #: a scenario's dataclass stores ``learning.k`` as its field ``k``.
 LEARNING_KEYS = (
@@ -317,7 +316,7 @@ def learning_fields(point: Check) -> dict[str, Check]:
     rows = integer(LIMITS.min_gp_rows, LIMITS.max_n_samples)
     checks = {
         "n_samples": rows, "sample_rate": pos, "sample_horizon": pos, "noise_std": nonneg,
-        "gp_beta": nonneg, "kernel": choice(KERNELS), "x0_low": point, "x0_high": point,
+        "gp_beta": nonneg, "kernel": choice(KERNEL_NAMES), "x0_low": point, "x0_high": point,
         "excitation_limit": nonneg, "hyper_subset": rows, "seed": integer(0, LIMITS.max_seed),
     }  # fmt: skip
     return {f"learning.{k}": checks[k] for k in LEARNING_KEYS}

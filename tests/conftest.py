@@ -101,11 +101,30 @@ def _record_keys() -> None:
 
     lookup = compilation_cache.get_executable_and_time
 
+    sites = os.environ.get("SAFESTAB_PROGRAM_SITES")  # a file: where each program came from
+
     def recorded(cache_key, *args, **kwargs):
+        if sites and cache_key not in _KEYS:
+            _write_site(sites, cache_key)
         _KEYS.add(cache_key)
         return lookup(cache_key, *args, **kwargs)
 
     compilation_cache.get_executable_and_time = recorded
+
+
+def _write_site(path: str, cache_key: str) -> None:
+    """Append ``key<TAB>library frame<TAB>test frame`` (the innermost of each) to ``path``."""
+    import traceback
+
+    lib = test = ""
+    for frame in traceback.extract_stack():
+        where = f"{frame.filename.rsplit('/', 1)[-1]}:{frame.lineno}:{frame.name}"
+        if "/src/safestab/" in frame.filename:
+            lib = where
+        elif "/tests/" in frame.filename and "conftest" not in frame.filename:
+            test = where
+    with open(path, "a") as out:
+        out.write(f"{cache_key.rsplit('-', 1)[0]}\t{lib}\t{test}\n")
 
 
 jax.monitoring.register_event_duration_secs_listener(_count_build)

@@ -623,7 +623,8 @@ def mc(
             TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
             TimeElapsedColumn(), TimeRemainingColumn(), console=console,
         ) as progress:  # fmt: skip
-            bars = {name: progress.add_task(name, total=None) for name in plan.montecarlo.tasks}
+            tasks = plan.study.montecarlo.tasks
+            bars = {name: progress.add_task(name, total=None) for name in tasks}
 
             def report(task: str, done: int, total: int) -> None:
                 progress.update(bars[task], completed=done, total=total)
@@ -632,7 +633,7 @@ def mc(
 
     # a --workers beyond the Ray cluster's largest node is found once Ray is connected
     done = _guard(run, debug=debug, code=EXIT_RUN_FAILED, input_errors=(ParameterError,))
-    Console().print(done.table())  # the terminal's own width
+    Console().print(done.montecarlo_table())  # the terminal's own width
     _print_written(console, done.written)
 
 

@@ -20,16 +20,14 @@ from .pipeline import (
     MonteCarloOptions,
     StepProgress,
     Study,
-    StudyMonteCarlo,
     Summary,
     TaskProgress,
     silent,
-    write_montecarlo_outputs,
+    write_files,
     write_outputs,
 )
 
 __all__ = [
-    "MonteCarloOutputs",
     "MonteCarloPlan",
     "StudyOutputs",
     "kind_of",
@@ -190,6 +188,10 @@ class StudyOutputs:
         """The kind's summary of this run."""
         return self.study.summary(self.result, self.document)
 
+    def montecarlo_table(self) -> Any:
+        """The kind's Monte Carlo summary table of this run (:func:`run_mc`), a rich renderable."""
+        return self.study.montecarlo.table(self.result, self.document)  # type: ignore[union-attr]
+
 
 def run(
     scenario: Any,
@@ -236,24 +238,10 @@ def run(
 
 @dataclasses.dataclass(frozen=True)
 class MonteCarloPlan:
-    """A Monte Carlo checked before any work: the kind's member and what its ``plan`` gave."""
+    """A Monte Carlo checked before any work: the study kind and what its ``plan`` gave."""
 
-    montecarlo: StudyMonteCarlo
+    study: Study
     checked: Any
-
-
-@dataclasses.dataclass(frozen=True)
-class MonteCarloOutputs:
-    """One Monte Carlo run: the kind's member, its result, metrics document and files."""
-
-    montecarlo: StudyMonteCarlo
-    result: Any
-    document: dict[str, Any]
-    written: list[Path]
-
-    def table(self) -> Any:
-        """The kind's summary table of this run (a rich renderable)."""
-        return self.montecarlo.table(self.result, self.document)
 
 
 def plan_mc(scenario: Any, options: MonteCarloOptions, *, name: str = "scenario") -> MonteCarloPlan:
@@ -285,7 +273,7 @@ def plan_mc(scenario: Any, options: MonteCarloOptions, *, name: str = "scenario"
             f"{name} must be a scenario of a kind with a Monte Carlo "
             f"({', '.join(repr(k) for k in able)}), got {scenario.name!r} of kind {study.kind!r}"
         )
-    return MonteCarloPlan(study.montecarlo, study.montecarlo.plan(scenario, options))
+    return MonteCarloPlan(study, study.montecarlo.plan(scenario, options))
 
 
 def run_mc(
@@ -294,8 +282,12 @@ def run_mc(
     *,
     progress: TaskProgress | None = None,
     command: str | None = None,
-) -> MonteCarloOutputs:
-    """Run a checked Monte Carlo and write its outputs (``pipeline.write_montecarlo_outputs``).
+) -> StudyOutputs:
+    """Run a checked Monte Carlo and write its outputs, for every kind alike.
+
+    The files are ``<out>/mc_<name>.png``, ``mc_<name>_metrics.json``,
+    ``mc_<name>_trials.npz`` and ``mc_<name>_run.json``, all or none
+    (:func:`~safestab.scenarios.pipeline.write_files`).
 
     Parameters
     ----------
@@ -310,18 +302,28 @@ def run_mc(
 
     Returns
     -------
-    MonteCarloOutputs
+    StudyOutputs
+        Its ``montecarlo_table()`` is the kind's summary table.
 
     Raises
     ------
     OutputError
         If ``out_dir`` is not a writable folder (before any work) or a file cannot be written.
     """
-    from .._io import ensure_writable_dir
+    from .._io import bytes_writer, ensure_writable_dir, json_writer
 
     folder = ensure_writable_dir(out_dir, name="out_dir")
-    mc = plan.montecarlo
+    mc = plan.study.montecarlo
+    assert mc is not None  # plan_mc made the plan
     result = mc.run(plan.checked, progress or (lambda task, done, total: None))
     document = mc.document(result)
-    written = write_montecarlo_outputs(mc, result, document, folder, command=command)
-    return MonteCarloOutputs(mc, result, document, written)
+    files = {
+        "_metrics.json": json_writer(document),
+        "_trials.npz": bytes_writer(mc.trials_npz(result)),
+    }
+    written = write_files(
+        folder, f"mc_{result.scenario.name}", result.scenario,
+        figures={"": mc.figure(result)}, formats=("png",), dpi=150, files=files,
+        command=command,
+    )  # fmt: skip
+    return StudyOutputs(plan.study, result, document, written)

@@ -16,8 +16,8 @@ steps every kind shares live here:
 * **outputs** (:func:`write_files`, the one writer): a study's ``<out>/<kind>_<name>``
   figures as PNG and PDF, the metrics as strict JSON (:class:`MetricsWriter`) and a run
   record (:func:`write_outputs`), a Monte Carlo's ``<out>/mc_<name>`` figure, metrics,
-  per-trial records and run record (:func:`write_montecarlo_outputs`), all or none, each
-  atomically; :func:`other_runs` names the other runs' files in the folder.
+  per-trial records and run record (``kinds.run_mc``), all or none, each atomically;
+  :func:`other_runs` names the other runs' files in the folder.
 
 The shared schema machinery (reading, checks, overrides) is :mod:`safestab.scenarios._schema`.
 """
@@ -51,7 +51,6 @@ __all__ = [
     "record_writer",
     "silent",
     "write_files",
-    "write_montecarlo_outputs",
     "write_outputs",
 ]
 
@@ -487,54 +486,6 @@ def write_outputs(
         out_dir, study.stem(result.scenario), result.scenario, figures=study.figures(result),
         formats=("png", "pdf"), dpi=200, files={"_metrics.json": json_writer(document)},
         command=command,
-    )  # fmt: skip
-
-
-def write_montecarlo_outputs(
-    montecarlo: StudyMonteCarlo,
-    result: Any,
-    document: dict[str, Any],
-    out_dir: Path,
-    *,
-    command: str | None = None,
-) -> list[Path]:
-    """Write a Monte Carlo's figure, metrics, per-trial records and run record, all or none.
-
-    The files are ``<out>/mc_<name>.png``, ``mc_<name>_metrics.json``,
-    ``mc_<name>_trials.npz`` and ``mc_<name>_run.json`` (:func:`write_files`), for every kind.
-
-    Parameters
-    ----------
-    montecarlo : StudyMonteCarlo
-    result : Monte Carlo result
-        What ``montecarlo.run`` returned.
-    document : dict
-        Its metrics document.
-    out_dir : Path
-        An existing, writable folder.
-    command : str, optional
-        The command line for the record (default: this process's arguments).
-
-    Returns
-    -------
-    list of Path
-        The files written, the record last.
-
-    Raises
-    ------
-    OutputError
-        If a file cannot be written (none of the set is then left behind).
-    """
-    from .._io import bytes_writer, json_writer
-
-    files = {
-        "_metrics.json": json_writer(document),
-        "_trials.npz": bytes_writer(montecarlo.trials_npz(result)),
-    }
-    return write_files(
-        out_dir, f"mc_{result.scenario.name}", result.scenario,
-        figures={"": montecarlo.figure(result)},
-        formats=("png",), dpi=150, files=files, command=command,
     )  # fmt: skip
 
 

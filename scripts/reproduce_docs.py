@@ -683,6 +683,47 @@ def step_swarm(out: Path) -> dict[str, tuple[str, str]]:
             "swarm-loose-solvers": ("docs/swarm.md", solvers)}  # fmt: skip
 
 
+def swarm_mc_table(doc: dict) -> str:
+    """docs/swarm.md's Monte Carlo table: per mode the safe trials, least distances, arrivals."""
+    s = doc["summary"]
+    rows = []
+    for mode, m in s["modes"].items():
+        lo, hi = m["safe"]["ci95"]
+        q = m["min_distance_quantiles_m"]
+        at = m["arrival_time_quantiles_s"]
+        arrived = f"{m['arrived']['count']} of {m['arrived']['trials']}"
+        if at is not None:
+            arrived += f" (median {at['0.5']:.2f} s)"
+        worst = m["worst_trial"]
+        statuses = ", ".join(f"{k} {v:,}" for k, v in m["solver_statuses"].items()) or "-"
+        rows.append([mode, f"{m['safe']['count']} of {m['safe']['trials']} [{lo:.3f}, {hi:.3f}]",
+                     f"{q['0.0']:.6f} / {q['0.5']:.6f}",
+                     f"{worst['index']} (seed {worst['seed']})", arrived, statuses])  # fmt: skip
+    header = ["mode", "safe trials [95 % CI]", "least pair distance (m): min / median",
+              "worst trial", "all robots arrived", "solver statuses (robot-steps)"]  # fmt: skip
+    return _table(header, ["---", "---:", "---:", "---:", "---:", "---"], rows)
+
+
+def step_swarm_mc(out: Path) -> dict[str, tuple[str, str]]:
+    """``safestab mc --scenario swarm`` with its defaults: docs/swarm.md's Monte Carlo block.
+
+    Its table, its figure and the command's measured wall time.
+    """
+    folder = out / "swarm-mc"
+    t0 = time.perf_counter()
+    _run([*SAFESTAB, "mc", "--scenario", "swarm", "--out", str(folder)])
+    wall = time.perf_counter() - t0
+    _copy(folder / "mc_swarm.png", "figures/swarm_mc.png")
+    doc = _load(folder / "mc_swarm_metrics.json")
+    timing = (
+        f"Measured here: {wall:.0f} s for the command ({doc['settings']['trials']} trials of "
+        f"each mode, chunks of {doc['settings']['chunk_size']}), of which "
+        f"{doc['timings_s']['total']:.0f} s ran the trials, compilation included.\n"
+    )
+    return {"swarm-mc": ("docs/swarm.md", swarm_mc_table(doc)),
+            "swarm-mc-time": ("docs/swarm.md", timing)}  # fmt: skip
+
+
 def step_obstacle(out: Path) -> dict[str, tuple[str, str]]:
     """The obstacle preset (main job): its outcome table and both figures."""
     folder = out / "obstacle"
@@ -878,6 +919,7 @@ def step_safe_rl(out: Path) -> dict[str, tuple[str, str]]:
 STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
     "acc": step_acc,
     "swarm": step_swarm,
+    "swarm-mc": step_swarm_mc,
     "obstacle": step_obstacle,
     "obstacle-seeds": step_obstacle_seeds,
     "mc-presets": step_mc_presets,
@@ -896,12 +938,13 @@ STEPS: dict[str, Callable[[Path], dict[str, tuple[str, str]]]] = {
 LONG = {"mc-datasets", "deployed-long", "price", "price-obstacle"}
 #: Blocks that state a measured time: written like the others, but a difference is reported,
 #: not failed, by --check (a time depends on the machine and its load, like a figure's bytes).
-MEASURED_TIMES = {"deployed-mc-time", "deployed-mc-long-time"}
+MEASURED_TIMES = {"deployed-mc-time", "deployed-mc-long-time", "swarm-mc-time"}
 #: The generated blocks each step writes (tests/test_docs_tools.py checks that every block
 #: in docs/ is written by a step).
 PRODUCES = {
     "acc": ["acc-paper", "acc-stress"],
     "swarm": ["swarm-results", "swarm-loose-solvers"],
+    "swarm-mc": ["swarm-mc", "swarm-mc-time"],
     "obstacle": [
         "obstacle-outcomes",
         "obstacle-gp",

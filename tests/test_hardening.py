@@ -391,7 +391,7 @@ def test_mc_help_keeps_its_bracketed_words():
 def test_mc_table_fits_an_80_column_terminal():
     from rich.console import Console
 
-    from safestab.cli import mc_table
+    from safestab.montecarlo.plugin import summary_table as mc_table
 
     entry = {"rate": 0.99987, "ci95": [0.99961, 1.0]}
     names = ("true model", "mismatched model", "GP mean", "GP-robust", "GP-robust Lemma 2")

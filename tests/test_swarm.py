@@ -106,5 +106,3 @@ def test_command_writes_the_figure_and_metrics(tmp_path):
         assert bad.exit_code == 2, bad.output
         assert "swarm.seed must be" in bad.output or "swarm.t_final / swarm.dt" in bad.output
     assert not (tmp_path / "x").exists()  # refused before any work
-    bad = CliRunner().invoke(app, ["mc", "--scenario", "swarm", "--out", str(tmp_path / "x")])
-    assert bad.exit_code == 2 and "safestab mc runs the scenarios that learn" in bad.output

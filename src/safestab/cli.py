@@ -547,19 +547,23 @@ def mc(
     scenario: str = typer.Option(
         "stress",
         help="A preset ('paper', 'stress', 'stress-ood', 'paper-limited', 'stress-limited', "
-        "'obstacle') or a TOML file "
-        "(its \\[montecarlo] table, if any, sets the trials).",
+        "'obstacle', 'swarm') or a TOML file "
+        "(an ACC or obstacle file's \\[montecarlo] table, if any, sets the trials).",
     ),
-    trials: int | None = typer.Option(None, help="Number of trials N (default: the file's)."),
-    datasets: int | None = typer.Option(None, help="Independent data sets K (default: file's)."),
-    backend: str = typer.Option("local", help="'local' or 'ray'."),
+    trials: int | None = typer.Option(
+        None, help="Number of trials N (default: the file's; the swarm: 64)."
+    ),
+    datasets: int | None = typer.Option(
+        None, help="Independent data sets K (default: file's); not for the swarm."
+    ),
+    backend: str = typer.Option("local", help="'local' or 'ray' (the swarm: 'local')."),
     address: str | None = typer.Option(None, help="Ray cluster address (else RAY_ADDRESS)."),
     chunk_size: int | None = typer.Option(None, help="Trials per compiled batch."),
     controllers: str | None = typer.Option(
         None,
         help="Comma-separated controllers to compare (default: the file's), from: "
         + ", ".join(CONTROLLERS)
-        + ".",
+        + "; for the swarm, its modes: centralized, decentralized, nominal (default: all).",
     ),
     workers: int | None = typer.Option(
         None,
@@ -571,14 +575,13 @@ def mc(
     seed: int = typer.Option(0, help="Seed: trial i depends on (seed, i) only."),
     debug: bool = typer.Option(False, "--debug", help="Show the traceback of an error."),
 ) -> None:
-    """Monte Carlo safety rates per data set and per trial, with 95 % intervals.
+    """Monte Carlo of any scenario's study, by its kind: safety rates with 95 % intervals.
 
-    Writes OUT/mc_<name>.png, _metrics.json and _trials.npz, all or none.
+    Writes OUT/mc_<name>.png, _metrics.json, _trials.npz and _run.json, all or none.
     """
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -589,37 +592,30 @@ def mc(
         TimeRemainingColumn,
     )
 
-    from . import montecarlo
-    from ._io import bytes_writer, ensure_writable_dir, figure_writer, json_writer, write_all
-    from .errors import ParameterError, ScenarioError
-    from .scenarios import check_controllers, kinds, load, pipeline
+    from ._io import ensure_writable_dir
+    from .errors import ParameterError
+    from .montecarlo import BACKENDS
+    from .scenarios import kinds, load
+    from .scenarios.pipeline import MonteCarloOptions
 
     def check_inputs():
         sc = load(scenario)
-        if not hasattr(sc, "trial_study"):  # a kind that learns nothing (the swarm)
-            kind = kinds.study_of(sc).kind
-            raise ScenarioError(
-                f"--scenario: safestab mc runs the scenarios that learn omega (kind 'acc' or "
-                f"'obstacle'), got {scenario!r} of kind {kind!r}; run it with safestab run"
-            )
-        spec = sc.montecarlo or montecarlo.MonteCarloSpec()
-        if chunk_size is not None:
-            spec = spec.replace(chunk_size=chunk_size)  # checked like the file
-        if controllers is not None:
-            names = [name.strip() for name in controllers.split(",")]
-            names = check_controllers("--controllers", names, "command line")
-            spec = spec.replace(controllers=names)
-        sc.trial_study(spec)  # the spec's vectors against the scenario's states
-        if backend not in montecarlo.BACKENDS:
-            raise ParameterError(f"--backend must be one of {montecarlo.BACKENDS}, got {backend!r}")
+        names = None if controllers is None else tuple(n.strip() for n in controllers.split(","))
+        options = MonteCarloOptions(
+            trials=trials, datasets=datasets, backend=backend, address=address,
+            chunk_size=chunk_size, controllers=names, workers=workers, seed=seed,
+        )  # fmt: skip
+        plan = kinds.plan_mc(sc, options, name="--scenario")
+        if backend not in BACKENDS:
+            raise ParameterError(f"--backend must be one of {BACKENDS}, got {backend!r}")
         for name, value in (("--trials", trials), ("--datasets", datasets), ("--workers", workers)):
             if value is not None and value < 1:
                 raise ParameterError(f"{name} must be >= 1, got {value}")
         if not 0 <= seed <= 2**32 - 1:
             raise ParameterError(f"--seed must be in [0, 2**32 - 1], got {seed}")
-        return sc, spec, ensure_writable_dir(out, name="--out")
+        return plan, ensure_writable_dir(out, name="--out")
 
-    sc, spec, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
+    plan, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)
     console = Console(width=max(100, Console().width))
 
     def run():
@@ -627,94 +623,18 @@ def mc(
             TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
             TimeElapsedColumn(), TimeRemainingColumn(), console=console,
         ) as progress:  # fmt: skip
-            sets = progress.add_task("data sets (collect, fit or condition)", total=None)
-            task = progress.add_task("chunks of trials", total=None)
+            tasks = plan.study.montecarlo.tasks
+            bars = {name: progress.add_task(name, total=None) for name in tasks}
 
-            def report_sets(done: int, total: int) -> None:
-                progress.update(sets, completed=done, total=total)
+            def report(task: str, done: int, total: int) -> None:
+                progress.update(bars[task], completed=done, total=total)
 
-            def report(done: int, total: int) -> None:
-                progress.update(task, completed=done, total=total)
-
-            return montecarlo.run_montecarlo(
-                sc, spec=spec, trials=trials, datasets=datasets, seed=seed, backend=backend,
-                address=address, progress=report, workers=workers,
-                dataset_progress=report_sets,
-            )  # fmt: skip
+            return kinds.run_mc(plan, out_dir, progress=report)
 
     # a --workers beyond the Ray cluster's largest node is found once Ray is connected
-    result = _guard(run, debug=debug, code=EXIT_RUN_FAILED, input_errors=(ParameterError,))
-    stem = f"mc_{sc.name}"
-    png, metrics, npz = (out_dir / f"{stem}{s}" for s in (".png", "_metrics.json", "_trials.npz"))
-
-    def write():
-        doc = montecarlo.metrics_document(result)
-        fig = montecarlo.plot_montecarlo(result)
-        try:
-            record = out_dir / f"{stem}_run.json"
-            written = write_all(
-                {
-                    png: figure_writer(fig, png, dpi=150),
-                    metrics: json_writer(doc),
-                    npz: bytes_writer(montecarlo.trials_npz_bytes(result)),
-                    record: pipeline.record_writer(record, sc, [png, metrics, npz]),
-                }
-            )
-        finally:
-            plt.close(fig)
-        return written, doc
-
-    written, doc = _guard(write, debug=debug, code=EXIT_RUN_FAILED)
-    Console().print(mc_table(sc.name, doc["summary"]))  # the terminal's own width
-    _print_written(console, written)
-
-
-def mc_table(name: str, summary: dict):
-    """The Monte Carlo summary as a rich Table that fits an 80-column terminal.
-
-    Each rate is on one line and its 95 % interval on the next; cells wrap (never cut with an
-    ellipsis) where the terminal is narrower still. The claimed probability is printed only
-    for the controllers whose beta carries one (Lemma 2 per data set, conformal per trial),
-    with the rate that tests it; the caption says where its assumptions are listed.
-    """
-    from rich import box
-    from rich.table import Table
-
-    from .montecarlo.report import counted
-
-    table = Table(
-        title=f"Monte Carlo '{name}': {counted(summary['trials'], 'trial')}, "
-        f"{counted(summary['datasets'], 'data set')}",
-        caption="safe per data set: all of its trials safe. Claims and their assumptions: "
-        "summary.controllers.<name>.guarantee in the metrics JSON, docs/montecarlo.md",
-        # no vertical rules and no padding (the rules' places separate the columns): the
-        # width goes to the numbers
-        box=box.SIMPLE_HEAD,
-        padding=(0, 0),
-    )
-    table.add_column("controller", justify="left", overflow="fold", max_width=12)
-    for col in ("safe per\ndata set", "safe per\ntrial", "Lemma-2\nper data set"):
-        table.add_column(col + "\n\\[95% CI]", justify="right", overflow="fold", min_width=15)
-    table.add_column("claimed", justify="right", overflow="fold", max_width=9)
-    unit = summary.get("h_unit", "")
-    table.add_column(f"min h\n1%-q\n\\[{unit}]", justify="right", overflow="fold", max_width=8)
-
-    def rate(entry):
-        if entry is None:
-            return "-"
-        lo, hi = entry["ci95"]
-        return f"{entry['rate']:.4f}\n[{lo:.3f}, {hi:.3f}]"
-
-    for controller, e in summary["controllers"].items():
-        q = e["min_h_quantiles"]["0.01"]
-        q_text = "-" if q is None else f"{q:.3f}"
-        g = e.get("guarantee")
-        claim = "-" if g is None else f"{g['claimed_probability']:.4f}\n({g['unit']})"
-        table.add_row(
-            controller, rate(e["safe_per_dataset"]), rate(e["safe"]),
-            rate(e.get("lemma2_per_dataset")), claim, q_text,
-        )  # fmt: skip
-    return table
+    done = _guard(run, debug=debug, code=EXIT_RUN_FAILED, input_errors=(ParameterError,))
+    Console().print(done.montecarlo_table())  # the terminal's own width
+    _print_written(console, done.written)
 
 
 if __name__ == "__main__":

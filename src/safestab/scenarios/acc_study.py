@@ -18,6 +18,7 @@ from ..learning import (
     GaussianProcessModel,
     calibration,
 )
+from ..montecarlo.plugin import GP_MONTECARLO
 from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
 from .pipeline import (
@@ -418,4 +419,5 @@ STUDY = Study(
     run=lambda scenario, progress: run_study(scenario, progress=progress),
     figures=_figures,
     summary=summary,
+    montecarlo=GP_MONTECARLO,
 )

@@ -3,7 +3,9 @@
 Each kind is a study module of this package with a ``STUDY`` attribute
 (:class:`~safestab.scenarios.pipeline.Study`), listed in :func:`studies`. A preset is
 found by name among the kinds' presets, a file by its top-level ``kind`` key (none: the first
-kind, ``"acc"``). :func:`run` runs any scenario's study and writes its outputs.
+kind, ``"acc"``). :func:`run` runs any scenario's study and writes its outputs;
+:func:`plan_mc` and :func:`run_mc` do the same for its Monte Carlo (the study's
+``montecarlo`` member), for every kind alike.
 """
 
 from __future__ import annotations
@@ -14,13 +16,25 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ScenarioError
-from .pipeline import StepProgress, Study, Summary, silent, write_outputs
+from .pipeline import (
+    MonteCarloOptions,
+    StepProgress,
+    Study,
+    Summary,
+    TaskProgress,
+    silent,
+    write_files,
+    write_outputs,
+)
 
 __all__ = [
+    "MonteCarloPlan",
     "StudyOutputs",
     "kind_of",
     "load",
+    "plan_mc",
     "run",
+    "run_mc",
     "studies",
     "study_of",
     "with_overrides",
@@ -174,6 +188,10 @@ class StudyOutputs:
         """The kind's summary of this run."""
         return self.study.summary(self.result, self.document)
 
+    def montecarlo_table(self) -> Any:
+        """The kind's Monte Carlo summary table of this run (:func:`run_mc`), a rich renderable."""
+        return self.study.montecarlo.table(self.result, self.document)  # type: ignore[union-attr]
+
 
 def run(
     scenario: Any,
@@ -216,3 +234,96 @@ def run(
     document = result.metrics_document()
     written = write_outputs(study, result, document, folder, command=command)
     return StudyOutputs(study, result, document, written)
+
+
+@dataclasses.dataclass(frozen=True)
+class MonteCarloPlan:
+    """A Monte Carlo checked before any work: the study kind and what its ``plan`` gave."""
+
+    study: Study
+    checked: Any
+
+
+def plan_mc(scenario: Any, options: MonteCarloOptions, *, name: str = "scenario") -> MonteCarloPlan:
+    """Check a Monte Carlo of ``scenario`` with ``options`` before any work, by its kind.
+
+    Parameters
+    ----------
+    scenario : ACCScenario, ObstacleScenario or SwarmScenario
+    options : MonteCarloOptions
+    name : str
+        The scenario argument's name for the messages (``"--scenario"`` on the command line).
+
+    Returns
+    -------
+    MonteCarloPlan
+
+    Raises
+    ------
+    ScenarioError
+        If ``scenario`` is not a scenario, or its kind has no Monte Carlo (naming ``name``,
+        the kind received and the kinds that have one); or as the kind's ``plan``.
+    ParameterError
+        As the kind's ``plan`` (an option that does not apply to the kind).
+    """
+    study = study_of(scenario)
+    if study.montecarlo is None:
+        able = [s.kind for s in studies().values() if s.montecarlo is not None]
+        raise ScenarioError(
+            f"{name} must be a scenario of a kind with a Monte Carlo "
+            f"({', '.join(repr(k) for k in able)}), got {scenario.name!r} of kind {study.kind!r}"
+        )
+    return MonteCarloPlan(study, study.montecarlo.plan(scenario, options))
+
+
+def run_mc(
+    plan: MonteCarloPlan,
+    out_dir: str | Path,
+    *,
+    progress: TaskProgress | None = None,
+    command: str | None = None,
+) -> StudyOutputs:
+    """Run a checked Monte Carlo and write its outputs, for every kind alike.
+
+    The files are ``<out>/mc_<name>.png``, ``mc_<name>_metrics.json``,
+    ``mc_<name>_trials.npz`` and ``mc_<name>_run.json``, all or none
+    (:func:`~safestab.scenarios.pipeline.write_files`).
+
+    Parameters
+    ----------
+    plan : MonteCarloPlan
+        From :func:`plan_mc`.
+    out_dir : str or Path
+        The output folder (created if needed), checked writable before any work.
+    progress : callable, optional
+        ``progress(task, done, total)``, ``task`` one of the member's ``tasks``.
+    command : str, optional
+        The command line recorded in the run record (default: this process's arguments).
+
+    Returns
+    -------
+    StudyOutputs
+        Its ``montecarlo_table()`` is the kind's summary table.
+
+    Raises
+    ------
+    OutputError
+        If ``out_dir`` is not a writable folder (before any work) or a file cannot be written.
+    """
+    from .._io import bytes_writer, ensure_writable_dir, json_writer
+
+    folder = ensure_writable_dir(out_dir, name="out_dir")
+    mc = plan.study.montecarlo
+    assert mc is not None  # plan_mc made the plan
+    result = mc.run(plan.checked, progress or (lambda task, done, total: None))
+    document = mc.document(result)
+    files = {
+        "_metrics.json": json_writer(document),
+        "_trials.npz": bytes_writer(mc.trials_npz(result)),
+    }
+    written = write_files(
+        folder, f"mc_{result.scenario.name}", result.scenario,
+        figures={"": mc.figure(result)}, formats=("png",), dpi=150, files=files,
+        command=command,
+    )  # fmt: skip
+    return StudyOutputs(plan.study, result, document, written)

@@ -35,6 +35,7 @@ from ..filters import SafetyFilter
 from ..formulas import clf_cbf, compatibility
 from ..learning import FastGP, GaussianProcessModel, InputGain, fit_input_gain
 from ..learning.bounds import mean_std_batch
+from ..montecarlo.plugin import GP_MONTECARLO
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
@@ -972,4 +973,5 @@ STUDY = Study(
     figures=_figures,
     summary=summary,
     table_width=130,
+    montecarlo=GP_MONTECARLO,
 )

@@ -11,9 +11,13 @@ steps every kind shares live here:
   and ``max(50, Q // 4)`` held-out rows, and the GP with the scenario's kernel;
 * **calibrate** (:func:`conformal_calibration`): a split conformal ``beta`` on fresh
   excitation trajectories, one calibration unit per trajectory;
-* **outputs** (:func:`write_outputs`): ``<out>/<kind>_<name>`` figures as PNG and PDF, the
-  metrics as strict JSON (:class:`MetricsWriter`) and a run record, all or none, each
-  atomically; :func:`other_runs` names the other runs' files in the folder.
+* **Monte Carlo** (:class:`StudyMonteCarlo`, a kind's optional ``montecarlo`` member): what
+  ``safestab mc`` runs for the kind, checked before any work (:class:`MonteCarloOptions`);
+* **outputs** (:func:`write_files`, the one writer): a study's ``<out>/<kind>_<name>``
+  figures as PNG and PDF, the metrics as strict JSON (:class:`MetricsWriter`) and a run
+  record (:func:`write_outputs`), a Monte Carlo's ``<out>/mc_<name>`` figure, metrics,
+  per-trial records and run record (``kinds.run_mc``), all or none, each atomically;
+  :func:`other_runs` names the other runs' files in the folder.
 
 The shared schema machinery (reading, checks, overrides) is :mod:`safestab.scenarios._schema`.
 """
@@ -33,9 +37,12 @@ import numpy as np
 
 __all__ = [
     "MetricsWriter",
+    "MonteCarloOptions",
     "StepProgress",
     "Study",
+    "StudyMonteCarlo",
     "Summary",
+    "TaskProgress",
     "collect_study_data",
     "conformal_calibration",
     "fit_study_gp",
@@ -43,11 +50,15 @@ __all__ = [
     "other_runs",
     "record_writer",
     "silent",
+    "write_files",
     "write_outputs",
 ]
 
 #: ``progress(message, fraction_done)``, fraction in [0, 1].
 StepProgress = Callable[[str, float], None]
+#: ``progress(task, done, total)``: a Monte Carlo's counted work, ``task`` one of its
+#: :attr:`StudyMonteCarlo.tasks`.
+TaskProgress = Callable[[str, int, int], None]
 
 
 def silent(message: str, fraction: float) -> None:
@@ -106,6 +117,72 @@ class Summary:
 
 
 @dataclasses.dataclass(frozen=True)
+class MonteCarloOptions:
+    """What ``safestab mc`` was asked for; ``None`` means the kind's default.
+
+    Attributes
+    ----------
+    trials, datasets : int or None
+        ``--trials``, ``--datasets`` (the data sets of a kind that learns).
+    backend : str
+        ``--backend``, ``"local"`` or ``"ray"``.
+    address : str or None
+        ``--address`` of a Ray cluster.
+    chunk_size : int or None
+        ``--chunk-size``: trials per compiled batch.
+    controllers : tuple of str or None
+        ``--controllers``: the compared controllers (the swarm: its modes).
+    workers : int or None
+        ``--workers``.
+    seed : int
+        ``--seed``: trial ``i`` depends on ``(seed, i)`` only.
+    """
+
+    trials: int | None = None
+    datasets: int | None = None
+    backend: str = "local"
+    address: str | None = None
+    chunk_size: int | None = None
+    controllers: tuple[str, ...] | None = None
+    workers: int | None = None
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyMonteCarlo:
+    """A study kind's Monte Carlo: what ``safestab mc`` runs for it.
+
+    Attributes
+    ----------
+    tasks : tuple of str
+        The counted parts of a run, in order (one progress bar each).
+    plan : callable
+        ``plan(scenario, options) -> plan``: checks ``options`` (a
+        :class:`MonteCarloOptions`) against the scenario before any work; raises
+        ``ParameterError`` or ``ScenarioError`` naming the option (``--controllers``).
+    run : callable
+        ``run(plan, progress) -> result``, ``progress`` a :data:`TaskProgress`; the result
+        has ``scenario``.
+    document : callable
+        ``document(result) -> dict``: the metrics, strict JSON data.
+    figure : callable
+        ``figure(result) -> matplotlib Figure``.
+    trials_npz : callable
+        ``trials_npz(result) -> bytes``: every trial's records, as ``.npz``.
+    table : callable
+        ``table(result, document)``: the summary a person reads, a rich renderable.
+    """
+
+    tasks: tuple[str, ...]
+    plan: Callable[[Any, MonteCarloOptions], Any]
+    run: Callable[[Any, TaskProgress], Any]
+    document: Callable[[Any], dict[str, Any]]
+    figure: Callable[[Any], Any]
+    trials_npz: Callable[[Any], bytes]
+    table: Callable[[Any, dict[str, Any]], Any]
+
+
+@dataclasses.dataclass(frozen=True)
 class Study:
     """A study kind: what a scenario plugs into the pipeline.
 
@@ -129,6 +206,8 @@ class Study:
         ``summary(result, document) -> Summary``, from the result and its metrics document.
     table_width : int
         The terminal width the summary table needs, in columns.
+    montecarlo : StudyMonteCarlo or None
+        The kind's Monte Carlo (``safestab mc``); ``None``: the kind has none.
     """
 
     kind: str
@@ -139,6 +218,7 @@ class Study:
     figures: Callable[[Any], dict[str, Any]]
     summary: Callable[[Any, dict[str, Any]], Summary]
     table_width: int = 100
+    montecarlo: StudyMonteCarlo | None = None
 
     def stem(self, scenario: Any) -> str:
         """The outputs' common name, ``<kind>_<scenario name>``."""
@@ -296,6 +376,75 @@ def _with_layout_kept(fig: Any, writer: Any) -> Any:
     return write
 
 
+def write_files(
+    out_dir: Path,
+    stem: str,
+    scenario: Any,
+    *,
+    figures: dict[str, Any],
+    formats: tuple[str, ...],
+    dpi: int,
+    files: dict[str, Any],
+    command: str | None = None,
+) -> list[Path]:
+    """The one writer of a run's outputs: figures, other files and a run record, all or none.
+
+    The files are ``<out>/<stem><suffix>.<format>`` per figure and format (in that order),
+    ``<out>/<stem><suffix>`` per entry of ``files`` and ``<stem>_run.json``: the record of
+    which run made these files (command line, scenario name, seed, safestab version, UTC
+    time, the files), so that outputs of different runs in one folder can be told apart
+    (:func:`other_runs`). The figures are closed afterwards, written or not.
+
+    Parameters
+    ----------
+    out_dir : Path
+        An existing, writable folder.
+    stem : str
+        The files' common name.
+    scenario : scenario
+        Its ``name`` and ``seed`` go into the record.
+    figures : dict of str to matplotlib Figure
+        ``{suffix: figure}``.
+    formats : tuple of str
+        File formats of every figure (``"png"``, ``"pdf"``), the first drawn first.
+    dpi : int
+    files : dict of str to writer
+        ``{suffix: writer}`` (:func:`~safestab._io.json_writer`, ``bytes_writer``).
+    command : str, optional
+        The command line for the record (default: this process's arguments).
+
+    Returns
+    -------
+    list of Path
+        The files written, the record last.
+
+    Raises
+    ------
+    OutputError
+        If a file cannot be written; none of the set is then left behind, and older files of
+        the same names are as they were.
+    """
+    import matplotlib.pyplot as plt
+
+    from .._io import figure_writer, write_all
+
+    try:
+        outputs = {}
+        for suffix, fig in figures.items():
+            for i, fmt in enumerate(formats):
+                path = out_dir / f"{stem}{suffix}.{fmt}"
+                writer = figure_writer(fig, path, dpi=dpi)
+                outputs[path] = writer if i == 0 else _with_layout_kept(fig, writer)
+        for suffix, writer in files.items():
+            outputs[out_dir / f"{stem}{suffix}"] = writer
+        record = out_dir / f"{stem}_run.json"
+        outputs[record] = record_writer(record, scenario, list(outputs), command=command)
+        return write_all(outputs)
+    finally:
+        for fig in figures.values():
+            plt.close(fig)
+
+
 def write_outputs(
     study: Study,
     result: Any,
@@ -304,13 +453,10 @@ def write_outputs(
     *,
     command: str | None = None,
 ) -> list[Path]:
-    """Write a run's figures (PNG and PDF), metrics and run record, all or none.
+    """Write a study's figures (PNG and PDF), metrics and run record, all or none.
 
     The files are ``<out>/<kind>_<name><suffix>.png`` and ``.pdf`` per figure,
-    ``<kind>_<name>_metrics.json`` and ``<kind>_<name>_run.json``: the record of which run
-    made these files (command line, scenario name, seed, safestab version, UTC time, the
-    files), so that outputs of different runs in one folder can be told apart
-    (:func:`other_runs`). The figures are closed afterwards.
+    ``<kind>_<name>_metrics.json`` and ``<kind>_<name>_run.json`` (:func:`write_files`).
 
     Parameters
     ----------
@@ -332,31 +478,15 @@ def write_outputs(
     Raises
     ------
     OutputError
-        If a file cannot be written; none of the set is then left behind, and older files of
-        the same names are as they were.
+        If a file cannot be written (none of the set is then left behind).
     """
-    import matplotlib.pyplot as plt
+    from .._io import json_writer
 
-    from .._io import figure_writer, json_writer, write_all
-
-    scenario = result.scenario
-    stem = study.stem(scenario)
-    figures: dict[str, Any] = {}
-    try:
-        figures = study.figures(result)
-        outputs = {}
-        for suffix, fig in figures.items():
-            png = out_dir / f"{stem}{suffix}.png"
-            outputs[png] = figure_writer(fig, png, dpi=200)
-            pdf = out_dir / f"{stem}{suffix}.pdf"
-            outputs[pdf] = _with_layout_kept(fig, figure_writer(fig, pdf, dpi=200))
-        outputs[out_dir / f"{stem}_metrics.json"] = json_writer(document)
-        record = out_dir / f"{stem}_run.json"
-        outputs[record] = record_writer(record, scenario, list(outputs), command=command)
-        return write_all(outputs)
-    finally:
-        for fig in figures.values():
-            plt.close(fig)
+    return write_files(
+        out_dir, study.stem(result.scenario), result.scenario, figures=study.figures(result),
+        formats=("png", "pdf"), dpi=200, files={"_metrics.json": json_writer(document)},
+        command=command,
+    )  # fmt: skip
 
 
 def record_writer(

@@ -47,7 +47,7 @@ from ._schema import (
 
 __all__ = [
     "FIELDS", "SwarmScenario", "SwarmRun", "PRESETS", "check_values", "load_swarm_scenario",
-    "simulate_swarm", "pair_terms",
+    "simulate_swarm", "pair_terms", "MODES", "check_mode", "swarm_closed_loop",
 ]  # fmt: skip
 
 PRESETS = ("swarm",)
@@ -85,9 +85,14 @@ class SwarmScenario:
             raise ScenarioError(f"swarm: unknown parameter(s) {unknown}; known: {sorted(names)}")
         return dataclasses.replace(self, **changes)
 
-    def starts_and_goals(self) -> tuple[np.ndarray, np.ndarray]:
-        """Start and goal positions, each of shape (N, 2), m."""
-        rng = np.random.default_rng(self.seed)
+    def starts_and_goals(self, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Start and goal positions, each of shape (N, 2), m.
+
+        The start angles are evenly spaced, each perturbed by a uniform draw in
+        ``[-start_jitter, start_jitter]`` from ``seed`` (default: the scenario's); each goal
+        is the antipode of its robot's perturbed start.
+        """
+        rng = np.random.default_rng(self.seed if seed is None else seed)
         angles = 2 * np.pi * np.arange(self.n_robots) / self.n_robots
         angles = angles + rng.uniform(-self.start_jitter, self.start_jitter, self.n_robots)
         start = self.arena_radius * np.stack([np.cos(angles), np.sin(angles)], -1)
@@ -255,6 +260,69 @@ class SwarmRun:
         return np.min(np.linalg.norm(self.p[:, i] - self.p[:, j], axis=-1), axis=-1)
 
 
+MODES = ("centralized", "decentralized", "nominal")
+
+
+def check_mode(mode: str, name: str = "mode") -> str:
+    """``mode`` if it is one of :data:`MODES`.
+
+    Raises
+    ------
+    ScenarioError
+        Naming ``name``, what was received and the modes.
+    """
+    if mode not in MODES:
+        raise ScenarioError(
+            f"{name} must be one of {', '.join(repr(m) for m in MODES)}, got {mode!r}"
+        )
+    return mode
+
+
+def swarm_closed_loop(sc: SwarmScenario, mode: str, recorder: Any) -> Any:
+    """The swarm's closed loop under ``mode``, as ``run(start, goal) -> recorded``.
+
+    One ``lax.scan`` (:func:`~safestab.simulation.closed_loop`) of ``round(t_final / dt)``
+    steps; jittable and ``vmap``-able over ``start`` and ``goal``, each of shape (N, 2), m.
+    The recorder's ``update`` sees the positions at ``t_k`` and the step's output
+    ``{"u", "u_nom", "status"}`` (the input held over ``[t_k, t_k + dt]``), and the goal as
+    the run's data.
+
+    Parameters
+    ----------
+    sc : SwarmScenario
+    mode : {"centralized", "decentralized", "nominal"}
+        ``"nominal"`` applies the nominal input clipped to the limits (no filter).
+    recorder : Recorder
+
+    Returns
+    -------
+    callable
+
+    Raises
+    ------
+    ScenarioError
+        For an unknown ``mode``.
+    """
+    check_mode(mode)
+
+    def step(t, pos, goal):
+        u_nom = sc.gain * (goal - pos)
+        if mode == "centralized":
+            u, status = _centralized(sc, pos, u_nom)
+        elif mode == "decentralized":
+            u, status = _decentralized(sc, pos, u_nom)
+        else:
+            u = jnp.clip(u_nom, -sc.speed_limit, sc.speed_limit)
+            status = jnp.zeros(sc.n_robots, jnp.int32)
+        return {"u": u, "u_nom": u_nom, "status": status}
+
+    def rhs(t, pos, out, goal):
+        return out["u"]  # p_i' = u_i, held over the step (RK4 is exact for it)
+
+    steps = int(round(sc.t_final / sc.dt))
+    return closed_loop(step, rhs, recorder, n_steps=steps, dt=sc.dt)
+
+
 def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
     """Run the swarm from its starts for ``t_final`` with the filter ``mode``.
 
@@ -273,35 +341,10 @@ def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
     ScenarioError
         For an unknown ``mode``.
     """
-    if mode not in ("centralized", "decentralized", "nominal"):
-        raise ScenarioError(
-            f"mode must be 'centralized', 'decentralized' or 'nominal', got {mode!r}"
-        )
+    run = swarm_closed_loop(sc, mode, _SwarmRecorder())
     start, goal = sc.starts_and_goals()
-    goal_j = jnp.asarray(goal)
-    steps = int(round(sc.t_final / sc.dt))
-
-    def control(pos):
-        u_nom = sc.gain * (goal_j - pos)
-        if mode == "centralized":
-            u, status = _centralized(sc, pos, u_nom)
-        elif mode == "decentralized":
-            u, status = _decentralized(sc, pos, u_nom)
-        else:
-            u = jnp.clip(u_nom, -sc.speed_limit, sc.speed_limit)
-            status = jnp.zeros(sc.n_robots, jnp.int32)
-        return u, u_nom, status
-
-    def step(t, pos, data):
-        u, u_nom, status = control(pos)
-        return {"u": u, "u_nom": u_nom, "status": status}
-
-    def rhs(t, pos, out, data):
-        return out["u"]  # p_i' = u_i, held over the step (RK4 is exact for it)
-
-    run = closed_loop(step, rhs, _SwarmRecorder(), n_steps=steps, dt=sc.dt)
-    p, u, u_nom, status = jax.jit(run)(jnp.asarray(start), None)
-    t = sc.dt * np.arange(steps + 1)
+    p, u, u_nom, status = jax.jit(run)(jnp.asarray(start), jnp.asarray(goal))
+    t = sc.dt * np.arange(p.shape[0])
     return SwarmRun(mode, t, np.asarray(p), np.asarray(u), np.asarray(u_nom), np.asarray(status))
 
 

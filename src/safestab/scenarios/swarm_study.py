@@ -21,11 +21,18 @@ import numpy as np
 from .._io import with_finite_status
 from ..formulas import MultiStatus
 from .pipeline import MetricsWriter, StepProgress, Study, Summary, silent
-from .swarm import PRESETS, SwarmRun, SwarmScenario, load_swarm_scenario, pair_terms, simulate_swarm
+from .swarm import (
+    MODES,
+    PRESETS,
+    SwarmRun,
+    SwarmScenario,
+    load_swarm_scenario,
+    pair_terms,
+    simulate_swarm,
+)
+from .swarm_montecarlo import SWARM_MONTECARLO
 
 __all__ = ["STUDY", "SwarmStudy", "run_swarm_study", "MODES"]
-
-MODES = ("centralized", "decentralized", "nominal")
 
 
 def _summary(sc: SwarmScenario, run: SwarmRun) -> dict[str, Any]:
@@ -221,4 +228,5 @@ STUDY = Study(
     figures=_figures,
     summary=summary,
     table_width=115,
+    montecarlo=SWARM_MONTECARLO,
 )

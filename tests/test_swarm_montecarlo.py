@@ -215,3 +215,18 @@ def test_cli_mc_swarm_refuses_bad_options(tmp_path, args, message):
     assert res.exit_code == 2, res.output
     assert re.search(message, " ".join(res.output.split())), res.output
     assert not (tmp_path / "o").exists()  # refused before any work
+
+
+def test_a_least_distance_at_the_safety_distance_to_rounding_is_safe_and_counted_apart(
+    five_trials,
+):
+    # a filter's active barrier holds a pair at the safety distance; the count must not turn
+    # on which side of it rounding puts the record
+    d = SMALL.safety_distance
+    rec = {k: v.copy() for k, v in five_trials.records.items()}
+    rec["min_distance"][:, 0] = [d - 1e-12, d + 1e-12, d, d - 1e-6, d + 1e-3]
+    doc = metrics_document(dataclasses.replace(five_trials, records=rec))
+    centralized = doc["summary"]["modes"]["centralized"]
+    assert centralized["safe"]["count"] == 4  # only d - 1e-6 is below, beyond rounding
+    assert centralized["at_safety_distance"] == 3
+    assert doc["summary"]["rounding_band_m"] == 1e-9

@@ -370,9 +370,7 @@ def metrics_document(result: SwarmMonteCarlo) -> dict[str, Any]:
         modes[mode] = {
             "safe": _rate(int(np.sum(least >= floor)), n),
             "at_safety_distance": int(np.sum(np.abs(least - sc.safety_distance) < band)),
-            "safe_at_samples": _rate(
-                int(np.sum(rec["min_distance_at_samples"][:, c] >= floor)), n
-            ),
+            "safe_at_samples": _rate(int(np.sum(rec["min_distance_at_samples"][:, c] >= floor)), n),
             "arrived": _rate(int(np.sum(np.isfinite(arrival))), n),
             "min_distance_quantiles_m": _quantiles(least),
             "min_distance_at_samples_quantiles_m": _quantiles(rec["min_distance_at_samples"][:, c]),
@@ -495,8 +493,9 @@ def summary_table(result: SwarmMonteCarlo, document: dict[str, Any]) -> Any:
         caption=Text(
             f"safe: no pair below the safety distance at or between the samples "
             f"(exact, to {ROUNDING_BAND_M:g} m: 'at' counts the safe trials whose least "
-            f"distance is the safety distance to that). The guarantee, its setting and each mode's worst trial: "
-            "summary.guarantee and summary.modes.<mode>.worst_trial in the metrics JSON"
+            f"distance is the safety distance to that). The guarantee, its setting and "
+            "each mode's worst trial: summary.guarantee and "
+            "summary.modes.<mode>.worst_trial in the metrics JSON"
         ),  # fmt: skip
         box=box.SIMPLE_HEAD,
         padding=(0, 1),

@@ -551,7 +551,7 @@ def mc(
         "(an ACC or obstacle file's \\[montecarlo] table, if any, sets the trials).",
     ),
     trials: int | None = typer.Option(
-        None, help="Number of trials N (default: the file's; the swarm: 64)."
+        None, help="Number of trials N (default: the file's; the swarm: 32)."
     ),
     datasets: int | None = typer.Option(
         None, help="Independent data sets K (default: file's); not for the swarm."

@@ -111,8 +111,13 @@ INPUT_STATUSES = (
 
 
 def has_input(status: Any) -> Any:
-    """Bool array: where a step's ``status`` carries a finite input (:data:`INPUT_STATUSES`)."""
-    status = jnp.asarray(status)
+    """Bool array: where a step's ``status`` carries a finite input (:data:`INPUT_STATUSES`).
+
+    Host data (a NumPy array, a list) gives a NumPy array, without compiling a program for its
+    shape; a JAX array or a tracer a JAX array.
+    """
+    xp = jnp if isinstance(status, jax.Array) else np
+    status = xp.asarray(status)
     return (status == StepStatus.OK) | (status >= StepStatus.CBF_UNACTUATED)
 
 

@@ -38,7 +38,7 @@ import numpy as np
 import scipy.linalg
 
 from .._batching import device_array
-from .._validation import check_finite, check_scalar_range
+from .._validation import check_finite, check_scalar_range, is_concrete
 from .._values import register_model
 from ..errors import DimensionError, InducingPointsWarning, ParameterError
 from ._checks import check_fitted
@@ -111,8 +111,8 @@ def size_bucket(n: int) -> int:
     The host-side kernel matrices and batched band evaluations are padded to these sizes, so
     that a data set whose pivoted Cholesky stops at a new number of inducing inputs runs a
     program compiled for an earlier one: one compilation per bucket, not per size (a Monte
-    Carlo study of 1,000 data sets otherwise compiled a handful of programs for each, until
-    the process ran out of memory maps), at most 25 % more work.
+    Carlo study of 1,000 data sets would compile a handful of programs for each, and each
+    compiled program holds memory maps of its own), at most 25 % more work.
     """
     n = int(n)
     if n <= 16:
@@ -515,8 +515,15 @@ class InducingBand(Predictor):
 
         The std is ``|G c| + r + (E r + mean rounding) / min_beta`` (module docstring): for
         every ``beta >= min_beta``, ``m~ +- beta std`` contains the exact ``m +- beta sigma``.
+        Called on values (not inside a transformation), it runs as one compiled program with
+        the cache as its argument, shared by every cache of the same structure and shapes.
         """
         self._require_fit()
+        if is_concrete(x, *jax.tree_util.tree_leaves(self)):
+            return _mean_std_program(self, x)
+        return self._mean_std_traced(x)
+
+    def _mean_std_traced(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         mean_c, sd_c, merr = self._mean_std_parts(x)
         comps = jnp.asarray(self.components_)
         mean = jnp.zeros(self.n_states).at[comps].set(mean_c + self._mu)
@@ -583,6 +590,12 @@ class InducingBand(Predictor):
         mean_scale[:, comps] = mean_mag + np.abs(np.asarray(self.model.mean_))
         std_scale[:, comps] = sd_mag + merr_mag / self.min_beta
         return mean_scale, std_scale
+
+
+@jax.jit
+def _mean_std_program(band: InducingBand, x: Any) -> tuple[jax.Array, jax.Array]:
+    """:meth:`InducingBand.mean_std` of a cache passed as data: one program per structure."""
+    return band._mean_std_traced(x)
 
 
 class FastGP(InducingBand):

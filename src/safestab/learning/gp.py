@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import solve_triangular
 
+from .._batching import device_array
 from .._numerics import safe_sqrt
 from .._validation import check_finite, check_real, check_scalar_range, is_concrete
 from .._values import register_model
@@ -558,14 +559,16 @@ class GaussianProcessModel(Predictor):
         self.x_scale_ = scale
 
     def _condition(self) -> None:
-        xs = jnp.asarray((self.x_train_ - self.x_offset_) / self.x_scale_)
+        # host arrays go to the device by device_array (jnp.asarray would compile a program
+        # per shape), and the factor is checked on the host
+        xs = device_array((self.x_train_ - self.x_offset_) / self.x_scale_)
         chols, alphas = [], []
         for j in range(len(self.components_)):
             chol, alpha = factor(
-                self.amplitude_[j], jnp.asarray(self.lengthscale_std_[j]), self.noise_[j], xs,
-                jnp.asarray(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
+                self.amplitude_[j], device_array(self.lengthscale_std_[j]), self.noise_[j], xs,
+                device_array(self.y_train_[:, j]), self.mean_[j], kind=self.kernel,
             )  # fmt: skip
-            if not bool(jnp.all(jnp.isfinite(chol))):
+            if not np.all(np.isfinite(np.asarray(chol))):
                 raise NumericalError(
                     f"Cholesky factorisation failed for component {self.components_[j]}: the "
                     "kernel matrix is not positive definite; try increasing the noise (noise=) "
@@ -581,14 +584,14 @@ class GaussianProcessModel(Predictor):
         self.alpha_ = np.asarray(alpha_all)
         self.posterior_ = {
             "xs": xs,
-            "offset": jnp.asarray(self.x_offset_),
-            "scale": jnp.asarray(self.x_scale_),
+            "offset": device_array(self.x_offset_),
+            "scale": device_array(self.x_scale_),
             "chol": chol_all,
             "alpha": alpha_all,
-            "amp": jnp.asarray(self.amplitude_),
-            "ls": jnp.asarray(self.lengthscale_std_),
-            "mu": jnp.asarray(self.mean_),
-            "comps": jnp.asarray(self.components_),
+            "amp": device_array(self.amplitude_),
+            "ls": device_array(self.lengthscale_std_),
+            "mu": device_array(self.mean_),
+            "comps": device_array(self.components_),
         }
 
     def _loo_coverage(self, rng: np.random.Generator) -> np.ndarray:

@@ -86,3 +86,36 @@ def test_the_study_controllers_answer_to_the_old_name():
     assert tuple(ctrls) == names.MODEL_CONTROLLERS
     with pytest.raises(KeyError):  # no GP-robust controller, so no old name for it either
         ctrls["GP-corrected"]
+
+
+def test_build_compared_stands_each_controller_on_its_model_and_gives_the_gp_ones_theirs():
+    from safestab.controller_names import (
+        CONTROLLERS,
+        GP_CONTROLLERS,
+        MODEL_OF,
+        build_compared,
+    )
+
+    models = {"true": "T", "nominal": "N", "learned": "L"}
+    calls = []
+
+    def build(model, **kw):
+        calls.append((model, kw))
+        return (model, kw)
+
+    for name in CONTROLLERS:
+        model, kw = build_compared(
+            name, build, models, uncertainty="gp", gp_beta=2.0, robust_options={"r": 1}, k=3
+        )
+        assert model == models[MODEL_OF[name]]
+        if name in GP_CONTROLLERS:
+            assert kw == {"uncertainty": "gp", "gp_beta": 2.0, "k": 3, "r": 1}
+        else:  # a model controller ignores the GP and its options
+            assert kw == {"k": 3}
+    assert MODEL_OF["true model"] == "true" and MODEL_OF["GP-robust"] == "learned"
+    with pytest.raises(ValueError, match="needs an uncertainty model"):
+        build_compared("GP-robust", build, models)
+    with pytest.raises(ValueError, match="controller must be one of"):
+        build_compared("GP-corected", build, models)
+    with pytest.warns(DeprecationWarning, match="GP-corrected"):
+        assert build_compared("GP-corrected", build, models, uncertainty="gp")[0] == "L"

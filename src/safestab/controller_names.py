@@ -11,7 +11,7 @@ command line) imports it from below.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 __all__ = [
@@ -25,10 +25,12 @@ __all__ = [
     "GP_ROBUST_LEMMA2",
     "MISMATCHED_MODEL",
     "MODEL_CONTROLLERS",
+    "MODEL_OF",
     "RENAMED",
     "STUDY_CONTROLLERS",
     "TRUE_MODEL",
     "NameMap",
+    "build_compared",
     "current_name",
 ]
 
@@ -61,6 +63,13 @@ STUDY_CONTROLLERS = (TRUE_MODEL, MISMATCHED_MODEL, GP_ROBUST)
 EXPORT_CHOICES = {"gp": GP_ROBUST, "nominal": MISMATCHED_MODEL, "true": TRUE_MODEL}
 #: Old names, read for one release: old name -> current name.
 RENAMED = {"GP-corrected": GP_ROBUST}
+#: The model each compared controller stands on: ``"true"``, ``"nominal"`` or ``"learned"``
+#: (the nominal model, with the learned input gain where a study estimates one).
+MODEL_OF: dict[str, str] = {
+    TRUE_MODEL: "true",
+    MISMATCHED_MODEL: "nominal",
+    **{name: "learned" for name in GP_CONTROLLERS},
+}
 
 _V = TypeVar("_V")
 
@@ -119,3 +128,59 @@ class NameMap(dict[str, _V]):
             _warn(key, None)
             return self[RENAMED[key]]
         raise KeyError(key)
+
+
+def build_compared(
+    name: str,
+    build: Callable[..., _V],
+    models: Mapping[str, Any],
+    *,
+    uncertainty: Any = None,
+    gp_beta: Any = None,
+    robust_options: Mapping[str, Any] | None = None,
+    **options: Any,
+) -> _V:
+    """The compared controller ``name``: the one factory of every study and the Monte Carlo.
+
+    ``build(model, **options)`` on the model the controller stands on (:data:`MODEL_OF`); a
+    controller that uses the learned model (:data:`GP_CONTROLLERS`) also gets
+    ``uncertainty``, ``gp_beta`` and ``robust_options``.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`CONTROLLERS` (an old name is read, with a DeprecationWarning).
+    build : callable
+        ``build(model, **kwargs) -> controller``: the study's controller class with its
+        certificates bound (``UniversalController``, a filter, a limited variant).
+    models : mapping of str to system
+        The models by :data:`MODEL_OF`'s values; only the one ``name`` stands on is read.
+    uncertainty : uncertainty model, optional
+        Required by the GP controllers.
+    gp_beta : float or array, optional
+        The GP controllers' beta.
+    robust_options : mapping, optional
+        Extra keyword arguments of the GP controllers only.
+    **options
+        Keyword arguments of every controller (kappa, rho, limits, ...).
+
+    Returns
+    -------
+    controller
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not a controller, or a GP controller gets no ``uncertainty``.
+    """
+    name = current_name(name)
+    if name not in MODEL_OF:
+        raise ValueError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
+    model = models[MODEL_OF[name]]
+    if name not in GP_CONTROLLERS:
+        return build(model, **options)
+    if uncertainty is None:
+        raise ValueError(f"the {name} controller needs an uncertainty model")
+    return build(
+        model, uncertainty=uncertainty, gp_beta=gp_beta, **options, **(robust_options or {})
+    )

@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..controller_names import (
+    GP_CONTROLLERS,
     GP_MEAN,
     GP_ROBUST,
     GP_ROBUST_CONFORMAL,
     GP_ROBUST_LEMMA2,
-    MISMATCHED_MODEL,
-    TRUE_MODEL,
+    build_compared,
 )
 from ..controllers import UniversalController
 from ..errors import ParameterError
@@ -270,20 +270,20 @@ def _chunk(study: TrialStudy, cache, betas, input_gain, x0, params) -> dict[str,
     model = BatchedUncertainty(cache)
     # the GP controllers' model: the nominal one, with the learned input gain if any
     learned = nominal if input_gain is None else with_input_gain(nominal, input_gain)
+    models = {"true": true_sys, "nominal": nominal, "learned": learned}
+
+    def make(system: Any, **options: Any) -> Any:
+        return build(system, clf, cbf, **options)
+
     ctrls, checks = [], []
     for name in spec.controllers:
-        if name == TRUE_MODEL:
-            ctrls.append(build(true_sys, clf, cbf, **common))
-            checks.append(None)
-        elif name == MISMATCHED_MODEL:
-            ctrls.append(build(nominal, clf, cbf, **common))
-            checks.append(None)
-        else:
-            beta = betas[name]
-            ctrls.append(
-                build(learned, clf, cbf, uncertainty=model, gp_beta=beta, **common, **robust)
-            )
-            checks.append((model, beta))
+        uses_gp = name in GP_CONTROLLERS
+        beta = betas[name] if uses_gp else None
+        ctrls.append(
+            build_compared(name, make, models, uncertainty=model if uses_gp else None,
+                           gp_beta=beta, robust_options=robust, **common)
+        )  # fmt: skip
+        checks.append((model, beta) if uses_gp else None)
     # the reference of mean_input_gap: the true-model controller (price_metrics only)
     ref = build(true_sys, clf, cbf, **common) if spec.price_metrics else None
     run = trial_function(

@@ -9,7 +9,15 @@ import numpy as np
 
 from .._batching import in_threads
 from .._io import with_finite_status
-from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL, NameMap
+from ..controller_names import (
+    GP_ROBUST,
+    MISMATCHED_MODEL,
+    MODEL_CONTROLLERS,
+    STUDY_CONTROLLERS,
+    TRUE_MODEL,
+    NameMap,
+    build_compared,
+)
 from ..controllers import UniversalController
 from ..formulas import Region
 from ..learning import (
@@ -21,6 +29,7 @@ from ..learning import (
 from ..montecarlo.plugin import GP_MONTECARLO
 from ..simulation import Trajectory, simulate
 from .acc import PRESETS, ACCScenario, load_scenario
+from .kinds import with_overrides
 from .pipeline import (
     MetricsWriter,
     StepProgress,
@@ -181,15 +190,17 @@ def study_controllers(
     nominal = scenario.controller_system(scenario.system("nominal"))
     clf, cbf = scenario.certificates()
     common = scenario.trial_study().controller_options()  # those of the Monte Carlo trials
-    out = NameMap({
-        TRUE_MODEL: UniversalController(true_sys, clf, cbf, **common),
-        MISMATCHED_MODEL: UniversalController(nominal, clf, cbf, **common),
+    models = {"true": true_sys, "nominal": nominal, "learned": nominal}
+
+    def build(model: Any, **options: Any) -> UniversalController:
+        return UniversalController(model, clf, cbf, **options)
+
+    names = STUDY_CONTROLLERS if uncertainty is not None else MODEL_CONTROLLERS
+    return NameMap({
+        name: build_compared(name, build, models, uncertainty=uncertainty,
+                             gp_beta=scenario.gp_beta, **common)
+        for name in names
     })  # fmt: skip
-    if uncertainty is not None:
-        out[GP_ROBUST] = UniversalController(
-            nominal, clf, cbf, uncertainty=uncertainty, gp_beta=scenario.gp_beta, **common
-        )
-    return out
 
 
 def run_study(
@@ -226,9 +237,8 @@ def run_study(
     import time
 
     report = progress or (lambda msg, frac: None)
-    overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
     # checked like the file (ScenarioError), before any work
-    scenario = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
+    scenario = with_overrides(scenario, seed=seed, n_samples=n_samples, t_final=t_final)
     seed, q, horizon = scenario.seed, scenario.n_samples, scenario.t_final
     true_sys = scenario.system("true")
     timings: dict[str, float] = {}

@@ -28,7 +28,13 @@ import numpy as np
 from .._batching import in_threads
 from .._io import with_finite_status
 from ..certificates import LieTerms, lie_terms_point
-from ..controller_names import GP_ROBUST, MISMATCHED_MODEL, STUDY_CONTROLLERS, TRUE_MODEL
+from ..controller_names import (
+    GP_CONTROLLERS,
+    GP_ROBUST,
+    MODEL_OF,
+    STUDY_CONTROLLERS,
+    build_compared,
+)
 from ..controllers import StepStatus, UniversalController
 from ..errors import ParameterError
 from ..filters import SafetyFilter
@@ -38,6 +44,7 @@ from ..learning.bounds import mean_std_batch
 from ..montecarlo.plugin import GP_MONTECARLO
 from ..robust import probabilistic_compatibility, robust_margins
 from ..simulation import simulate
+from .kinds import with_overrides
 from .obstacle import PRESETS, ObstacleScenario, load_obstacle_scenario
 from .pipeline import (
     MetricsWriter,
@@ -120,10 +127,6 @@ def classify_outcomes(
     )
 
 
-#: The model each controller is built on (``"learned"``: nominal, plus the learned gain).
-_SYSTEM_OF = {TRUE_MODEL: "true", MISMATCHED_MODEL: "nominal", GP_ROBUST: "learned"}
-
-
 def _params(sc: ObstacleScenario) -> dict[str, Any]:
     return {"kappa": sc.kappa, "rho": sc.rho, "phi": sc.phi, "varphi": sc.varphi}
 
@@ -166,7 +169,7 @@ def verdict(
     if controller == GP_ROBUST and uncertainty is None:
         raise ParameterError("the 'GP-robust' verdict needs uncertainty= (a model of omega)")
     x = jnp.asarray(x, dtype=float)
-    which = _SYSTEM_OF[controller]
+    which = MODEL_OF[controller]
     flat = x.reshape(-1, 2)
     terms = _terms(sc, which, flat)
     if controller != GP_ROBUST:
@@ -581,8 +584,7 @@ def fit_obstacle_gp(
         :class:`~safestab.learning.FastGP` cache when ``n_inducing > 0``, else the GP), and
         the learned :class:`~safestab.learning.InputGain` when ``input_gain = "learned"``
         (the GP then learns ``y - D u``, :func:`~safestab.learning.fit_input_gain`), else
-        None. (Before the study pipeline, the first element was the whole collected data set;
-        its training rows are ``gp.x_train_``.)
+        None. The training rows are ``gp.x_train_``.
     """
     timings = {} if timings is None else timings
     report = report or silent
@@ -630,24 +632,27 @@ def obstacle_controller(
     """
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
-    return _controller(sc, name, sc.system(_SYSTEM_OF[name]), uncertainty, limits, hard)
+    return _controller(sc, name, sc.system(MODEL_OF[name]), uncertainty, limits, hard)
 
 
 def _controller(sc, name, system, uncertainty, limits, hard):
     """:func:`obstacle_controller` on ``system`` (the model itself or the parametric family)."""
     clf, cbf = sc.certificates()
-    extra: dict[str, Any] = {}
-    if name == GP_ROBUST:
-        if uncertainty is None:
-            raise ParameterError("the GP-robust controller needs an uncertainty model")
-        extra = {"uncertainty": uncertainty, "gp_beta": sc.gp_beta}
-        if sc.robust_clf_layer > 0:
-            extra["robust_clf_layer"] = sc.robust_clf_layer
-    options = {"slack_weight": None if hard else sc.slack_weight, **_params(sc), **extra}
-    if not limits:
-        return UniversalController(system, clf, cbf, **options)
-    u_min, u_max = sc.input_limits()
-    return sc.limited_controller(system, clf, cbf, u_min=u_min, u_max=u_max, **options)
+    if name in GP_CONTROLLERS and uncertainty is None:
+        raise ParameterError(f"the {name} controller needs an uncertainty model")
+    robust = {"robust_clf_layer": sc.robust_clf_layer} if sc.robust_clf_layer > 0 else {}
+    options = {"slack_weight": None if hard else sc.slack_weight, **_params(sc)}
+
+    def build(model: Any, **kwargs: Any) -> Any:
+        if not limits:
+            return UniversalController(model, clf, cbf, **kwargs)
+        u_min, u_max = sc.input_limits()
+        return sc.limited_controller(model, clf, cbf, u_min=u_min, u_max=u_max, **kwargs)
+
+    return build_compared(
+        name, build, {MODEL_OF[name]: system}, uncertainty=uncertainty, gp_beta=sc.gp_beta,
+        robust_options=robust, **options,
+    )  # fmt: skip
 
 
 def study_controller(
@@ -681,7 +686,7 @@ def study_controller(
         return obstacle_controller(sc, name, uncertainty, limits=limits, hard=hard), None
     if name not in CONTROLLERS:
         raise ParameterError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
-    which = _SYSTEM_OF[name]
+    which = MODEL_OF[name]
     return _controller(sc, name, sc.model_family(), None, limits, hard), sc.model_params(which)
 
 
@@ -715,8 +720,7 @@ def run_obstacle_study(
         If an override is invalid; raised before any work.
     """
     report = progress or silent
-    overrides = {"seed": seed, "n_samples": n_samples, "t_final": t_final}
-    sc = scenario.replace(**{k: v for k, v in overrides.items() if v is not None})
+    sc = with_overrides(scenario, seed=seed, n_samples=n_samples, t_final=t_final)
     true_sys = sc.system("true")
     timings: dict[str, float] = {}
     x0 = sc.start_states()

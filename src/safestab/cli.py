@@ -594,7 +594,6 @@ def mc(
 
     from ._io import ensure_writable_dir
     from .errors import ParameterError
-    from .montecarlo import BACKENDS
     from .scenarios import kinds, load
     from .scenarios.pipeline import MonteCarloOptions
 
@@ -605,14 +604,9 @@ def mc(
             trials=trials, datasets=datasets, backend=backend, address=address,
             chunk_size=chunk_size, controllers=names, workers=workers, seed=seed,
         )  # fmt: skip
+        # every option is checked here, before any work (kinds.check_mc_options and the
+        # kind's plan)
         plan = kinds.plan_mc(sc, options, name="--scenario")
-        if backend not in BACKENDS:
-            raise ParameterError(f"--backend must be one of {BACKENDS}, got {backend!r}")
-        for name, value in (("--trials", trials), ("--datasets", datasets), ("--workers", workers)):
-            if value is not None and value < 1:
-                raise ParameterError(f"{name} must be >= 1, got {value}")
-        if not 0 <= seed <= 2**32 - 1:
-            raise ParameterError(f"--seed must be in [0, 2**32 - 1], got {seed}")
         return plan, ensure_writable_dir(out, name="--out")
 
     plan, out_dir = _guard(check_inputs, debug=debug, code=EXIT_BAD_INPUT)

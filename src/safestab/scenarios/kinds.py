@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..errors import ScenarioError
+from ..errors import ParameterError, ScenarioError
 from .pipeline import (
     MonteCarloOptions,
     StepProgress,
@@ -30,6 +30,7 @@ from .pipeline import (
 __all__ = [
     "MonteCarloPlan",
     "StudyOutputs",
+    "check_mc_options",
     "kind_of",
     "load",
     "plan_mc",
@@ -244,6 +245,32 @@ class MonteCarloPlan:
     checked: Any
 
 
+def check_mc_options(options: MonteCarloOptions) -> None:
+    """The checks every kind's Monte Carlo options share, named as the command line names them.
+
+    Counts (``--trials``, ``--datasets``, ``--workers``, ``--chunk-size``) are at least 1
+    where given, ``--seed`` is a JAX key word (``[0, 2**32 - 1]``) and ``--backend`` one of
+    the Monte Carlo backends. What applies to one kind only, its ``plan`` checks.
+
+    Raises
+    ------
+    ParameterError
+        Naming the option, what was received and what is expected.
+    """
+    from ..montecarlo import BACKENDS
+
+    if options.backend not in BACKENDS:
+        raise ParameterError(f"--backend must be one of {BACKENDS}, got {options.backend!r}")
+    for name, value in (
+        ("--trials", options.trials), ("--datasets", options.datasets),
+        ("--workers", options.workers), ("--chunk-size", options.chunk_size),
+    ):  # fmt: skip
+        if value is not None and value < 1:
+            raise ParameterError(f"{name} must be >= 1, got {value}")
+    if not 0 <= options.seed <= 2**32 - 1:
+        raise ParameterError(f"--seed must be in [0, 2**32 - 1], got {options.seed}")
+
+
 def plan_mc(scenario: Any, options: MonteCarloOptions, *, name: str = "scenario") -> MonteCarloPlan:
     """Check a Monte Carlo of ``scenario`` with ``options`` before any work, by its kind.
 
@@ -266,6 +293,7 @@ def plan_mc(scenario: Any, options: MonteCarloOptions, *, name: str = "scenario"
     ParameterError
         As the kind's ``plan`` (an option that does not apply to the kind).
     """
+    check_mc_options(options)
     study = study_of(scenario)
     if study.montecarlo is None:
         able = [s.kind for s in studies().values() if s.montecarlo is not None]

@@ -87,7 +87,11 @@ def test_no_docstring_or_comment_in_src_names_an_issue_or_a_date():
     import re
     from pathlib import Path
 
-    pattern = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssues? \d+")
+    pattern = re.compile(
+        r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssues? \d+|\bthe issue\b|\b[Uu]ntil 20\d\d"
+        r"|\b[Bb]efore (this|the) (change|fix|limit|study pipeline)\b|\bpreviously\b"
+        r"|\bno longer\b|\b[Mm]easured on this\b|\bwas (removed|added|changed|renamed)\b"
+    )
     root = Path(__file__).resolve().parent.parent / "src" / "safestab"
     found = [
         f"{path.relative_to(root)}:{i}: {line.strip()}"
@@ -98,3 +102,7 @@ def test_no_docstring_or_comment_in_src_names_an_issue_or_a_date():
     assert not found, "\n".join(found)
     # the pattern finds what it should (the test can fail)
     assert pattern.search("# measured on 2026-11-27") and pattern.search("(issue 14)")
+    for history in ("the figure the issue asks for", "Before this limit it crashed",
+                    "until 2026 it did", "it no longer compiles", "Measured on this machine"):
+        assert pattern.search(history), history
+    assert not pattern.search("The law's input before the limits")

@@ -179,11 +179,9 @@ class ControllerValue(PytreeValue):
 
         The parameters and constructor arguments given as NumPy arrays are kept as read-only
         copies (a controller JAX rebuilds from NumPy leaves holds such copies too): a
-        controller is a value. (A caller's array kept as given, or an array of
-        :meth:`tunables` written in place, changed the controller's numbers without a new
-        controller: an eager step, whose device copies of the parameters are kept with the
-        controller, still gave the input for the old numbers, outside the limits the
-        controller then reported.)
+        controller is a value: writing into a caller's array or into an array of
+        :meth:`tunables` cannot change the controller's numbers behind the device copies an
+        eager step keeps, so the input and the limits it reports always belong together.
         """
         self._init = init
         self._kwargs = {name: _frozen(value) for name, value in kwargs.items()}

@@ -19,8 +19,7 @@ harness (:func:`~safestab.export.write_harness`) and, for a :data:`TARGETS` entr
 
 What QEMU counts is instructions, not cycles: on a Cortex-M4 most instructions of this
 code take one cycle, divisions and square roots 14, loads from slow flash more; the count
-is the figure the issue asks for (instructions per step against a cycle budget), not a
-timing.
+is a budget figure (instructions per step against a cycle budget), not a timing.
 """
 
 from __future__ import annotations

@@ -21,9 +21,9 @@ __all__ = ["blas_single_threaded", "fit_threads", "one_blas_thread"]
 def one_blas_thread() -> Any:
     """A context in which BLAS and LAPACK (NumPy's, SciPy's and JAX's CPU LAPACK) use one thread.
 
-    Measured on this 2-core machine with other jobs running (load average 2.9): a 2000 x 2000
-    Cholesky factorisation took 1.14 s with OpenBLAS's two threads and 0.14 s with one (its
-    threads wait on each other while the cores are busy elsewhere). One thread also fixes the
+    OpenBLAS's threads wait on each other while the cores are busy elsewhere: on two cores
+    with other jobs running, a 2000 x 2000 Cholesky factorisation takes several times as long
+    with two threads as with one. One thread also fixes the
     summation order, so a data set's GP is the same bits in this process and in a worker
     process whatever their thread settings; run several data sets in parallel as separate
     tasks instead.

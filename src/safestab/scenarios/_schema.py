@@ -60,7 +60,8 @@ class ScenarioLimits:
         Most GP samples ``Q`` (and ``hyper_subset``). The exact GP keeps a ``Q x Q`` Cholesky
         factor per state component (3 for ACC, 0.8 GB each at ``Q = 10,000``): collecting
         10,000 samples and fitting the GP peaked at 8.3 GB resident memory (about 5 minutes
-        on 2 cores). Before this limit ``n_samples = 10**12`` aborted the interpreter.
+        on 2 cores); a larger ``n_samples`` is refused here rather than left to exhaust
+        memory.
     min_gp_rows : int
         Fewest GP samples (and ``hyper_subset``): the GP fits ``n + 2`` hyperparameters
         per component (5 for ACC, 4 for the obstacle scenario) and needs more rows than

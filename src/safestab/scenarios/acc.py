@@ -221,7 +221,7 @@ class ACCScenario:
         )
 
     def hand_lie_terms(self, x: Any, which: str = "true") -> LieTerms:
-        """The Lie terms written out by hand (with the corrections of NOTES.md section 3).
+        """The Lie terms written out by hand (with the corrections listed in docs/acc.md).
 
         ``a = -2 (v_f - v_d) F_r/M + lam V``, ``b = 2 (v_f - v_d) k/M``,
         ``c = v_l - v_f + tau F_r/M + beta h``, ``d = -tau k/M`` with ``k`` the input scale.

@@ -119,3 +119,16 @@ def test_build_compared_stands_each_controller_on_its_model_and_gives_the_gp_one
         build_compared("GP-corected", build, models)
     with pytest.warns(DeprecationWarning, match="GP-corrected"):
         assert build_compared("GP-corrected", build, models, uncertainty="gp")[0] == "L"
+
+
+def test_export_takes_the_controllers_names_as_well_as_its_short_ones():
+    from safestab.controller_names import EXPORT_CHOICES, export_choice
+    from safestab.scenarios.export_study import export_scenario
+
+    for short, full in EXPORT_CHOICES.items():
+        assert export_choice(short) == short and export_choice(full) == short
+    with pytest.warns(DeprecationWarning):
+        assert export_choice("GP-corrected") == "gp"
+    assert export_choice("GP mean") == "GP mean"  # not exported: left for the caller's check
+    with pytest.raises(safestab.ParameterError, match=r"'gp' \('GP-robust'\).*got 'GP mean'"):
+        export_scenario("paper", "/nonexistent/never-made", controller="GP mean")

@@ -456,8 +456,8 @@ def export_cmd(
     out: Path = typer.Option(Path("build"), help="Output folder (created if needed)."),
     controller: str = typer.Option(
         "gp",
-        help=", ".join(f"'{short}' ({name})" for short, name in EXPORT_CHOICES.items())
-        + "; 'gp' through the fast GP cache.",
+        help=", ".join(f"'{short}' ('{name}')" for short, name in EXPORT_CHOICES.items())
+        + ", by either name; 'gp' through the fast GP cache.",
     ),
     name: str | None = typer.Option(
         None, help="Prefix of the C names and files (default 'acc' or 'obstacle')."

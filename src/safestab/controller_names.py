@@ -32,6 +32,7 @@ __all__ = [
     "NameMap",
     "build_compared",
     "current_name",
+    "export_choice",
 ]
 
 TRUE_MODEL = "true model"
@@ -184,3 +185,14 @@ def build_compared(
     return build(
         model, uncertainty=uncertainty, gp_beta=gp_beta, **options, **(robust_options or {})
     )
+
+
+def export_choice(name: Any) -> Any:
+    """``safestab export --controller``'s short name (:data:`EXPORT_CHOICES`) for ``name``.
+
+    A short name is returned as it is, a study controller's name (current or old, with a
+    DeprecationWarning) as its short name, so the export takes the names every other command
+    takes; anything else is returned as it is (the caller checks it).
+    """
+    name = current_name(name)
+    return {full: short for short, full in EXPORT_CHOICES.items()}.get(name, name)

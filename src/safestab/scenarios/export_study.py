@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..controller_names import EXPORT_CHOICES
+from ..controller_names import EXPORT_CHOICES, export_choice
 from ..errors import CompilationError, ParameterError
 from ..export.embedded import TARGETS, run_on_target
 from ..export.exporter import check_name, check_precision, export_c
@@ -97,7 +97,9 @@ def export_scenario(
     out : path
         Output folder, created if needed; a relative path is taken against the current
         working folder when the function is called.
-    controller : {"gp", "nominal", "true"}
+    controller : {"gp", "nominal", "true"} or the controller's name
+        The short names of ``"GP-robust"``, ``"mismatched model"`` and ``"true model"``;
+        either is taken.
         The GP-robust controller (GP fitted as in the study, exported through a
         :class:`~safestab.learning.FastGP` cache whose band contains the exact GP's), or the
         controller built on the nominal or the true model. For the obstacle scenario, the
@@ -147,10 +149,9 @@ def export_scenario(
         raise ParameterError(f"target must be one of {sorted(TARGETS)}, got {target!r}")
     if precision is None:
         precision = TARGETS[target].precision if target is not None else "double"
+    controller = export_choice(controller)
     if controller not in EXPORT_CHOICES:  # before the output folder is made
-        raise ParameterError(
-            f"controller must be one of {sorted(EXPORT_CHOICES)}, got {controller!r}"
-        )
+        raise ParameterError(_bad_controller(controller))
     if int(cases) < 1:
         raise ParameterError(f"cases must be >= 1, got {cases!r}")
     # every option checked before the data collection and the GP fit (minutes)
@@ -254,7 +255,9 @@ def scenario_controller(
     Parameters
     ----------
     sc : ACCScenario or ObstacleScenario
-    controller : {"gp", "nominal", "true"}
+    controller : {"gp", "nominal", "true"} or the controller's name
+        The short names of ``"GP-robust"``, ``"mismatched model"`` and ``"true model"``;
+        either is taken.
         With ``"gp"``, the data are collected and the GP fitted as in the study (seconds to
         a minute) and the controller uses its :class:`~safestab.learning.FastGP` cache.
     seed, n_samples : optional
@@ -273,10 +276,9 @@ def scenario_controller(
     ParameterError
         If ``controller`` is unknown or the scenario is of another kind.
     """
+    controller = export_choice(controller)
     if controller not in EXPORT_CHOICES:
-        raise ParameterError(
-            f"controller must be one of {sorted(EXPORT_CHOICES)}, got {controller!r}"
-        )
+        raise ParameterError(_bad_controller(controller))
     seed = sc.seed if seed is None else int(seed)
     say = progress or (lambda msg: None)
     if isinstance(sc, ACCScenario):
@@ -287,6 +289,11 @@ def scenario_controller(
         f"export takes an ACC or obstacle scenario, got {type(sc).__name__} "
         f"({sc.name!r}); export a safety filter with safestab.export_c"
     )
+
+
+def _bad_controller(controller: Any) -> str:
+    choices = ", ".join(f"{short!r} ({full!r})" for short, full in EXPORT_CHOICES.items())
+    return f"controller must be one of {choices}, by either name, got {controller!r}"
 
 
 def _acc_controller(sc, controller, seed, n_samples, n_inducing, say):

@@ -498,7 +498,7 @@ def swarm_tables(doc: dict) -> tuple[str, str]:
     runs = doc["runs"]
     rows = []
     for mode, label in (("centralized", "centralized"), ("decentralized", "decentralized"),
-                        ("nominal", "nominal (no filter)")):  # fmt: skip
+                        ("unfiltered", "unfiltered (no filter)")):  # fmt: skip
         r = runs[mode]
         if r["arrival_time_s"] is not None:
             arrival = f"at {r['arrival_time_s']:.2f} s"
@@ -511,7 +511,7 @@ def swarm_tables(doc: dict) -> tuple[str, str]:
               "all robots within the goal tolerance", "mean change to the input (m/s)",
               "solver statuses (robot-steps)"]  # fmt: skip
     results = _table(header, ["---", "---:", "---:", "---:", "---:", "---"], rows)
-    cen, nom = runs["centralized"], runs["nominal"]
+    cen, nom = runs["centralized"], runs["unfiltered"]
     facts = [f"Without a filter the robots pass within {1000 * nom['min_distance_m']:.1f} mm of "
              "each other."]  # fmt: skip
     if cen["arrival_time_s"] is not None and nom["arrival_time_s"] is not None:

@@ -45,7 +45,7 @@ def test_filters_keep_every_pair_apart_where_the_nominal_swarm_collides():
         assert run["min_distance_m"] >= SMALL.safety_distance * (1 - 1e-3), mode
         assert set(run["solver_statuses"]) == {"SOLVED"}, mode
         assert run["max_abs_input_mps"] <= SMALL.speed_limit
-    assert doc["runs"]["nominal"]["steps_below_safety_distance"] > 0
+    assert doc["runs"]["unfiltered"]["steps_below_safety_distance"] > 0
     assert doc["runs"]["centralized"]["arrival_time_s"] is not None
 
 
@@ -106,3 +106,13 @@ def test_command_writes_the_figure_and_metrics(tmp_path):
         assert bad.exit_code == 2, bad.output
         assert "swarm.seed must be" in bad.output or "swarm.t_final / swarm.dt" in bad.output
     assert not (tmp_path / "x").exists()  # refused before any work
+
+
+def test_the_old_mode_name_nominal_is_read_for_one_release_as_unfiltered():
+    from safestab.scenarios.swarm import MODES, UNFILTERED, check_mode
+
+    assert UNFILTERED in MODES and "nominal" not in MODES
+    with pytest.warns(DeprecationWarning, match="'nominal' is now 'unfiltered'"):
+        assert check_mode("nominal") == UNFILTERED
+    with pytest.raises(ScenarioError, match="mode must be one of"):
+        check_mode("unfilterd")

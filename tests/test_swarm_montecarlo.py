@@ -83,7 +83,7 @@ def test_a_trial_does_not_depend_on_chunks_trials_or_workers(five_trials):
         np.testing.assert_array_equal(value, five_trials.records[key][:3], err_msg=key)
     assert five_trials.records["min_distance"].shape == (5, 3)
     assert not np.array_equal(  # another seed: other jitter
-        run_swarm_montecarlo(SMALL, trials=1, seed=2, modes=("nominal",)).records["min_distance"],
+        run_swarm_montecarlo(SMALL, trials=1, seed=2, modes=("unfiltered",)).records["min_distance"],
         five_trials.records["min_distance"][:1, 2:],
     )
 
@@ -130,7 +130,7 @@ def test_document_rates_worst_trial_and_guarantee(five_trials):
     doc = metrics_document(five_trials)
     assert doc["status"] == "ok"
     json.dumps(doc, allow_nan=False)
-    nominal = doc["summary"]["modes"]["nominal"]
+    nominal = doc["summary"]["modes"]["unfiltered"]
     least = five_trials.records["min_distance"][:, 2]
     assert nominal["safe"]["count"] == int(np.sum(least >= SMALL.safety_distance))
     worst = nominal["worst_trial"]
@@ -151,9 +151,9 @@ def test_bad_arguments_raise():
     with pytest.raises(ScenarioError, match="modes must be one of"):
         run_swarm_montecarlo(SMALL, modes=("fast",))
     with pytest.raises(ParameterError, match="modes must be distinct"):
-        run_swarm_montecarlo(SMALL, modes=("nominal", "nominal"))
-    plan = kinds.plan_mc(SMALL, MonteCarloOptions(controllers=("nominal",), trials=2))
-    assert plan.checked.modes == ("nominal",) and plan.checked.trials == 2
+        run_swarm_montecarlo(SMALL, modes=("unfiltered", "unfiltered"))
+    plan = kinds.plan_mc(SMALL, MonteCarloOptions(controllers=("unfiltered",), trials=2))
+    assert plan.checked.modes == ("unfiltered",) and plan.checked.trials == 2
 
 
 def test_a_kind_without_monte_carlo_is_refused_by_name(monkeypatch):
@@ -179,17 +179,17 @@ def test_cli_mc_swarm_writes_the_four_files(tmp_path):
     path.write_text(SMALL_TOML)
     out = tmp_path / "out"
     args = ["mc", "--scenario", str(path), "--trials", "3", "--chunk-size", "2",
-            "--controllers", "centralized,nominal", "--seed", "5", "--out", str(out)]  # fmt: skip
+            "--controllers", "centralized,unfiltered", "--seed", "5", "--out", str(out)]  # fmt: skip
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     names = {"mc_tiny.png", "mc_tiny_metrics.json", "mc_tiny_trials.npz", "mc_tiny_run.json"}
     assert {p.name for p in out.iterdir()} == names
     doc = _strict((out / "mc_tiny_metrics.json").read_text())
     assert doc["kind"] == "swarm" and doc["settings"]["trials"] == 3
-    assert list(doc["summary"]["modes"]) == ["centralized", "nominal"]
+    assert list(doc["summary"]["modes"]) == ["centralized", "unfiltered"]
     assert set(_strict((out / "mc_tiny_run.json").read_text())["files"]) == names
     with np.load(out / "mc_tiny_trials.npz") as z:
-        assert z["min_distance"].shape == (3, 2) and list(z["modes"]) == ["centralized", "nominal"]
+        assert z["min_distance"].shape == (3, 2) and list(z["modes"]) == ["centralized", "unfiltered"]
         assert z["trial_seed"][2] == trial_seed(5, 2)
     assert "Monte Carlo 'tiny': 3 trials" in res.output
 
@@ -199,8 +199,8 @@ def test_cli_mc_swarm_writes_the_four_files(tmp_path):
     [
         (["--controllers", "centralized,GP mean"],
          r"--controllers\[1\] must be one of the swarm's modes 'centralized', 'decentralized', "
-         r"'nominal', got 'GP mean'"),
-        (["--controllers", "nominal,nominal"], "--controllers must be distinct swarm modes"),
+         r"'unfiltered', got 'GP mean'"),
+        (["--controllers", "unfiltered,unfiltered"], "--controllers must be distinct swarm modes"),
         (["--datasets", "2"], "--datasets does not apply to the swarm"),
         (["--backend", "ray"], "--backend must be 'local' for the swarm"),
         (["--trials", "0"], "--trials must be >= 1, got 0"),

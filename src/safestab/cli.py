@@ -563,7 +563,7 @@ def mc(
         None,
         help="Comma-separated controllers to compare (default: the file's), from: "
         + ", ".join(CONTROLLERS)
-        + "; for the swarm, its modes: centralized, decentralized, nominal (default: all).",
+        + "; for the swarm, its modes: centralized, decentralized, unfiltered (default: all).",
     ),
     workers: int | None = typer.Option(
         None,

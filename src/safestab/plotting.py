@@ -305,12 +305,12 @@ def plot_swarm(result: Any, axes: Any = None) -> Any:
         ax.set_title(f"{mode} filter")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
-    styles = {"centralized": "-", "decentralized": "--", "nominal": ":"}
+    styles = {"centralized": "-", "decentralized": "--", "unfiltered": ":"}
     for mode, run in runs.items():
         axes[2].plot(run.t, run.min_distance(), styles[mode], label=mode)
         nominal = np.clip(run.u_nom, -sc.speed_limit, sc.speed_limit)
         change = np.linalg.norm(run.u - nominal, axis=-1).mean(-1)
-        if mode != "nominal":
+        if mode != "unfiltered":
             axes[3].plot(run.t[:-1], change, styles[mode], label=mode)
     axes[2].axhline(sc.safety_distance, color="0.4", lw=0.8)
     axes[2].set_xlabel("time (s)")

@@ -22,6 +22,7 @@ symmetry of the swap, in which a symmetric deadlock at the centre is an equilibr
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,8 @@ from ._schema import (
 
 __all__ = [
     "FIELDS", "SwarmScenario", "SwarmRun", "PRESETS", "check_values", "load_swarm_scenario",
-    "simulate_swarm", "pair_terms", "MODES", "check_mode", "swarm_closed_loop",
+    "simulate_swarm", "pair_terms", "MODES", "UNFILTERED", "RENAMED_MODES", "check_mode",
+    "current_mode", "swarm_closed_loop",
 ]  # fmt: skip
 
 PRESETS = ("swarm",)
@@ -260,7 +262,24 @@ class SwarmRun:
         return np.min(np.linalg.norm(self.p[:, i] - self.p[:, j], axis=-1), axis=-1)
 
 
-MODES = ("centralized", "decentralized", "nominal")
+#: The mode without a filter: the nominal go-to-goal input clipped to the limits.
+UNFILTERED = "unfiltered"
+MODES = ("centralized", "decentralized", UNFILTERED)
+#: Old mode names, read for one release (with a DeprecationWarning): old -> current.
+RENAMED_MODES = {"nominal": UNFILTERED}
+
+
+def current_mode(mode: Any, name: str = "mode") -> Any:
+    """``mode``, or its current name if it is an old one (with a DeprecationWarning)."""
+    if isinstance(mode, str) and mode in RENAMED_MODES:
+        warnings.warn(
+            f"{name}: the swarm mode {mode!r} is now {RENAMED_MODES[mode]!r} (the old name is "
+            "read for one release only)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return RENAMED_MODES[mode]
+    return mode
 
 
 def check_mode(mode: str, name: str = "mode") -> str:
@@ -271,6 +290,7 @@ def check_mode(mode: str, name: str = "mode") -> str:
     ScenarioError
         Naming ``name``, what was received and the modes.
     """
+    mode = current_mode(mode, name)
     if mode not in MODES:
         raise ScenarioError(
             f"{name} must be one of {', '.join(repr(m) for m in MODES)}, got {mode!r}"
@@ -290,8 +310,9 @@ def swarm_closed_loop(sc: SwarmScenario, mode: str, recorder: Any) -> Any:
     Parameters
     ----------
     sc : SwarmScenario
-    mode : {"centralized", "decentralized", "nominal"}
-        ``"nominal"`` applies the nominal input clipped to the limits (no filter).
+    mode : {"centralized", "decentralized", "unfiltered"}
+        ``"unfiltered"`` applies the nominal input clipped to the limits (no filter); the
+        old name ``"nominal"`` is read for one release.
     recorder : Recorder
 
     Returns
@@ -303,7 +324,7 @@ def swarm_closed_loop(sc: SwarmScenario, mode: str, recorder: Any) -> Any:
     ScenarioError
         For an unknown ``mode``.
     """
-    check_mode(mode)
+    mode = check_mode(mode)
 
     def step(t, pos, goal):
         u_nom = sc.gain * (goal - pos)
@@ -329,8 +350,9 @@ def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
     Parameters
     ----------
     sc : SwarmScenario
-    mode : {"centralized", "decentralized", "nominal"}
-        ``"nominal"`` applies the nominal input clipped to the limits (no filter).
+    mode : {"centralized", "decentralized", "unfiltered"}
+        ``"unfiltered"`` applies the nominal input clipped to the limits (no filter); the
+        old name ``"nominal"`` is read for one release.
 
     Returns
     -------
@@ -341,6 +363,7 @@ def simulate_swarm(sc: SwarmScenario, mode: str = "centralized") -> SwarmRun:
     ScenarioError
         For an unknown ``mode``.
     """
+    mode = check_mode(mode)
     run = swarm_closed_loop(sc, mode, _SwarmRecorder())
     start, goal = sc.starts_and_goals()
     p, u, u_nom, status = jax.jit(run)(jnp.asarray(start), jnp.asarray(goal))

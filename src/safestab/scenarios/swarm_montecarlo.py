@@ -29,7 +29,7 @@ from .._io import with_finite_status
 from ..errors import ParameterError
 from ..formulas import MultiStatus
 from .pipeline import MonteCarloOptions, StudyMonteCarlo, TaskProgress
-from .swarm import MODES, SwarmScenario, check_mode, swarm_closed_loop
+from .swarm import MODES, UNFILTERED, SwarmScenario, check_mode, current_mode, swarm_closed_loop
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
@@ -387,11 +387,11 @@ def metrics_document(result: SwarmMonteCarlo) -> dict[str, Any]:
             "mean_input_change_mps": float(np.mean(rec["mean_input_change"][:, c])),
             "solver_statuses": (
                 {}
-                if mode == "nominal"
+                if mode == UNFILTERED
                 else {s.name: int(counts[s]) for s in MultiStatus if counts[s]}
             ),
             "trials_with_unsolved_steps": (
-                0 if mode == "nominal" else int(np.sum(rec["statuses"][:, c, 1:].sum(-1) > 0))
+                0 if mode == UNFILTERED else int(np.sum(rec["statuses"][:, c, 1:].sum(-1) > 0))
             ),
         }
     doc = {
@@ -555,7 +555,7 @@ def plan(scenario: SwarmScenario, options: MonteCarloOptions) -> _Plan:
         )
     modes = MODES
     if options.controllers is not None:
-        modes = tuple(options.controllers)
+        modes = tuple(current_mode(m, "--controllers") for m in options.controllers)
         for i, mode in enumerate(modes):
             if mode not in MODES:
                 raise ParameterError(

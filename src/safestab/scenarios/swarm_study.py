@@ -24,6 +24,7 @@ from .pipeline import MetricsWriter, StepProgress, Study, Summary, silent
 from .swarm import (
     MODES,
     PRESETS,
+    UNFILTERED,
     SwarmRun,
     SwarmScenario,
     load_swarm_scenario,
@@ -54,7 +55,7 @@ def _summary(sc: SwarmScenario, run: SwarmRun) -> dict[str, Any]:
         "max_input_change_mps": float(change.max()),
         "max_abs_input_mps": float(np.abs(run.u).max()),
         "solver_statuses": {k: v for k, v in statuses.items() if v}
-        if run.mode != "nominal"
+        if run.mode != UNFILTERED
         else {},
     }
 

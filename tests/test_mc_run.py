@@ -307,7 +307,7 @@ def test_cli_mc_checks_inputs_before_work(tmp_path):
         (["--backend", "dask"], "--backend must be one of"),
         (["--trials", "0"], "--trials must be >= 1, got 0"),
         (["--workers", "0"], "--workers must be >= 1, got 0"),
-        (["--chunk-size", "0"], "montecarlo.chunk_size must be an integer"),
+        (["--chunk-size", "0"], "--chunk-size must be >= 1, got 0"),
         (["--seed", "-1"], r"--seed must be in \[0, 2\*\*32 - 1\]"),
         (["--controllers", "true model,bogus"], r"--controllers\[1\] must be one of"),
         (["--controllers", "GP mean,GP mean"], r"--controllers must be .* appears twice"),

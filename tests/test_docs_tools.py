@@ -336,7 +336,7 @@ def test_swarm_tables_from_a_metrics_document():
     doc = {
         "runs": {"centralized": run(0.6000094, 0, 11.6, 0.30051, {"SOLVED": 9600}),
                  "decentralized": run(0.6, 0, None, 1.0978, {"SOLVED": 9590, "MAX_ITER": 10}),
-                 "nominal": run(0.0075920, 183, 9.98, 0.0, {})},
+                 "unfiltered": run(0.0075920, 183, 9.98, 0.0, {})},
         "loose_solvers_on_centralized_states": {
             "osqp": {"states": 32, "max_input_gap_mps": 0.011756, "median_input_gap_mps": 6.79e-5,
                      "max_barrier_violation_m2ps": 0.00405, "share_of_states_violating": 0.4375},
@@ -350,7 +350,7 @@ def test_swarm_tables_from_a_metrics_document():
         "| decentralized | 0.600000 | 0 | never (largest goal error 5.17 m at the end) | 1.098 "
         "| SOLVED 9,590, MAX_ITER 10 |"
     )
-    assert lines[4] == "| nominal (no filter) | 0.007592 | 183 | at 9.98 s | 0.000 | - |"
+    assert lines[4] == "| unfiltered (no filter) | 0.007592 | 183 | at 9.98 s | 0.000 | - |"
     assert "- Without a filter the robots pass within 7.6 mm of each other." in lines
     assert "- The centralized filter arrives 1.62 s after the unfiltered swarm." in lines
     rows = solvers.splitlines()

@@ -102,7 +102,12 @@ def test_no_docstring_or_comment_in_src_names_an_issue_or_a_date():
     assert not found, "\n".join(found)
     # the pattern finds what it should (the test can fail)
     assert pattern.search("# measured on 2026-11-27") and pattern.search("(issue 14)")
-    for history in ("the figure the issue asks for", "Before this limit it crashed",
-                    "until 2026 it did", "it no longer compiles", "Measured on this machine"):
+    for history in (
+        "the figure the issue asks for",
+        "Before this limit it crashed",
+        "until 2026 it did",
+        "it no longer compiles",
+        "Measured on this machine",
+    ):
         assert pattern.search(history), history
     assert not pattern.search("The law's input before the limits")

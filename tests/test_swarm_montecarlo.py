@@ -83,7 +83,9 @@ def test_a_trial_does_not_depend_on_chunks_trials_or_workers(five_trials):
         np.testing.assert_array_equal(value, five_trials.records[key][:3], err_msg=key)
     assert five_trials.records["min_distance"].shape == (5, 3)
     assert not np.array_equal(  # another seed: other jitter
-        run_swarm_montecarlo(SMALL, trials=1, seed=2, modes=("unfiltered",)).records["min_distance"],
+        run_swarm_montecarlo(SMALL, trials=1, seed=2, modes=("unfiltered",)).records[
+            "min_distance"
+        ],
         five_trials.records["min_distance"][:1, 2:],
     )
 
@@ -179,7 +181,8 @@ def test_cli_mc_swarm_writes_the_four_files(tmp_path):
     path.write_text(SMALL_TOML)
     out = tmp_path / "out"
     args = ["mc", "--scenario", str(path), "--trials", "3", "--chunk-size", "2",
-            "--controllers", "centralized,unfiltered", "--seed", "5", "--out", str(out)]  # fmt: skip
+            "--controllers", "centralized,unfiltered", "--seed", "5",
+            "--out", str(out)]  # fmt: skip
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     names = {"mc_tiny.png", "mc_tiny_metrics.json", "mc_tiny_trials.npz", "mc_tiny_run.json"}
@@ -189,7 +192,10 @@ def test_cli_mc_swarm_writes_the_four_files(tmp_path):
     assert list(doc["summary"]["modes"]) == ["centralized", "unfiltered"]
     assert set(_strict((out / "mc_tiny_run.json").read_text())["files"]) == names
     with np.load(out / "mc_tiny_trials.npz") as z:
-        assert z["min_distance"].shape == (3, 2) and list(z["modes"]) == ["centralized", "unfiltered"]
+        assert z["min_distance"].shape == (3, 2) and list(z["modes"]) == [
+            "centralized",
+            "unfiltered",
+        ]
         assert z["trial_seed"][2] == trial_seed(5, 2)
     assert "Monte Carlo 'tiny': 3 trials" in res.output
 

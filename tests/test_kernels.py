@@ -48,6 +48,14 @@ def _tinygp_own(name, amp, ls):
     return amp**2 * transforms.Linear(1.0 / ls, base)
 
 
+#: A tinygp kernel's matrix as one compiled program (the kernel is a pytree argument): called
+#: eagerly, tinygp's vmaps compile each of their operations for its shapes.
+_matrix = jax.jit(lambda k, x1, x2: k(x1, x2))
+#: The kernel's formula and its derivative as compiled programs (the kernel a static value).
+_of_r2 = jax.jit(lambda r2, kernel: kernel.of_r2(r2), static_argnames="kernel")
+_d_of_r2 = jax.jit(lambda r2, kernel: kernel.d_of_r2(r2), static_argnames="kernel")
+
+
 def test_the_registry_names_each_kernel_once_and_the_objects_are_static_values():
     assert KERNEL_NAMES == ("se", "matern52")
     assert [type(k) for k in KERNELS] == [SquaredExponential, Matern52]
@@ -67,10 +75,10 @@ def test_of_r2_equals_tinygps_own_kernel_matrix(kernel):
     x1, x2 = rng.uniform(-3, 3, (40, 3)), rng.uniform(-3, 3, (30, 3))
     x2[:5] = x1[:5]  # coincident points: r2 = 0
     amp, ls = 1.7, np.array([0.4, 1.3, 2.5])
-    want = np.asarray(_tinygp_own(kernel.name, amp, jnp.asarray(ls))(x1, x2))
-    ours = np.asarray(kernel.tinygp(amp, jnp.asarray(ls))(x1, x2))
+    want = np.asarray(_matrix(_tinygp_own(kernel.name, amp, jnp.asarray(ls)), x1, x2))
+    ours = np.asarray(_matrix(kernel.tinygp(amp, jnp.asarray(ls)), x1, x2))
     r2 = np.sum(((x1[:, None] - x2[None]) / ls) ** 2, -1)
-    direct = amp**2 * np.asarray(kernel.of_r2(jnp.asarray(r2)))
+    direct = amp**2 * np.asarray(_of_r2(r2, kernel=kernel))
     # tinygp's Matern forms sqrt(5) sqrt(r2) where the objects take sqrt(5 r2), and the
     # distances are rounded differently: a few ulp of amp^2, well above 1e-15
     np.testing.assert_allclose(ours, want, rtol=0, atol=1e-14 * amp**2)
@@ -109,8 +117,8 @@ def test_of_r2_against_50_digits(kernel, xp, dtype):
 @pytest.mark.parametrize("kernel", KERNELS, ids=KERNEL_NAMES)
 def test_d_of_r2_against_jax_grad_and_50_digits(kernel):
     r2 = R2[R2 > 1e-10]
-    got = np.asarray(kernel.d_of_r2(jnp.asarray(r2)))
-    auto = np.asarray(jax.vmap(jax.grad(kernel.of_r2))(jnp.asarray(r2)))
+    got = np.asarray(_d_of_r2(r2, kernel=kernel))
+    auto = np.asarray(jax.jit(jax.vmap(jax.grad(kernel.of_r2)))(jnp.asarray(r2)))
     # two float64 evaluations of the same derivative, a few ulp times (1 + t) apart where
     # r2 >= 1e-4; below, autodiff's Matern cancels (about u / t relative; 6e-13 at 1e-8)
     # and the 50-digit check below is the one that holds
@@ -121,7 +129,7 @@ def test_d_of_r2_against_jax_grad_and_50_digits(kernel):
             ref = mp.diff(lambda s: _mp_of_r2(kernel.name, s), mp.mpf(float(r)))
             assert abs(float((mp.mpf(float(d)) - ref) / ref)) <= 1e-14 * (1 + np.sqrt(5 * r))
     # at r2 = 0 the derivative is the limit (-1/2, -5/6)
-    assert float(kernel.d_of_r2(jnp.asarray(0.0))) == {"se": -0.5, "matern52": -5 / 6}[kernel.name]
+    assert float(_d_of_r2(0.0, kernel=kernel)) == {"se": -0.5, "matern52": -5 / 6}[kernel.name]
 
 
 @pytest.mark.parametrize("kernel", KERNELS, ids=KERNEL_NAMES)
@@ -137,8 +145,8 @@ def test_the_kernel_matrix_is_differentiable_at_coincident_inputs(kernel):
         return jnp.sum(_tinygp_own(kernel.name, 1.0, jnp.exp(log_ls))(x, x))
 
     for argnum in (0, 1):
-        g = jax.grad(total, argnum)(jnp.zeros(2), x)
-        want = jax.grad(total_tinygp, argnum)(jnp.zeros(2), x)
+        g = jax.jit(jax.grad(total, argnum))(jnp.zeros(2), x)
+        want = jax.jit(jax.grad(total_tinygp, argnum))(jnp.zeros(2), x)
         assert np.all(np.isfinite(g))
         np.testing.assert_allclose(g, want, rtol=1e-12, atol=1e-14)
 

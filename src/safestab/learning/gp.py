@@ -141,6 +141,13 @@ def _check_design(x: np.ndarray) -> None:
         )
 
 
+@jax.jit
+def _inverse_diagonal(chol: jax.Array, e: jax.Array) -> jax.Array:
+    """``|L^-1 e_i|^2`` per column of ``e``: the diagonal of ``K^-1`` on those rows."""
+    w = solve_triangular(chol, e, lower=True)
+    return jnp.sum(w * w, 0)
+
+
 class GaussianProcessModel(Predictor):
     """n independent GPs, one per learned component of ``omega``.
 
@@ -602,9 +609,9 @@ class GaussianProcessModel(Predictor):
         e = np.zeros((q, len(rows)))
         e[rows, np.arange(len(rows))] = 1.0
         out = []
+        e = device_array(e)
         for j in range(len(self.components_)):
-            w = solve_triangular(jnp.asarray(self.chol_[j]), jnp.asarray(e), lower=True)
-            kinv = np.asarray(jnp.sum(w * w, 0))
+            kinv = np.asarray(_inverse_diagonal(device_array(self.chol_[j]), e))
             z = self.alpha_[j, rows] / np.sqrt(kinv)
             out.append(float(np.mean(np.abs(z) <= 2.0)))
         return np.array(out)
@@ -625,7 +632,7 @@ class GaussianProcessModel(Predictor):
         Rounding can make ``k(x, x) - k_*^T (K + sigma^2 I)^-1 k_*`` slightly negative; the
         variance is floored at 0.
         """
-        return predict_batch(self.posterior_, jnp.asarray(x), self.kernel, self.n_states_)
+        return predict_batch(self.posterior_, device_array(x), self.kernel, self.n_states_)
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Mean and standard deviation at one state of shape (n,) (jittable).

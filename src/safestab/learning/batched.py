@@ -41,6 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._batching import as_float_array
+from .._validation import is_concrete
 from .._values import register_model
 from ._posterior import band_products, bucket, exact_products
 from ._predict import Predictor
@@ -373,7 +375,13 @@ class BatchedUncertainty(Predictor):
         self.components_ = cache.components
 
     def mean_std(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Mean and standard deviation of ``omega`` at one state (n,), each (n,)."""
+        """Mean and standard deviation of ``omega`` at one state (n,), each (n,).
+
+        Called on values (not inside a transformation), it runs as one compiled program with
+        the cache as its argument.
+        """
+        if is_concrete(x, *jax.tree_util.tree_leaves(self.cache)):
+            return _mean_std_point_program(self.cache, x)
         return _mean_std_point(self.cache, x)
 
     def mean_std_batch(self, x: Any) -> tuple[jax.Array, jax.Array]:
@@ -382,7 +390,7 @@ class BatchedUncertainty(Predictor):
         Compiled once per cache shape and batch size (one module-level ``jax.jit``), not
         traced again for every cache: a Monte Carlo study calls it once per data set.
         """
-        return _mean_std_batch(self.cache, jnp.asarray(x, dtype=float))
+        return _mean_std_batch(self.cache, as_float_array(x))
 
     def _predict_rows(self, x: np.ndarray) -> tuple[jax.Array, jax.Array]:
         # predict(x, return_std=False): Predictor's, over the batched evaluation
@@ -399,3 +407,6 @@ register_model(
 @jax.jit
 def _mean_std_batch(cache: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     return cache.mean_std_batch(x)
+
+
+_mean_std_point_program = jax.jit(_mean_std_point)

@@ -360,12 +360,89 @@ def _updated(x: np.ndarray, upd: np.ndarray, where: tuple[slice, ...]) -> np.nda
     return out
 
 
+#: Elementwise primitives whose every result is exactly determined by IEEE 754 (a correctly
+#: rounded operation, a comparison or a logical one): NumPy gives XLA's bits. Left to XLA:
+#: ``max``/``min`` (the sign of a zero result), ``exp`` and the other transcendental ones,
+#: reductions with rounding (their order), integer division and ``integer_pow``.
+_NUMPY_EXACT: dict[str, Callable[..., Any]] = {
+    "add": np.add, "sub": np.subtract, "mul": np.multiply, "neg": np.negative,
+    "abs": np.abs, "sqrt": np.sqrt, "square": np.square,
+    "eq": np.equal, "ne": np.not_equal, "lt": np.less, "le": np.less_equal,
+    "gt": np.greater, "ge": np.greater_equal,
+    "and": np.bitwise_and, "or": np.bitwise_or, "xor": np.bitwise_xor, "not": np.invert,
+    "is_finite": np.isfinite,
+}  # fmt: skip
+_FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
+
+
+def _subnormal(x: np.ndarray) -> bool:
+    """Whether a float array holds a subnormal number (XLA on the CPU flushes them to 0)."""
+    if x.dtype not in _FLOATS:
+        return False
+    return bool(np.any((x != 0) & (np.abs(x) < np.finfo(x.dtype).tiny)))
+
+
+def _exact(name: str, args: list[np.ndarray], params: dict[str, Any]) -> np.ndarray | None:
+    """``name`` on NumPy arrays where IEEE 754 fixes its bits (None: left to XLA).
+
+    Where an input or the result is subnormal, XLA's CPU code (which flushes subnormals to
+    zero) and IEEE arithmetic differ: those are left to XLA.
+    """
+    if any(_subnormal(a) for a in args):
+        return None
+    out = _exact_normal(name, args, params)
+    return None if out is None or _subnormal(np.asarray(out)) else out
+
+
+def _exact_normal(name: str, args: list[np.ndarray], params: dict[str, Any]) -> Any:
+    dtypes = {np.asarray(a).dtype for a in args}
+    if name == "div":
+        return np.true_divide(*args) if len(dtypes) == 1 and dtypes <= set(_FLOATS) else None
+    if name in ("sqrt", "is_finite") and not dtypes <= set(_FLOATS):
+        return None
+    if name == "select_n":
+        which, *cases = (np.asarray(a) for a in args)
+        if len({c.dtype for c in cases}) != 1:
+            return None
+        return np.choose(which.astype(np.int64), cases) if cases else None
+    if name == "convert_element_type":
+        (x,) = (np.asarray(a) for a in args)
+        new = np.dtype(params["new_dtype"])
+        # widening or a float's rounding to float32: exact in both; to an integer or a bool
+        # (truncation, out-of-range values, NaN) is left to XLA
+        small_int = x.dtype.kind == "i" and x.dtype.itemsize <= 4
+        exact = (x.dtype == new or (x.dtype in _FLOATS and new in _FLOATS)
+                 or (x.dtype == np.bool_ and new != np.bool_)
+                 or (small_int and new == np.float64))  # fmt: skip
+        return x.astype(new) if exact else None
+    fn = _NUMPY_EXACT.get(name)
+    if fn is None or len(dtypes) != 1:
+        return None
+    return fn(*args)
+
+
 def move(name: str, args: list[np.ndarray], params: dict[str, Any]) -> list[np.ndarray] | None:
     """The movement primitive ``name`` on NumPy arrays (None: not one done in NumPy)."""
     fn = _NUMPY_MOVEMENT.get(name)
     if fn is None:
         return None
     return [np.array(r, order="C") for r in fn(*args, **params)]
+
+
+def fold_exact(
+    name: str, args: list[np.ndarray], params: dict[str, Any]
+) -> list[np.ndarray] | None:
+    """An equation on known values in NumPy, where that gives XLA's bits without compiling.
+
+    Data movement (:func:`move`) and the elementwise operations whose results IEEE 754 fixes;
+    None for the rest, which JAX evaluates.
+    """
+    moved = move(name, args, params)
+    if moved is not None:
+        return moved
+    with np.errstate(all="ignore"):  # IEEE results (inf, NaN) as XLA gives them, silently
+        out = _exact(name, [np.asarray(a) for a in args], params)
+    return None if out is None else [np.array(out, order="C")]
 
 
 def _movement(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:

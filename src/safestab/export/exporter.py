@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import DimensionError, ParameterError
 from ._cgen import Emitter, c_identifier
 from ._ir import Program, Val, check_dtype, live_statements
-from ._primitives import RULES, move
+from ._primitives import RULES, fold_exact
 
 __all__ = ["ExportedC", "Leaf", "PRIMITIVES", "export_c", "export_function"]
 
@@ -263,7 +263,7 @@ def export_function(
         check_dtype(leaf.dtype, f"output {leaf.path}", "the function's result")
     program = Program()
     program.rules = RULES
-    program.exact_fold = move
+    program.exact_fold = fold_exact
     program.layout = layout
     x = Val((n,), np.float64, param="x")
     outs = program.run(closed.jaxpr, closed.consts, [x])

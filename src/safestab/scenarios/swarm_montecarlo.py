@@ -536,7 +536,8 @@ def plan(scenario: SwarmScenario, options: MonteCarloOptions) -> _Plan:
     """Check ``safestab mc``'s options for the swarm, before any work.
 
     ``--controllers`` names the compared modes; ``--datasets`` (the swarm learns nothing)
-    and ``--backend ray`` are refused.
+    and ``--backend ray`` are refused. The counts, the seed and the backend's name are
+    checked before, for every kind (:func:`~safestab.scenarios.kinds.check_mc_options`).
 
     Raises
     ------
@@ -568,9 +569,6 @@ def plan(scenario: SwarmScenario, options: MonteCarloOptions) -> _Plan:
             )
     trials = DEFAULT_TRIALS if options.trials is None else options.trials
     chunk = DEFAULT_CHUNK_SIZE if options.chunk_size is None else options.chunk_size
-    for name, value in (("--trials", trials), ("--chunk-size", chunk)):
-        if value < 1:
-            raise ParameterError(f"{name} must be >= 1, got {value}")
     return _Plan(scenario, trials, options.seed, modes, chunk, options.workers)
 
 

@@ -112,7 +112,8 @@ def test_the_old_mode_name_nominal_is_read_for_one_release_as_unfiltered():
     from safestab.scenarios.swarm import MODES, UNFILTERED, check_mode
 
     assert UNFILTERED in MODES and "nominal" not in MODES
-    with pytest.warns(DeprecationWarning, match="'nominal' is now 'unfiltered'"):
+    old = "swarm mode 'nominal' is deprecated; use 'unfiltered'"
+    with pytest.warns(DeprecationWarning, match=old):
         assert check_mode("nominal") == UNFILTERED
     with pytest.raises(ScenarioError, match="mode must be one of"):
         check_mode("unfilterd")

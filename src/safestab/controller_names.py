@@ -33,6 +33,7 @@ __all__ = [
     "build_compared",
     "current_name",
     "export_choice",
+    "read_renamed",
 ]
 
 TRUE_MODEL = "true model"
@@ -75,14 +76,51 @@ MODEL_OF: dict[str, str] = {
 _V = TypeVar("_V")
 
 
-def _warn(old: str, where: str | None) -> None:
+def _warn(what: str, old: str, new: str, where: str | None, stacklevel: int) -> None:
     source = f"{where}: " if where else ""
     warnings.warn(
-        f"{source}the controller name {old!r} is deprecated; use {RENAMED[old]!r} "
+        f"{source}the {what} {old!r} is deprecated; use {new!r} "
         "(the old name is read for one release only)",
         DeprecationWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
+
+
+def read_renamed(
+    name: Any,
+    renamed: Mapping[str, str],
+    what: str,
+    where: str | None = None,
+    stacklevel: int = 4,
+) -> Any:
+    """``name``, or its current name where ``renamed`` maps it (with a DeprecationWarning).
+
+    The one reading of old names: the controllers' (:func:`current_name`) and the swarm's
+    modes (:func:`~safestab.scenarios.swarm.current_mode`).
+
+    Parameters
+    ----------
+    name : str
+        A name; anything else is returned as it is (the caller checks it).
+    renamed : mapping of str to str
+        Old name -> current name.
+    what : str
+        What the name names, for the warning (``"controller name"``).
+    where : str, optional
+        Where the name came from, for the warning (a file and key, a command-line option).
+    stacklevel : int
+        The warning's frame, counted from the function that issues it: 4 is the caller of
+        the function that called this one.
+
+    Returns
+    -------
+    str
+        The current name.
+    """
+    if isinstance(name, str) and name in renamed:
+        _warn(what, name, renamed[name], where, stacklevel)
+        return renamed[name]
+    return name
 
 
 def current_name(name: Any, where: str | None = None) -> Any:
@@ -105,10 +143,7 @@ def current_name(name: Any, where: str | None = None) -> Any:
     DeprecationWarning
         If ``name`` is a key of :data:`RENAMED`.
     """
-    if isinstance(name, str) and name in RENAMED:
-        _warn(name, where)
-        return RENAMED[name]
-    return name
+    return read_renamed(name, RENAMED, "controller name", where)
 
 
 class NameMap(dict[str, _V]):
@@ -126,7 +161,7 @@ class NameMap(dict[str, _V]):
 
     def __missing__(self, key: str) -> _V:
         if isinstance(key, str) and key in RENAMED and RENAMED[key] in self:
-            _warn(key, None)
+            _warn("controller name", key, RENAMED[key], None, stacklevel=3)
             return self[RENAMED[key]]
         raise KeyError(key)
 

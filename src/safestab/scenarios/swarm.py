@@ -22,7 +22,6 @@ symmetry of the swap, in which a symmetric deadlock at the centre is an equilibr
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controller_names import read_renamed
 from ..errors import ScenarioError
 from ..formulas.multi import multi_kernel
 from ..simulation import closed_loop
@@ -271,15 +271,8 @@ RENAMED_MODES = {"nominal": UNFILTERED}
 
 def current_mode(mode: Any, name: str = "mode") -> Any:
     """``mode``, or its current name if it is an old one (with a DeprecationWarning)."""
-    if isinstance(mode, str) and mode in RENAMED_MODES:
-        warnings.warn(
-            f"{name}: the swarm mode {mode!r} is now {RENAMED_MODES[mode]!r} (the old name is "
-            "read for one release only)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        return RENAMED_MODES[mode]
-    return mode
+    # the warning points at the caller of check_mode (or of the plan that reads --controllers)
+    return read_renamed(mode, RENAMED_MODES, "swarm mode", name, stacklevel=5)
 
 
 def check_mode(mode: str, name: str = "mode") -> str:

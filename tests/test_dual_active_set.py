@@ -338,3 +338,70 @@ def test_the_references_proof_of_inconsistent_rows_agrees_with_trying_every_acti
     assert outcome[(True, False)] == 0, outcome  # a proof on rows that have a solution
     assert outcome[(True, True)] >= 0.9 * (outcome[(True, True)] + outcome[(False, True)]), outcome
     assert outcome[(True, True)] >= 20 and outcome[(False, False)] >= 20, outcome
+
+
+def _c_solver(a, b, c, d, **kw):
+    """``clf_cbf_multi`` exported as C (its solver the written C of safestab.export._dual_qp)
+    for one problem of these shapes, compiled, and run over the batch."""
+    from types import SimpleNamespace
+
+    import jax.numpy as jnp
+
+    from safestab.export import export_function
+    from safestab.export.native import NativeFunction
+
+    sw = kw.pop("slack_weight", None)
+    keys = sorted(kw)
+    parts = [np.asarray(v, float) for v in (a, b, c, d, *(kw[k] for k in keys))]
+    count = parts[0].shape[0]
+    shapes = [v.shape[1:] for v in parts]
+    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
+    flat = np.concatenate([v.reshape(count, -1) for v in parts], axis=1)
+
+    def one(z):
+        vals, at = [], 0
+        for shape, size in zip(shapes, sizes, strict=True):
+            vals.append(z[at : at + size].reshape(shape))
+            at += size
+        res = clf_cbf_multi(*vals[:4], slack_weight=sw, **dict(zip(keys, vals[4:], strict=True)))
+        return res.u, res.status, jnp.asarray(res.slack), res.active
+
+    fn = NativeFunction(export_function(one, flat.shape[1], "qp"))
+    leaves, _ = fn.columns(np.ascontiguousarray(flat))
+    u, status, slack, active = leaves
+    return SimpleNamespace(u=u, status=status, slack=slack, active=active)
+
+
+def test_the_exported_c_solver_against_the_50_digit_reference():
+    """The C export writes the solver as its own C (safestab/export/_dual_qp.py, Givens
+    rotations where a row leaves, rows stored by columns): judged as the JAX solver is.
+
+    Without the cases with a weight ``H``: its Cholesky factor has no C translation at run
+    time (a filter's constant ``H`` is factored at export), and the solver sees whitened rows
+    either way, which the other cases' scales cover.
+    """
+    rng = np.random.default_rng(7)
+    cases = [
+        fc.random_case(
+            rng, fc.GEOMETRIES[i % len(fc.GEOMETRIES)], fc.SIGNATURES[(i // 6) % len(fc.SIGNATURES)]
+        )
+        for i in range(300)
+    ]
+    cases = [case for case in cases if "H" not in case]
+    c_answers = fc.solve_cases(cases, _c_solver)
+    jax_answers = fc.solve_cases(cases, clf_cbf_multi)
+    counts: collections.Counter = collections.Counter()
+    for case, (u, status, slack, active), want in zip(cases, c_answers, jax_answers, strict=True):
+        name = MultiStatus(status).name
+        j = fc.judge(case, u, name, slack, active)
+        counts[name] += 1
+        assert not j["limits_broken"], case["geometry"]
+        assert not j["violated"], (case["geometry"], name, j["violated"])
+        if name == "SOLVED":
+            assert j["ref"] == "SOLVED", case["geometry"]
+        if name == j["ref"] and j["cond"] * EPS < 1e-6:
+            assert j["error_over_eps_cond"] <= 100, (case["geometry"], j["rel_error"])
+        # the same decisions as the JAX solver, to rounding
+        if j["cond"] * EPS < 1e-8:
+            assert status == want[1], (case["geometry"], name, MultiStatus(want[1]).name)
+    assert counts["SOLVED"] >= 80 and counts["CBF_RELAXED"] >= 30

@@ -45,7 +45,10 @@ def test_the_states_reach_every_phase(case):
 def test_filter_harness_passes(case, tmp_path):
     filt, x, out = case
     ex = export_c(filt, "robot", tmp_path)
-    assert "for (;;)" in ex.source  # the solver's loop is a loop, not unrolled
+    # the solver is one written C function (its loop a loop), called by each phase
+    assert ex.source.count("static void ss_dual_qp(") == 1
+    assert "while (status < 0 && it < max_iter)" in ex.source
+    assert ex.source.count("ss_dual_qp(") >= 3
     write_harness(ex, x, out, tmp_path, scales=comparison_scales(filt, out, x))
     cmd = ["cc", *HARNESS_FLAGS, "robot.c", "robot_harness.c", "-lm", "-o", "h"]
     subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _dual_qp
 from ._ir import Val
 
 #: C99 keywords and names the generated functions use themselves.
@@ -374,7 +375,10 @@ def _qr(name: str, ct: str, flt: bool, e: Emitter) -> str:
     )
 
 
-_HELPERS = {"max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp, "qr": _qr}
+_HELPERS = {
+    "max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp, "qr": _qr,
+    "dual_qp": _dual_qp.source,
+}  # fmt: skip
 
 
 def _float_to_int(name: str, ct: str, dct: str, dst: np.dtype) -> str:

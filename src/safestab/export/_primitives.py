@@ -20,6 +20,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from . import _dual_qp as _dual_qp_c
 from ._assemble import render
 from ._cgen import Emitter
 from ._ir import Program, Val
@@ -947,6 +948,64 @@ def _qr(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
 
     p.stmt([q, r], [a], gen, scratch=[work, tau])
     return [q, r]
+
+
+@_register("safestab_dual_qp")
+def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
+    """The filter's QP solver as one call of its C function per problem.
+
+    :data:`~safestab.formulas._dual_active_set.dual_qp_p`, written by
+    :mod:`safestab.export._dual_qp`; the rows are copied by columns into its work array.
+    """
+    G, r, w0, use, max_iter = ins
+    outs = [p.new(var.aval) for var in eqn.outvars]
+    w, mult, active, status, iters, cond, certified = outs
+    n_rows, dim = G.shape[-2:]
+    batch = math.prod(G.shape[:-2])
+    tols = eqn.params["tols"]
+    real, i32 = G.dtype, np.dtype(np.int32)
+    gw, rw, ww = Val((n_rows * dim,), real), Val((n_rows,), real), Val((dim,), real)
+    mw, uw, aw = Val((n_rows,), real), Val((n_rows,), i32), Val((n_rows,), i32)
+    work = Val((_dual_qp_c.work_size(n_rows, dim),), real)
+    iwork = Val((_dual_qp_c.int_work_size(n_rows, dim),), i32)
+
+    def gen(e: Emitter) -> list[str]:
+        fn = e.helper("dual_qp", real)
+        ct, n = e.ctype(real), e.name
+        lit = lambda x: e.lit(x, real)  # noqa: E731
+        copy = lambda dst, src, size: (  # noqa: E731
+            f"    for (int i = 0; i < {size}; ++i) {n(dst)}[i] = "
+            f"{e.ref(src, f'dq_b * {size} + i')};"
+        )
+        put = lambda dst, src, size: (  # noqa: E731
+            f"    for (int i = 0; i < {size}; ++i) "
+            f"{e.target(dst, f'dq_b * {size} + i')} = {src}[i];"
+        )
+        return [
+            *(e.declare(v) for v in outs),
+            f"for (int dq_b = 0; dq_b < {batch}; ++dq_b) {{",
+            f"    {ct} {n(gw)}[{gw.size}], {n(rw)}[{n_rows}], {n(ww)}[{dim}], "
+            f"{n(mw)}[{n_rows}], {n(work)}[{work.size}], dq_cond;",
+            f"    int {n(uw)}[{n_rows}], {n(aw)}[{n_rows}], {n(iwork)}[{iwork.size}], "
+            "dq_status, dq_iters, dq_cert;",
+            f"    for (int i = 0; i < {n_rows}; ++i) for (int j = 0; j < {dim}; ++j) "
+            f"{n(gw)}[j * {n_rows} + i] = {e.ref(G, f'dq_b * {n_rows * dim} + i * {dim} + j')};",
+            copy(rw, r, n_rows), copy(ww, w0, dim),
+            copy(uw, use, n_rows),
+            f"    {fn}({n_rows}, {dim}, {n(gw)}, {n(rw)}, {n(ww)}, {n(uw)}, "
+            f"{e.ref(max_iter, 'dq_b')}, {lit(tols.add)}, {lit(tols.dep)}, {lit(tols.cert)}, "
+            f"{lit(tols.eps)}, {n(work)}, {n(iwork)}, {n(mw)}, {n(aw)}, &dq_status, "
+            "&dq_iters, &dq_cond, &dq_cert);",
+            put(w, n(ww), dim), put(mult, n(mw), n_rows), put(active, n(aw), n_rows),
+            f"    {e.target(status, 'dq_b')} = dq_status;",
+            f"    {e.target(iters, 'dq_b')} = dq_iters;",
+            f"    {e.target(cond, 'dq_b')} = dq_cond;",
+            f"    {e.target(certified, 'dq_b')} = dq_cert;",
+            "}",
+        ]  # fmt: skip
+
+    p.stmt(outs, ins, gen, scratch=[gw, rw, ww, mw, uw, aw, work, iwork])
+    return outs
 
 
 @_register("scan")

@@ -33,6 +33,9 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import ShapedArray
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 from jax.scipy.linalg import solve_triangular
 
 from .._numerics import tied
@@ -40,7 +43,7 @@ from ._kernels import scaled_norm
 
 __all__ = [
     "DualSolution", "solve_dual", "placeholder", "OPTIMAL", "INFEASIBLE", "ITERATION_LIMIT",
-    "ADD_RTOL", "UNIT_DOUBLE", "UNIT_FLOAT", "Tolerances", "tolerances",
+    "ADD_RTOL", "UNIT_DOUBLE", "UNIT_FLOAT", "Tolerances", "tolerances", "dual_qp_p",
 ]  # fmt: skip
 
 OPTIMAL, INFEASIBLE, ITERATION_LIMIT = 0, 1, 2
@@ -205,9 +208,68 @@ def solve_dual(
     # or not (a custom derivative of the whole solver traced it twice under differentiation:
     # once as the function, once inside its derivative rule)
     stop = jax.lax.stop_gradient
-    sol = _solve_dual(stop(G), stop(r), stop(w0), use, max_iter, batched, tolerances(unit))
+    sol = DualSolution(
+        *dual_qp_p.bind(
+            stop(G), stop(r), stop(w0), jnp.asarray(use, bool), jnp.asarray(max_iter, jnp.int32),
+            batched=bool(batched), tols=tolerances(unit),
+        )
+    )  # fmt: skip
     w, mult = _on_active_set(G, r, w0, sol.w, sol.multipliers, sol.active, sol.status)
     return sol._replace(w=w, multipliers=mult)
+
+
+#: The solver's loop as one primitive: ``(G, r, w0, use, max_iter) -> DualSolution``'s fields,
+#: each with the leading (batch) axes of ``G``; static ``batched`` and ``tols``. XLA runs its
+#: JAX implementation (:func:`_solve_dual`, mapped over the leading axes); the C export
+#: writes it as one call of the solver written in C (:mod:`safestab.export._dual_qp`), with
+#: work arrays sized by the problem, instead of translating the loop's operations.
+dual_qp_p = Primitive("safestab_dual_qp")
+dual_qp_p.multiple_results = True
+
+
+def _dual_qp_impl(G, r, w0, use, max_iter, *, batched, tols):
+    def one(G, r, w0, use, max_iter):
+        return tuple(_solve_dual(G, r, w0, use, max_iter, batched, tols))
+
+    fn = one
+    for _ in range(G.ndim - 2):
+        fn = jax.vmap(fn)
+    return list(fn(G, r, w0, use, max_iter))
+
+
+def _dual_qp_abstract(G, r, w0, use, max_iter, *, batched, tols):
+    *lead, n_rows, dim = G.shape
+    lead = tuple(lead)
+    f, i32 = G.dtype, np.dtype(np.int32)
+    return [
+        ShapedArray(lead + (dim,), f), ShapedArray(lead + (n_rows,), f),
+        ShapedArray(lead + (n_rows,), np.dtype(bool)), ShapedArray(lead, i32),
+        ShapedArray(lead, i32), ShapedArray(lead, f), ShapedArray(lead, np.dtype(bool)),
+    ]  # fmt: skip
+
+
+def _dual_qp_batch(args, dims, *, batched, tols):
+    size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if d is not None)
+    moved = [
+        jnp.broadcast_to(a, (size,) + a.shape) if d is None else jnp.moveaxis(a, d, 0)
+        for a, d in zip(args, dims, strict=True)
+    ]
+    return dual_qp_p.bind(*moved, batched=batched, tols=tols), [0] * 7
+
+
+def _dual_qp_jvp(primals, tangents, *, batched, tols):
+    # the loop is not differentiated (its inputs are stop_gradient's): zero tangents, the
+    # derivative of the optimum comes from _on_active_set
+    out = dual_qp_p.bind(*primals, batched=batched, tols=tols)
+    return out, [ad.Zero.from_primal_value(o) for o in out]
+
+
+# called on values (the C export's folding of known inputs, say): the implementation, jitted
+dual_qp_p.def_impl(jax.jit(_dual_qp_impl, static_argnames=("batched", "tols")))
+dual_qp_p.def_abstract_eval(_dual_qp_abstract)
+mlir.register_lowering(dual_qp_p, mlir.lower_fun(_dual_qp_impl, multiple_results=True))
+batching.primitive_batchers[dual_qp_p] = _dual_qp_batch
+ad.primitive_jvps[dual_qp_p] = _dual_qp_jvp
 
 
 @jax.custom_jvp

@@ -22,7 +22,7 @@ from .jax_events import traces_while
 EPS = np.finfo(float).eps
 
 
-def _review(n_cases: int, seed: int) -> tuple[collections.Counter, list]:
+def review_cases(n_cases: int, seed: int) -> tuple[collections.Counter, list]:
     rng = np.random.default_rng(seed)
     cases = [
         fc.random_case(
@@ -57,7 +57,7 @@ def _review(n_cases: int, seed: int) -> tuple[collections.Counter, list]:
 
 
 def test_no_wrong_solved_and_no_broken_limit_against_the_50_digit_reference():
-    counts, faults = _review(480, seed=0)
+    counts, faults = review_cases(480, seed=0)
     assert faults == []
     # the draw exercises every status and mostly solvable problems
     assert counts[("SOLVED", "SOLVED")] >= 160
@@ -70,7 +70,7 @@ def test_twenty_thousand_cases_against_the_50_digit_reference():
     """The acceptance run of the filter issue: 20,160 cases (6 min 22 s alone, 2026-11-28)."""
     total: collections.Counter = collections.Counter()
     for seed in range(1, 29):
-        counts, faults = _review(720, seed=seed)
+        counts, faults = review_cases(720, seed=seed)
         assert faults == [], seed
         total.update(counts)
     assert sum(total.values()) >= 20000

@@ -114,7 +114,10 @@ def test_a_trial_equals_simulate_swarm_from_its_seed(five_trials, index):
         close = dict(rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(rec["min_distance_at_samples"][c], dist.min(), **close)
         # dense sampling: within half a grid step of travel (speeds <= 2 sqrt(2) m/s)
-        assert 0 <= hold.min() - rec["min_distance"][c] <= 2 * np.sqrt(2) * sc.dt / 800 + 1e-12
+        # (the exact minimum is of the batched trial's path, the samples of the single run's:
+        # the same to the rounding allowed above)
+        gap = hold.min() - rec["min_distance"][c]
+        assert -1e-12 <= gap <= 2 * np.sqrt(2) * sc.dt / 800 + 1e-12
         assert rec["samples_below"][c] == np.sum(dist < sc.safety_distance)
         assert rec["holds_below"][c] == np.sum(hold < sc.safety_distance - 1e-9)
         expected = run.t[arrived[0]] if arrived.size else np.nan

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _dual_qp
+from ._dual_qp import source as dual_qp_source
 from ._ir import Val
 
 #: C99 keywords and names the generated functions use themselves.
@@ -377,7 +377,7 @@ def _qr(name: str, ct: str, flt: bool, e: Emitter) -> str:
 
 _HELPERS = {
     "max": _max, "min": _min, "sign": _sign, "ipow": _ipow, "exp": _exp, "qr": _qr,
-    "dual_qp": _dual_qp.source,
+    "dual_qp": dual_qp_source,
 }  # fmt: skip
 
 

@@ -20,9 +20,9 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from . import _dual_qp as _dual_qp_c
 from ._assemble import render
 from ._cgen import Emitter
+from ._dual_qp import int_work_size, work_size
 from ._ir import Program, Val
 
 Rule = Callable[[Program, Any, list[Val]], list[Val]]
@@ -966,8 +966,8 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     real, i32 = G.dtype, np.dtype(np.int32)
     gw, rw, ww = Val((n_rows * dim,), real), Val((n_rows,), real), Val((dim,), real)
     mw, uw, aw = Val((n_rows,), real), Val((n_rows,), i32), Val((n_rows,), i32)
-    work = Val((_dual_qp_c.work_size(n_rows, dim),), real)
-    iwork = Val((_dual_qp_c.int_work_size(n_rows, dim),), i32)
+    work = Val((work_size(n_rows, dim),), real)
+    iwork = Val((int_work_size(n_rows, dim),), i32)
 
     def gen(e: Emitter) -> list[str]:
         fn = e.helper("dual_qp", real)

@@ -264,10 +264,36 @@ def _dual_qp_jvp(primals, tangents, *, batched, tols):
     return out, [ad.Zero.from_primal_value(o) for o in out]
 
 
-# called on values (the C export's folding of known inputs, say): the implementation, jitted
-dual_qp_p.def_impl(jax.jit(_dual_qp_impl, static_argnames=("batched", "tols")))
+def _dual_qp_bind(G, r, w0, use, max_iter, *, batched, tols):
+    return dual_qp_p.bind(G, r, w0, use, max_iter, batched=batched, tols=tols)
+
+
+# called on values (eagerly; the C export's folding of known inputs): the primitive, jitted,
+# so that it is lowered as inside any jitted function
+dual_qp_p.def_impl(jax.jit(_dual_qp_bind, static_argnames=("batched", "tols")))
 dual_qp_p.def_abstract_eval(_dual_qp_abstract)
-mlir.register_lowering(dual_qp_p, mlir.lower_fun(_dual_qp_impl, multiple_results=True))
+_jax_lowering = mlir.lower_fun(_dual_qp_impl, multiple_results=True)
+
+
+def _dual_qp_cpu_lowering(ctx, G, r, w0, use, max_iter, *, batched, tols):
+    """On the CPU: one custom call into the solver written in C, where it could be built.
+
+    (:mod:`safestab.export._dual_qp_ffi`: the same function the C export writes, a batch
+    looped over in C.) Elsewhere, and where it could not be built, the JAX implementation.
+    """
+    from ..export._dual_qp_ffi import ensure
+
+    target = ensure() if ctx.avals_in[0].dtype == np.float64 else None
+    if target is None:
+        return _jax_lowering(ctx, G, r, w0, use, max_iter, batched=batched, tols=tols)
+    return jax.ffi.ffi_lowering(target)(
+        ctx, G, r, w0, use, max_iter, add=np.float64(tols.add), dep=np.float64(tols.dep),
+        cert=np.float64(tols.cert), eps=np.float64(tols.eps),
+    )  # fmt: skip
+
+
+mlir.register_lowering(dual_qp_p, _jax_lowering)
+mlir.register_lowering(dual_qp_p, _dual_qp_cpu_lowering, platform="cpu")
 batching.primitive_batchers[dual_qp_p] = _dual_qp_batch
 ad.primitive_jvps[dual_qp_p] = _dual_qp_jvp
 

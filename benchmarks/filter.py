@@ -289,6 +289,7 @@ def native_row(name, filt, states, repeat):
             np.nanmax(np.abs(got.u - np.asarray(out.u)).max(-1) / scale)
         )
         row["stack_bytes"] = nat.exported.stack_bytes
+        row["source_bytes"] = len(nat.exported.source.encode())
         return row
 
     row = _in_big_stack(measure)
@@ -332,6 +333,12 @@ def run(repeat: int = 300, seed: int = 0) -> list[dict]:
         big = tuple(jnp.asarray(v) for v in swarm(rng, batch, robots))
         rows.append(run_row(f"swarm, N = {robots} (centralized)", c, d, u, big, repeat // 3))
     return rows
+
+
+def source_kib(row: dict) -> str:
+    """The generated C's size in KiB (blank in results saved before it was measured)."""
+    size = row.get("source_bytes")
+    return "" if size is None else f"{size / 1024:.0f}"
 
 
 def markdown(results: dict) -> str:
@@ -378,11 +385,14 @@ def markdown(results: dict) -> str:
             "(16 swarm states): *one call* is `native.input_fn(x)` from Python, daqp solves the "
             "same rows prebuilt (not timed), *JAX step* is the filter's jitted `step_fn` on one "
             "state; *batched* is `native.step` over 20,000 states (a C loop, one thread). "
-            "Statuses are compared with the JAX step at the same states.",
+            "Statuses are compared with the JAX step at the same states. *Stack bound* is the "
+            "header's bound on the step's stack (host layout), *C source* the size of the "
+            "generated `.c`, *build* the export and compilation of `NativeController`.",
             "",
             "| problem | rows | C one call (us) | daqp (us) | daqp / C | JAX step (us) | C batched "
-            "(/s) | same status | max rel du vs JAX | stack bound (KiB) | build (s) |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "(/s) | same status | max rel du vs JAX | stack bound (KiB) | C source (KiB) "
+            "| build (s) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in native:
             lines.append(
@@ -390,7 +400,7 @@ def markdown(results: dict) -> str:
                 f"{r['daqp_us'] / r['native_us']:.2f}x | {r['jax_us']:.0f} | "
                 f"{r['native_per_s']:.3g} | {100 * r['same_status']:.0f} % | "
                 f"{du(r['max_rel_du_vs_jax'])} | {r['stack_bytes'] / 1024:.0f} | "
-                f"{r['build_s']:.0f} |"
+                f"{source_kib(r)} | {r['build_s']:.0f} |"
             )
     by = {r["problem"]: r for r in rows}
     nby = {r["problem"]: r for r in native}
@@ -412,8 +422,9 @@ def markdown(results: dict) -> str:
             f"({c8['native_us']:.2f} us against daqp's {c8['daqp_us']:.2f} us: "
             f"{c8['daqp_us'] / c8['native_us']:.1f}x, and the C step also computes the rows); "
             f"{verdict(k8['daqp_us'] / k8['ours_us'] >= 2)} with the jitted JAX kernel "
-            f"({k8['ours_us']:.1f} us: a jitted XLA call on one small problem costs its "
-            "dispatch and about a microsecond per operation of the compiled loop);",
+            f"({k8['ours_us']:.1f} us: the solver is one custom call into the same C, but the "
+            "jitted call's dispatch and the phases' XLA operations around it cost more than "
+            "the solve);",
             f"- NativeController at k = 8 at most 3 us: {verdict(c8['native_us'] <= 3)} "
             f"({c8['native_us']:.2f} us);",
             f"- batched at k = 8 at least 1e6 states/s: "

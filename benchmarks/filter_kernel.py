@@ -448,7 +448,7 @@ def markdown(r: dict) -> str:
         "from the state, solver, statuses) as one custom call, composing with `jax.jit` and "
         "`jax.vmap` (a batch is one loop in C), with the derivative of the optimum on the "
         "final active set (`custom_jvp`). "
-        "backends. Regenerate with `python benchmarks/run.py --only filter-kernel` (or "
+        "Regenerate with `python benchmarks/run.py --only filter-kernel` (or "
         "`python benchmarks/filter_kernel.py --json docs/performance_filter_kernel.json`); "
         f"results in `docs/performance_filter_kernel.json`. Measured {r['date']} on "
         f"{m['platform']}, {m['cpus']} CPUs, JAX {m['jax']}, load average "

@@ -113,3 +113,33 @@ def test_strict_raises_on_incompatible():
     assert bool(out.cbf_satisfied)  # the safety-first fallback keeps h
     with pytest.raises(InfeasibleError, match="CBF condition cannot be met"):
         ctrl.step([0.99], strict=True)
+
+
+def test_on_device_keeps_the_numbers_and_never_a_stale_copy():
+    """``step`` passes ``on_device()`` (the leaves as device arrays, kept on the object) to the
+    compiled step: the same numbers, a new copy for every new value, none inside a trace."""
+    import jax
+
+    sys, clf, cbf = unicycle_obstacle()
+    ctrl = UniversalController(sys, clf, cbf, kappa=0.5, rho=0.1, phi=0.0, varphi=0.0)
+    dev = ctrl.on_device()
+    assert dev is ctrl.on_device()  # made once
+    got = jax.tree_util.tree_leaves(dev)
+    want = jax.tree_util.tree_leaves(ctrl)
+    assert all(isinstance(v, jax.Array) for v in got)
+    np.testing.assert_array_equal(np.concatenate([np.ravel(v) for v in got]),
+                                  np.concatenate([np.ravel(v) for v in want]))  # fmt: skip
+    # values rebuilt from this one (replace, tree_map, a jitted function's output) have their
+    # own numbers, not the cached copy's
+    assert float(ctrl.replace(kappa=2.0).on_device().tunables()["kappa"]) == 2.0
+    doubled = jax.tree_util.tree_map(lambda v: 2 * np.asarray(v), ctrl)
+    assert float(doubled.on_device().tunables()["kappa"]) == 1.0
+    x = np.array([2.0, 0.5, 0.1])
+    np.testing.assert_array_equal(ctrl.step(x).u, np.asarray(ctrl.step_fn(x).u))
+    # inside a trace: no traced copy is kept (it would leak out of the trace)
+    fresh = ctrl.replace(kappa=1.0)
+    jax.jit(lambda z: z + fresh.on_device().tunables()["kappa"])(1.0)
+    kept = fresh.__dict__.get("_device_copy")
+    leaves = [] if kept is None else jax.tree_util.tree_leaves(kept)
+    assert not any(isinstance(v, jax.core.Tracer) for v in leaves)
+    np.testing.assert_array_equal(fresh.step(x).u, np.asarray(fresh.step_fn(x).u))

@@ -358,7 +358,7 @@ class Controller(ControllerValue):
         check_real("x", x)
         x = self.system.check_state(x)
         p = resolve(self.params_spec, params, f"the {self._owner}")
-        out = controller_step(self, x, p, u_nom)
+        out = controller_step(self.on_device(), x, p, u_nom)
         self._check_step(x, out, strict, p)
         return out
 

@@ -49,18 +49,23 @@ _TEMPLATE = r"""
    2 iteration bound; certified: the KKT certificate of the normalised problem holds. */
 static REAL NAME_max(REAL a, REAL b) { return a != a ? a : (b != b ? b : (a > b ? a : b)); }
 static REAL NAME_min(REAL a, REAL b) { return a != a ? a : (b != b ? b : (a < b ? a : b)); }
-/* s = G w and t = |G| |w| for every row, G stored by columns (dim x n): the inner loops run
-   over the rows (vectorised), each row's sums in the order of its coordinates */
-static void NAME_rows(int n, int dim, const REAL *G, const REAL *w, REAL *s, REAL *t)
+/* s = G w for every row, G stored by columns (dim x n): the inner loop runs over the rows
+   (vectorised), each row's sum in the order of its coordinates */
+static void NAME_rows(int n, int dim, const REAL *G, const REAL *w, REAL *s)
 {
-    for (int i = 0; i < n; ++i) s[i] = t[i] = ZERO;
+    for (int i = 0; i < n; ++i) s[i] = ZERO;
     for (int j = 0; j < dim; ++j) {
-        const REAL wj = w[j], aj = FABS(w[j]);
-        for (int i = 0; i < n; ++i) {
-            s[i] += G[j * n + i] * wj;
-            t[i] += FABS(G[j * n + i]) * aj;
-        }
+        const REAL wj = w[j];
+        for (int i = 0; i < n; ++i) s[i] += G[j * n + i] * wj;
     }
+}
+/* |G_i| |w|, the magnitude a row's value is tested against: needed only where the row is
+   violated (every tolerance is >= 0), so computed for those rows alone */
+static REAL NAME_size(int n, int dim, const REAL *G, const REAL *w, int i)
+{
+    REAL t = ZERO;
+    for (int j = 0; j < dim; ++j) t += FABS(G[j * n + i]) * FABS(w[j]);
+    return t;
 }
 static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, int max_iter,
                  REAL add_tol, REAL dep_tol, REAL cert_tol, REAL eps, REAL *work, int *iwork,
@@ -106,10 +111,11 @@ static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, i
     while (status < 0 && it < max_iter) {
         int any_cand = 0, p_new = 0;
         REAL best = -INFINITY;
-        NAME_rows(n, dim, G, w, viol, tolv);
+        NAME_rows(n, dim, G, w, viol);
         for (int i = 0; i < n; ++i) {
             viol[i] = viol[i] - r[i];
-            if (use[i] && !in_set[i] && viol[i] > add_tol * (FABS(r[i]) + tolv[i])) {
+            if (use[i] && !in_set[i] && viol[i] > ZERO
+                && viol[i] > add_tol * (FABS(r[i]) + NAME_size(n, dim, G, w, i))) {
                 any_cand = 1;
                 if (viol[i] > best) { best = viol[i]; p_new = i; }
             }
@@ -212,9 +218,10 @@ static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, i
     }
     if (status < 0) {  /* the bound reached just as the last step finished: maybe optimal */
         int any_cand = 0;
-        NAME_rows(n, dim, G, w, viol, tolv);
+        NAME_rows(n, dim, G, w, viol);
         for (int i = 0; i < n; ++i)
-            if (use[i] && !in_set[i] && viol[i] - r[i] > add_tol * (FABS(r[i]) + tolv[i]))
+            if (use[i] && !in_set[i] && viol[i] - r[i] > ZERO
+                && viol[i] - r[i] > add_tol * (FABS(r[i]) + NAME_size(n, dim, G, w, i)))
                 any_cand = 1;
         status = p < 0 && !any_cand ? 0 : 2;
     }
@@ -266,9 +273,13 @@ static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, i
     }
     /* the certificate of this problem */
     int ok = optimal;
-    NAME_rows(n, dim, G, w, viol, tolv);
-    for (int i = 0; i < n; ++i)
-        if (use[i] && !(viol[i] - r[i] <= cert_tol * (FABS(r[i]) + tolv[i]))) ok = 0;
+    NAME_rows(n, dim, G, w, viol);
+    for (int i = 0; i < n; ++i) {
+        const REAL e = viol[i] - r[i];
+        if (use[i] && !(e <= ZERO)
+            && !(e <= cert_tol * (FABS(r[i]) + NAME_size(n, dim, G, w, i))))
+            ok = 0;
+    }
     const REAL dual_tol = SIXTYFOUR * eps * cond, drift_tol = SIXTYFOUR * eps * (REAL)(it + dim);
     REAL lam_max = ZERO;
     for (int c = 0; c < q; ++c) lam_max = NAME_max(lam_max, FABS(rvec[c]));
@@ -287,9 +298,11 @@ static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, i
         gmax = NAME_max(gmax, a);
     }
     if (!(stat <= drift_tol * (wmax + w0max + gmax))) ok = 0;
-    for (int c = 0; c < q; ++c)  /* the active rows are tight (viol, tolv: at this w) */
-        if (!(FABS(viol[act[c]] - r[act[c]]) <= cert_tol * (FABS(r[act[c]]) + tolv[act[c]])))
-            ok = 0;
+    for (int c = 0; c < q; ++c) {  /* the active rows are tight (viol: G w at this w) */
+        const int i = act[c];
+        const REAL t = NAME_size(n, dim, G, w, i);
+        if (!(FABS(viol[i] - r[i]) <= cert_tol * (FABS(r[i]) + t))) ok = 0;
+    }
     for (int i = 0; i < n; ++i) {
         mult[i] = ZERO;
         active[i] = in_set[i];

@@ -58,37 +58,48 @@ extern "C" void ss_dual_qp(int n, int dim, double *G, double *r, double *w, cons
                            int *certified_out);
 static ffi::Error solve(ffi::Buffer<ffi::F64> G, ffi::Buffer<ffi::F64> r,
                         ffi::Buffer<ffi::F64> w0, ffi::Buffer<ffi::PRED> use,
-                        ffi::Buffer<ffi::S32> max_iter, double add, double dep, double cert,
-                        double eps, ffi::ResultBuffer<ffi::F64> w,
-                        ffi::ResultBuffer<ffi::F64> mult, ffi::ResultBuffer<ffi::PRED> active,
-                        ffi::ResultBuffer<ffi::S32> status, ffi::ResultBuffer<ffi::S32> iters,
-                        ffi::ResultBuffer<ffi::F64> cond, ffi::ResultBuffer<ffi::PRED> cert_ok)
+                        ffi::Buffer<ffi::S32> max_iter, ffi::Buffer<ffi::F64> slack, double add,
+                        double dep, double cert, double eps, int64_t slack_row,
+                        ffi::ResultBuffer<ffi::F64> w, ffi::ResultBuffer<ffi::F64> mult,
+                        ffi::ResultBuffer<ffi::PRED> active, ffi::ResultBuffer<ffi::S32> status,
+                        ffi::ResultBuffer<ffi::S32> iters, ffi::ResultBuffer<ffi::F64> cond,
+                        ffi::ResultBuffer<ffi::PRED> cert_ok)
 {
     const auto dims = G.dimensions();
     const size_t rank = dims.size();
-    const int n = static_cast<int>(dims[rank - 2]), dim = static_cast<int>(dims[rank - 1]);
-    const int64_t size = static_cast<int64_t>(n) * dim;
-    const int64_t count = size == 0 ? 0 : static_cast<int64_t>(G.element_count()) / size;
-    std::vector<double> gt(size), rw(n), mw(n), work(WORK_REALS);
+    const int n = static_cast<int>(dims[rank - 2]), cols = static_cast<int>(dims[rank - 1]);
+    const auto wdims = w0.dimensions();
+    const int dim = static_cast<int>(wdims[wdims.size() - 1]), k = dim - cols;
+    const int64_t size = static_cast<int64_t>(n) * cols;
+    const int64_t count = static_cast<int64_t>(max_iter.element_count());
+    std::vector<double> gt(static_cast<size_t>(n) * dim), rw(n), mw(n), work(WORK_REALS);
     std::vector<int> uw(n), aw(n), iwork(WORK_INTS);
     const double *g = G.typed_data(), *rr = r.typed_data(), *ww0 = w0.typed_data();
+    const double *sl = slack.typed_data();
     const bool *u = use.typed_data();
     const int32_t *mi = max_iter.typed_data();
     double *wout = w->typed_data(), *mout = mult->typed_data(), *cout = cond->typed_data();
     bool *aout = active->typed_data(), *okout = cert_ok->typed_data();
     int32_t *sout = status->typed_data(), *iout = iters->typed_data();
     for (int64_t b = 0; b < count; ++b) {
-        for (int i = 0; i < n; ++i) {
-            for (int j = 0; j < dim; ++j) gt[j * n + i] = g[b * size + i * dim + j];
-            rw[i] = rr[b * n + i];
-            uw[i] = u[b * n + i] ? 1 : 0;
-        }
         for (int j = 0; j < dim; ++j) wout[b * dim + j] = ww0[b * dim + j];
-        int st = 0, it = 0, ok = 0;
-        double cd = 0.0;
-        ss_dual_qp(n, dim, gt.data(), rw.data(), wout + b * dim, uw.data(), mi[b], add, dep,
-                   cert, eps, work.data(), iwork.data(), mw.data(), aw.data(), &st, &it, &cd,
-                   &ok);
+        int st = 2, it = 0, ok = 0;
+        double cd = 1.0;
+        if (mi[b] > 0) {  /* else not run: w0, as solve_dual answers */
+            for (int i = 0; i < n; ++i) {
+                for (int j = 0; j < cols; ++j) gt[j * n + i] = g[b * size + i * cols + j];
+                rw[i] = rr[b * n + i];
+                uw[i] = u[b * n + i] ? 1 : 0;
+            }
+            for (int64_t i = static_cast<int64_t>(cols) * n; i < static_cast<int64_t>(dim) * n; ++i)
+                gt[i] = 0.0;
+            for (int j = 0; j < k; ++j) gt[(cols + j) * n + slack_row + j] = sl[b * k + j];
+            ss_dual_qp(n, dim, gt.data(), rw.data(), wout + b * dim, uw.data(), mi[b], add, dep,
+                       cert, eps, work.data(), iwork.data(), mw.data(), aw.data(), &st, &it, &cd,
+                       &ok);
+        } else {
+            for (int i = 0; i < n; ++i) { mw[i] = 0.0; aw[i] = 0; }
+        }
         for (int i = 0; i < n; ++i) {
             mout[b * n + i] = mw[i];
             aout[b * n + i] = aw[i] != 0;
@@ -104,8 +115,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(
     safestab_dual_qp_ffi, solve,
     ffi::Ffi::Bind()
         .Arg<ffi::Buffer<ffi::F64>>().Arg<ffi::Buffer<ffi::F64>>().Arg<ffi::Buffer<ffi::F64>>()
-        .Arg<ffi::Buffer<ffi::PRED>>().Arg<ffi::Buffer<ffi::S32>>()
+        .Arg<ffi::Buffer<ffi::PRED>>().Arg<ffi::Buffer<ffi::S32>>().Arg<ffi::Buffer<ffi::F64>>()
         .Attr<double>("add").Attr<double>("dep").Attr<double>("cert").Attr<double>("eps")
+        .Attr<int64_t>("slack_row")
         .Ret<ffi::Buffer<ffi::F64>>().Ret<ffi::Buffer<ffi::F64>>().Ret<ffi::Buffer<ffi::PRED>>()
         .Ret<ffi::Buffer<ffi::S32>>().Ret<ffi::Buffer<ffi::S32>>().Ret<ffi::Buffer<ffi::F64>>()
         .Ret<ffi::Buffer<ffi::PRED>>());

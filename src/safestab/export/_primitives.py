@@ -957,10 +957,12 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     :data:`~safestab.formulas._dual_active_set.dual_qp_p`, written by
     :mod:`safestab.export._dual_qp`; the rows are copied by columns into its work array.
     """
-    G, r, w0, use, max_iter = ins
+    G, r, w0, use, max_iter, slack = ins
     outs = [p.new(var.aval) for var in eqn.outvars]
     w, mult, active, status, iters, cond, certified = outs
-    n_rows, dim = G.shape[-2:]
+    n_rows, cols = G.shape[-2:]
+    dim = w0.shape[-1]  # cols + the slacks' coordinates
+    k, first = dim - cols, int(eqn.params["slack_row"])
     batch = math.prod(G.shape[:-2])
     tols = eqn.params["tols"]
     real, i32 = G.dtype, np.dtype(np.int32)
@@ -981,6 +983,18 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             f"    for (int i = 0; i < {size}; ++i) "
             f"{e.target(dst, f'dq_b * {size} + i')} = {src}[i];"
         )
+        # the rows by columns; then a column per slack, its entry in row first + j
+        rows = [
+            f"    for (int i = 0; i < {n_rows}; ++i) for (int j = 0; j < {cols}; ++j) "
+            f"{n(gw)}[j * {n_rows} + i] = {e.ref(G, f'dq_b * {n_rows * cols} + i * {cols} + j')};"
+        ]
+        if k:
+            rows += [
+                f"    for (int i = {cols * n_rows}; i < {dim * n_rows}; ++i) "
+                f"{n(gw)}[i] = {lit(0)};",
+                f"    for (int j = 0; j < {k}; ++j) {n(gw)}[({cols} + j) * {n_rows} + {first} + j]"
+                f" = {e.ref(slack, f'dq_b * {k} + j')};",
+            ]
         return [
             *(e.declare(v) for v in outs),
             f"for (int dq_b = 0; dq_b < {batch}; ++dq_b) {{",
@@ -988,14 +1002,17 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             f"{n(mw)}[{n_rows}], {n(work)}[{work.size}], dq_cond;",
             f"    int {n(uw)}[{n_rows}], {n(aw)}[{n_rows}], {n(iwork)}[{iwork.size}], "
             "dq_status, dq_iters, dq_cert;",
-            f"    for (int i = 0; i < {n_rows}; ++i) for (int j = 0; j < {dim}; ++j) "
-            f"{n(gw)}[j * {n_rows} + i] = {e.ref(G, f'dq_b * {n_rows * dim} + i * {dim} + j')};",
-            copy(rw, r, n_rows), copy(ww, w0, dim),
-            copy(uw, use, n_rows),
-            f"    {fn}({n_rows}, {dim}, {n(gw)}, {n(rw)}, {n(ww)}, {n(uw)}, "
-            f"{e.ref(max_iter, 'dq_b')}, {lit(tols.add)}, {lit(tols.dep)}, {lit(tols.cert)}, "
-            f"{lit(tols.eps)}, {n(work)}, {n(iwork)}, {n(mw)}, {n(aw)}, &dq_status, "
-            "&dq_iters, &dq_cond, &dq_cert);",
+            f"    const int dq_max = {e.ref(max_iter, 'dq_b')};",
+            copy(ww, w0, dim),
+            "    if (dq_max > 0) {",
+            *rows, copy(rw, r, n_rows), copy(uw, use, n_rows),
+            f"    {fn}({n_rows}, {dim}, {n(gw)}, {n(rw)}, {n(ww)}, {n(uw)}, dq_max, "
+            f"{lit(tols.add)}, {lit(tols.dep)}, {lit(tols.cert)}, {lit(tols.eps)}, {n(work)}, "
+            f"{n(iwork)}, {n(mw)}, {n(aw)}, &dq_status, &dq_iters, &dq_cond, &dq_cert);",
+            "    } else {  /* not run: w0, as solve_dual answers */",
+            f"    for (int i = 0; i < {n_rows}; ++i) {{ {n(mw)}[i] = {lit(0)}; {n(aw)}[i] = 0; }}",
+            f"    dq_status = 2; dq_iters = 0; dq_cond = {lit(1)}; dq_cert = 0;",
+            "    }",
             put(w, n(ww), dim), put(mult, n(mw), n_rows), put(active, n(aw), n_rows),
             f"    {e.target(status, 'dq_b')} = dq_status;",
             f"    {e.target(iters, 'dq_b')} = dq_iters;",

@@ -182,9 +182,11 @@ def solve_dual(
     r: Any,
     w0: Any,
     use: Any,
-    max_iter: int,
+    max_iter: Any,
     batched: bool = True,
     unit: float = UNIT_DOUBLE,
+    slack: Any = None,
+    slack_row: int = 0,
 ) -> DualSolution:
     """Minimise ``1/2 |w - w0|^2`` subject to ``G_i w <= r_i`` for the rows with ``use_i``.
 
@@ -195,8 +197,19 @@ def solve_dual(
     by its index (``O(D)`` instead of ``O(N D)``; under vmap an index becomes a gather).
     ``unit`` (static): the unit roundoff of the precision the step runs in
     (:func:`tolerances`; :data:`UNIT_FLOAT` for a step exported in float).
+
+    ``slack`` (k,), optional: rows ``slack_row + j`` (``slack_row`` static) each get a
+    coordinate of their own, appended after ``G``'s, with entry ``slack[j]`` (the last-resort
+    phase's slacks): the problem is solved in ``D + k`` coordinates, ``w0`` (D + k,) and the
+    answer's point likewise, without the caller building those columns (the solver builds
+    them where it runs). ``max_iter <= 0`` means not run: the answer is ``w0`` with status
+    ``ITERATION_LIMIT``, no iteration and no active row.
     """
-    n_rows, dim = G.shape
+    if slack is None:
+        slack = jnp.zeros(0, jnp.asarray(G).dtype)
+    G, slack = jnp.asarray(G), jnp.asarray(slack, jnp.asarray(G).dtype)
+    G_full = _with_slack_columns(G, slack, slack_row)
+    n_rows = G.shape[0]
     if n_rows == 0:  # nothing to satisfy: the unconstrained minimiser
         return DualSolution(
             jnp.asarray(w0, G.dtype), jnp.zeros(0, G.dtype), jnp.zeros(0, bool),
@@ -211,15 +224,26 @@ def solve_dual(
     sol = DualSolution(
         *dual_qp_p.bind(
             stop(G), stop(r), stop(w0), jnp.asarray(use, bool), jnp.asarray(max_iter, jnp.int32),
-            batched=bool(batched), tols=tolerances(unit),
+            stop(slack), batched=bool(batched), tols=tolerances(unit), slack_row=int(slack_row),
         )
     )  # fmt: skip
-    w, mult = _on_active_set(G, r, w0, sol.w, sol.multipliers, sol.active, sol.status)
+    # (the full rows only feed the derivative: without one, XLA and the export drop them)
+    w, mult = _on_active_set(G_full, r, w0, sol.w, sol.multipliers, sol.active, sol.status)
     return sol._replace(w=w, multipliers=mult)
 
 
-#: The solver's loop as one primitive: ``(G, r, w0, use, max_iter) -> DualSolution``'s fields,
-#: each with the leading (batch) axes of ``G``; static ``batched`` and ``tols``. XLA runs its
+def _with_slack_columns(G: Any, slack: Any, slack_row: int) -> Any:
+    """``G`` with a column per slack: entry ``slack[j]`` in row ``slack_row + j``."""
+    n_rows, k = G.shape[0], slack.shape[0]
+    if k == 0:
+        return G
+    cols = jnp.zeros((n_rows, k), G.dtype).at[slack_row + jnp.arange(k), jnp.arange(k)].set(slack)
+    return jnp.concatenate([G, cols], axis=1)
+
+
+#: The solver's loop as one primitive: ``(G, r, w0, use, max_iter, slack) -> DualSolution``'s
+#: fields, each with the leading (batch) axes of ``G``; static ``batched``, ``tols`` and
+#: ``slack_row`` (:func:`solve_dual`). XLA runs its
 #: JAX implementation (:func:`_solve_dual`, mapped over the leading axes); the C export
 #: writes it as one call of the solver written in C (:mod:`safestab.export._dual_qp`), with
 #: work arrays sized by the problem, instead of translating the loop's operations.
@@ -227,19 +251,30 @@ dual_qp_p = Primitive("safestab_dual_qp")
 dual_qp_p.multiple_results = True
 
 
-def _dual_qp_impl(G, r, w0, use, max_iter, *, batched, tols):
-    def one(G, r, w0, use, max_iter):
-        return tuple(_solve_dual(G, r, w0, use, max_iter, batched, tols))
+def _dual_qp_impl(G, r, w0, use, max_iter, slack, *, batched, tols, slack_row):
+    def one(G, r, w0, use, max_iter, slack):
+        sol = _solve_dual(
+            _with_slack_columns(G, slack, slack_row), r, w0, use, max_iter, batched, tols
+        )
+        # not run (max_iter <= 0): w0, as the C solver answers without touching the rows
+        run = max_iter > 0
+        return (
+            jnp.where(run, sol.w, w0), jnp.where(run, sol.multipliers, 0.0),
+            sol.active & run, jnp.where(run, sol.status, ITERATION_LIMIT).astype(jnp.int32),
+            jnp.where(run, sol.iterations, 0).astype(jnp.int32), jnp.where(run, sol.cond, 1.0),
+            sol.certified & run,
+        )  # fmt: skip
 
     fn = one
     for _ in range(G.ndim - 2):
         fn = jax.vmap(fn)
-    return list(fn(G, r, w0, use, max_iter))
+    return list(fn(G, r, w0, use, max_iter, slack))
 
 
-def _dual_qp_abstract(G, r, w0, use, max_iter, *, batched, tols):
-    *lead, n_rows, dim = G.shape
+def _dual_qp_abstract(G, r, w0, use, max_iter, slack, *, batched, tols, slack_row):
+    *lead, n_rows, _ = G.shape
     lead = tuple(lead)
+    dim = w0.shape[-1]
     f, i32 = G.dtype, np.dtype(np.int32)
     return [
         ShapedArray(lead + (dim,), f), ShapedArray(lead + (n_rows,), f),
@@ -248,34 +283,34 @@ def _dual_qp_abstract(G, r, w0, use, max_iter, *, batched, tols):
     ]  # fmt: skip
 
 
-def _dual_qp_batch(args, dims, *, batched, tols):
+def _dual_qp_batch(args, dims, **params):
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if d is not None)
     moved = [
         jnp.broadcast_to(a, (size,) + a.shape) if d is None else jnp.moveaxis(a, d, 0)
         for a, d in zip(args, dims, strict=True)
     ]
-    return dual_qp_p.bind(*moved, batched=batched, tols=tols), [0] * 7
+    return dual_qp_p.bind(*moved, **params), [0] * 7
 
 
-def _dual_qp_jvp(primals, tangents, *, batched, tols):
+def _dual_qp_jvp(primals, tangents, **params):
     # the loop is not differentiated (its inputs are stop_gradient's): zero tangents, the
     # derivative of the optimum comes from _on_active_set
-    out = dual_qp_p.bind(*primals, batched=batched, tols=tols)
+    out = dual_qp_p.bind(*primals, **params)
     return out, [ad.Zero.from_primal_value(o) for o in out]
 
 
-def _dual_qp_bind(G, r, w0, use, max_iter, *, batched, tols):
-    return dual_qp_p.bind(G, r, w0, use, max_iter, batched=batched, tols=tols)
+def _dual_qp_bind(*args, **params):
+    return dual_qp_p.bind(*args, **params)
 
 
 # called on values (eagerly; the C export's folding of known inputs): the primitive, jitted,
 # so that it is lowered as inside any jitted function
-dual_qp_p.def_impl(jax.jit(_dual_qp_bind, static_argnames=("batched", "tols")))
+dual_qp_p.def_impl(jax.jit(_dual_qp_bind, static_argnames=("batched", "tols", "slack_row")))
 dual_qp_p.def_abstract_eval(_dual_qp_abstract)
 _jax_lowering = mlir.lower_fun(_dual_qp_impl, multiple_results=True)
 
 
-def _dual_qp_cpu_lowering(ctx, G, r, w0, use, max_iter, *, batched, tols):
+def _dual_qp_cpu_lowering(ctx, *args, batched, tols, slack_row):
     """On the CPU: one custom call into the solver written in C, where it could be built.
 
     (:mod:`safestab.export._dual_qp_ffi`: the same function the C export writes, a batch
@@ -285,10 +320,10 @@ def _dual_qp_cpu_lowering(ctx, G, r, w0, use, max_iter, *, batched, tols):
 
     target = ensure() if ctx.avals_in[0].dtype == np.float64 else None
     if target is None:
-        return _jax_lowering(ctx, G, r, w0, use, max_iter, batched=batched, tols=tols)
+        return _jax_lowering(ctx, *args, batched=batched, tols=tols, slack_row=slack_row)
     return jax.ffi.ffi_lowering(target)(
-        ctx, G, r, w0, use, max_iter, add=np.float64(tols.add), dep=np.float64(tols.dep),
-        cert=np.float64(tols.cert), eps=np.float64(tols.eps),
+        ctx, *args, add=np.float64(tols.add), dep=np.float64(tols.dep),
+        cert=np.float64(tols.cert), eps=np.float64(tols.eps), slack_row=np.int64(slack_row),
     )  # fmt: skip
 
 

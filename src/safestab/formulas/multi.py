@@ -209,15 +209,12 @@ def _phase_relaxed(pr: _Problem, b, d, lo, hi, run, max_iter, unit, batched=True
     n_rows = pr.r.shape[0]
     Gu = pr.Gw[:, :m]
     nrm = scaled_norm(Gu[p : p + k])
-    relax = (
-        jnp.zeros((n_rows, k))
-        .at[p + jnp.arange(k), jnp.arange(k)]
-        .set(-jnp.where(nrm > 0, nrm, 1.0) / np.sqrt(FALLBACK_WEIGHT))
-    )
-    G3 = jnp.concatenate([Gu, relax], axis=1)
+    slack = -jnp.where(nrm > 0, nrm, 1.0) / np.sqrt(FALLBACK_WEIGHT)  # row p + i's column
     w03 = jnp.concatenate([pr.w0[:m], jnp.zeros(k)])
     use = jnp.arange(n_rows) >= p
-    sol = solve_dual(G3, pr.r, w03, use, jnp.where(run, max_iter, 0), batched, unit)
+    sol = solve_dual(
+        Gu, pr.r, w03, use, jnp.where(run, max_iter, 0), batched, unit, slack=slack, slack_row=p
+    )
     return sol, _input(pr, sol.w, m, lo, hi), sol.certified
 
 

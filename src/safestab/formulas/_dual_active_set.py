@@ -243,10 +243,11 @@ def _with_slack_columns(G: Any, slack: Any, slack_row: int) -> Any:
 
 #: The solver's loop as one primitive: ``(G, r, w0, use, max_iter, slack) -> DualSolution``'s
 #: fields, each with the leading (batch) axes of ``G``; static ``batched``, ``tols`` and
-#: ``slack_row`` (:func:`solve_dual`). XLA runs its
-#: JAX implementation (:func:`_solve_dual`, mapped over the leading axes); the C export
-#: writes it as one call of the solver written in C (:mod:`safestab.export._dual_qp`), with
-#: work arrays sized by the problem, instead of translating the loop's operations.
+#: ``slack_row`` (:func:`solve_dual`). Two implementations of the same steps: the JAX one
+#: (:func:`_solve_dual`, mapped over the leading axes), which XLA runs on other backends and
+#: where no compiler works, and the solver written in C (:mod:`safestab.export._dual_qp`, work
+#: arrays sized by the problem), which the C export writes as one call and the CPU runs as
+#: one custom call (:func:`_dual_qp_cpu_lowering`).
 dual_qp_p = Primitive("safestab_dual_qp")
 dual_qp_p.multiple_results = True
 

@@ -40,6 +40,7 @@ saved JSON. Without ``--json`` the block is printed only.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -180,24 +181,21 @@ BEGIN, END = "<!-- filter-kernel:begin -->", "<!-- filter-kernel:end -->"
 LARGE_DISCS, LARGE_TARGET = 100, 2e5
 
 
-class solver_loop_in_xla:  # noqa: N801 - a context manager, named for what it does
+@contextlib.contextmanager
+def solver_loop_in_xla(on: bool = True):
     """While compiling inside it (``on``), the filter's solver runs as XLA's loop on the CPU."""
+    from safestab.export._dual_qp_ffi import ENV
 
-    def __init__(self, on: bool = True) -> None:
-        self.on = on
-
-    def __enter__(self):
-        from safestab.export._dual_qp_ffi import ENV
-
-        self.env, self.old = ENV, os.environ.get(ENV)
-        if self.on:
-            os.environ[ENV] = "off"
-
-    def __exit__(self, *exc):
-        if self.old is None:
-            os.environ.pop(self.env, None)
+    old = os.environ.get(ENV)
+    if on:
+        os.environ[ENV] = "off"
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(ENV, None)
         else:
-            os.environ[self.env] = self.old
+            os.environ[ENV] = old
 
 
 def measure(fn, r, x, ref, one, calls):

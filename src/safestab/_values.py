@@ -272,10 +272,8 @@ class ControllerValue(PytreeValue):
         cached = self.__dict__.get("_device_copy")
         if cached is None:
             leaves, treedef = jax.tree_util.tree_flatten(self)
-            if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
-                return self
             on = [v if isinstance(v, jax.Array) else jax.numpy.asarray(v) for v in leaves]
-            if any(isinstance(v, jax.core.Tracer) for v in on):  # called inside a trace
+            if any(isinstance(v, jax.core.Tracer) for v in on):  # traced leaves, or a trace
                 return self
             cached = treedef.unflatten(on)
             self.__dict__["_device_copy"] = cached

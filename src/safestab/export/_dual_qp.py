@@ -1,16 +1,17 @@
-"""The filter's QP solver as written C: the exported form of :data:`dual_qp_p`.
+"""The filter's QP solver as written C: the second implementation of :data:`dual_qp_p`.
 
 :func:`safestab.formulas._dual_active_set.solve_dual` binds one primitive,
-:data:`~safestab.formulas._dual_active_set.dual_qp_p`, for the solver's loop. XLA runs it as
-its JAX implementation; the C export writes it as a call of the function below instead of
-translating that implementation's operations one by one. The steps, the order of the rows
-and the tolerances are the JAX implementation's (the dual active-set method of Goldfarb and
-Idnani; see that module); what differs is how they are laid out:
+:data:`~safestab.formulas._dual_active_set.dual_qp_p`, for the solver's loop. The C export
+writes it as a call of the function below instead of translating the JAX implementation's
+operations one by one, and the CPU runs it as one XLA custom call into the same function
+(:mod:`safestab.export._dual_qp_ffi`). The steps, the order of the rows and the tolerances
+are the JAX implementation's (the dual active-set method of Goldfarb and Idnani; see that
+module); what differs is how they are laid out:
 
-* the work arrays are sized by the problem, ``2 D^2 + 9 D + 3 N`` reals and ``D + 2 N``
-  ints for ``N`` rows in ``D`` coordinates, and reused by every iteration (the translated
-  loop held a copy of its whole state, ``3 D^2 + ...``, and the temporaries of each of its
-  operations);
+* the work arrays are sized by the problem, ``2 D^2 + N D + 9 D + 4 N`` reals and
+  ``D + 2 N`` ints for ``N`` rows in ``D`` coordinates, reused by every iteration (the
+  translated loop held a copy of its whole state, ``3 D^2 + ...``, and the temporaries of
+  each of its operations);
 * a row leaving the active set restores the triangular factor by Givens rotations of the
   columns it moved, ``O(D q)``; the JAX implementation does the same up to 8 coordinates and
   a Householder QR beyond (one LAPACK call costs less than a loop in XLA, while in C the
@@ -25,19 +26,40 @@ steps, each certified against the problem's own scales as before.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-__all__ = ["int_work_size", "source", "work_size"]
+__all__ = ["c_work_sizes", "int_work_size", "source", "work_size"]
+
+#: The work arrays' sizes as terms ``(coefficient, sizes multiplied)`` of ``n`` rows and ``dim``
+#: coordinates: one definition for the exporter's static arrays (:func:`work_size`) and C
+#: expressions of ``n`` and ``dim`` (:func:`c_work_sizes`: the CPU kernel's allocations).
+_WORK_REALS = ((2, ("dim", "dim")), (1, ("n", "dim")), (9, ("dim",)), (4, ("n",)))
+_WORK_INTS = ((1, ("dim",)), (2, ("n",)))
+
+
+def _size(terms: tuple, n_rows: int, dim: int) -> int:
+    sizes = {"n": n_rows, "dim": dim}
+    return sum(c * math.prod(sizes[s] for s in names) for c, names in terms)
+
+
+def _c_size(terms: tuple) -> str:
+    return " + ".join(" * ".join((str(c), *names)) for c, names in terms)
 
 
 def work_size(n_rows: int, dim: int) -> int:
     """Reals of the solver's work array for ``n_rows`` rows in ``dim`` coordinates."""
-    return 2 * dim * dim + 9 * dim + 3 * n_rows
+    return _size(_WORK_REALS, n_rows, dim)
 
 
 def int_work_size(n_rows: int, dim: int) -> int:
     """Ints of the solver's index work array."""
-    return dim + 2 * n_rows
+    return _size(_WORK_INTS, n_rows, dim)
+
+
+def c_work_sizes() -> tuple[str, str]:
+    """The work arrays' sizes (reals, ints) as C expressions of ``n`` and ``dim``."""
+    return _c_size(_WORK_REALS), _c_size(_WORK_INTS)
 
 
 _TEMPLATE = r"""
@@ -46,7 +68,8 @@ _TEMPLATE = r"""
    n x dim rows stored by columns: element (i, j) at G[j * n + i]) and r are normalised in
    place; w holds w0 on entry and the point on return.
    work: 2 dim^2 + 9 dim + 3 n reals, iwork: dim + 2 n ints. status 0 optimal, 1 infeasible,
-   2 iteration bound; certified: the KKT certificate of the normalised problem holds. */
+   2 iteration bound; certified: the KKT certificate of the normalised problem holds.
+   NAME below (one problem as solve_dual states it) is the entry the callers use. */
 static REAL NAME_max(REAL a, REAL b) { return a != a ? a : (b != b ? b : (a > b ? a : b)); }
 static REAL NAME_min(REAL a, REAL b) { return a != a ? a : (b != b ? b : (a < b ? a : b)); }
 /* s = G w for every row, G stored by columns (dim x n): the inner loop runs over the rows
@@ -67,7 +90,7 @@ static REAL NAME_size(int n, int dim, const REAL *G, const REAL *w, int i)
     for (int j = 0; j < dim; ++j) t += FABS(G[j * n + i]) * FABS(w[j]);
     return t;
 }
-static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, int max_iter,
+static void NAME_core(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, int max_iter,
                  REAL add_tol, REAL dep_tol, REAL cert_tol, REAL eps, REAL *work, int *iwork,
                  REAL *mult, int *active, int *status_out, int *iters_out, REAL *cond_out,
                  int *certified_out)
@@ -313,6 +336,32 @@ static void NAME(int n, int dim, REAL *G, REAL *r, REAL *w, const int *use_in, i
     *cond_out = cond;
     *certified_out = ok;
 }
+/* One problem as safestab.formulas._dual_active_set.solve_dual states it: the rows G (n x
+   cols, row-major) and a column per slack (dim - cols of them: slack[j] in row
+   slack_row + j), r, w0 (dim), use; max_iter <= 0 means not run (w = w0, no active row,
+   status 2, not certified). The point into w (dim), the rows' multipliers and active flags
+   into mult and active (n). work: WORK_REALS reals, iwork: WORK_INTS ints. */
+static void NAME(int n, int cols, int dim, const REAL *G, const REAL *r, const REAL *w0,
+                 const int *use, int max_iter, const REAL *slack, int slack_row, REAL add_tol,
+                 REAL dep_tol, REAL cert_tol, REAL eps, REAL *work, int *iwork, REAL *w,
+                 REAL *mult, int *active, int *status, int *iters, REAL *cond, int *certified)
+{
+    REAL *gt = work, *rw = gt + n * dim;
+    for (int j = 0; j < dim; ++j) w[j] = w0[j];
+    if (max_iter <= 0) {
+        for (int i = 0; i < n; ++i) { mult[i] = ZERO; active[i] = 0; }
+        *status = 2; *iters = 0; *cond = ONE; *certified = 0;
+        return;
+    }
+    for (int i = 0; i < n; ++i) {  /* the rows by columns, the solver's layout */
+        for (int j = 0; j < cols; ++j) gt[j * n + i] = G[i * cols + j];
+        rw[i] = r[i];
+    }
+    for (int i = cols * n; i < dim * n; ++i) gt[i] = ZERO;
+    for (int j = 0; j < dim - cols; ++j) gt[(cols + j) * n + slack_row + j] = slack[j];
+    NAME_core(n, dim, gt, rw, w, use, max_iter, add_tol, dep_tol, cert_tol, eps, rw + n, iwork,
+              mult, active, status, iters, cond, certified);
+}
 """
 
 
@@ -320,7 +369,8 @@ def source(name: str, ct: str, flt: bool, e: Any) -> str:
     """The solver's C function ``name`` for the real type ``ct`` (an emitter helper)."""
     f = "f" if ct == "float" else ""
     lit = (lambda x: f"{x}.0f") if f else (lambda x: f"{x}.0")
-    text = _TEMPLATE
+    text = _TEMPLATE.replace("WORK_REALS", _c_size(_WORK_REALS))
+    text = text.replace("WORK_INTS", _c_size(_WORK_INTS))
     for key, val in (
         ("NAME", name), ("REAL", ct), ("ZERO", lit(0)), ("ONE", lit(1)), ("TWO", lit(2)),
         ("SIXTYFOUR", lit(64)),

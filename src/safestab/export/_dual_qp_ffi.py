@@ -17,9 +17,7 @@ slower). ``SAFESTAB_NATIVE_SOLVER=off`` chooses the JAX implementation on the CP
 
 from __future__ import annotations
 
-import ctypes
 import os
-import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -28,8 +26,8 @@ from typing import Any
 import jax
 
 from ..errors import CompilationError
-from ._dual_qp import source
-from ._so_cache import build_key, lookup, native_cache_dir, store
+from ._dual_qp import c_work_sizes, source
+from ._so_cache import build_key, load_or_build
 
 __all__ = ["ENV", "TARGET", "enabled", "ensure", "failure"]
 
@@ -51,11 +49,11 @@ _HANDLER = r"""
 #include <vector>
 #include "xla/ffi/api/ffi.h"
 namespace ffi = xla::ffi;
-extern "C" void ss_dual_qp(int n, int dim, double *G, double *r, double *w, const int *use_in,
-                           int max_iter, double add_tol, double dep_tol, double cert_tol,
-                           double eps, double *work, int *iwork, double *mult, int *active,
-                           int *status_out, int *iters_out, double *cond_out,
-                           int *certified_out);
+extern "C" void ss_dual_qp(int n, int cols, int dim, const double *G, const double *r,
+                           const double *w0, const int *use, int max_iter, const double *slack,
+                           int slack_row, double add_tol, double dep_tol, double cert_tol,
+                           double eps, double *work, int *iwork, double *w, double *mult,
+                           int *active, int *status, int *iters, double *cond, int *certified);
 static ffi::Error solve(ffi::Buffer<ffi::F64> G, ffi::Buffer<ffi::F64> r,
                         ffi::Buffer<ffi::F64> w0, ffi::Buffer<ffi::PRED> use,
                         ffi::Buffer<ffi::S32> max_iter, ffi::Buffer<ffi::F64> slack, double add,
@@ -65,48 +63,26 @@ static ffi::Error solve(ffi::Buffer<ffi::F64> G, ffi::Buffer<ffi::F64> r,
                         ffi::ResultBuffer<ffi::S32> iters, ffi::ResultBuffer<ffi::F64> cond,
                         ffi::ResultBuffer<ffi::PRED> cert_ok)
 {
-    const auto dims = G.dimensions();
-    const size_t rank = dims.size();
-    const int n = static_cast<int>(dims[rank - 2]), cols = static_cast<int>(dims[rank - 1]);
-    const auto wdims = w0.dimensions();
+    const auto dims = G.dimensions(), wdims = w0.dimensions();
+    const int n = static_cast<int>(dims[dims.size() - 2]);
+    const int cols = static_cast<int>(dims[dims.size() - 1]);
     const int dim = static_cast<int>(wdims[wdims.size() - 1]), k = dim - cols;
-    const int64_t size = static_cast<int64_t>(n) * cols;
     const int64_t count = static_cast<int64_t>(max_iter.element_count());
-    std::vector<double> gt(static_cast<size_t>(n) * dim), rw(n), mw(n), work(WORK_REALS);
+    std::vector<double> work(WORK_REALS);
     std::vector<int> uw(n), aw(n), iwork(WORK_INTS);
-    const double *g = G.typed_data(), *rr = r.typed_data(), *ww0 = w0.typed_data();
-    const double *sl = slack.typed_data();
     const bool *u = use.typed_data();
-    const int32_t *mi = max_iter.typed_data();
-    double *wout = w->typed_data(), *mout = mult->typed_data(), *cout = cond->typed_data();
     bool *aout = active->typed_data(), *okout = cert_ok->typed_data();
-    int32_t *sout = status->typed_data(), *iout = iters->typed_data();
     for (int64_t b = 0; b < count; ++b) {
-        for (int j = 0; j < dim; ++j) wout[b * dim + j] = ww0[b * dim + j];
-        int st = 2, it = 0, ok = 0;
-        double cd = 1.0;
-        if (mi[b] > 0) {  /* else not run: w0, as solve_dual answers */
-            for (int i = 0; i < n; ++i) {
-                for (int j = 0; j < cols; ++j) gt[j * n + i] = g[b * size + i * cols + j];
-                rw[i] = rr[b * n + i];
-                uw[i] = u[b * n + i] ? 1 : 0;
-            }
-            for (int64_t i = static_cast<int64_t>(cols) * n; i < static_cast<int64_t>(dim) * n; ++i)
-                gt[i] = 0.0;
-            for (int j = 0; j < k; ++j) gt[(cols + j) * n + slack_row + j] = sl[b * k + j];
-            ss_dual_qp(n, dim, gt.data(), rw.data(), wout + b * dim, uw.data(), mi[b], add, dep,
-                       cert, eps, work.data(), iwork.data(), mw.data(), aw.data(), &st, &it, &cd,
-                       &ok);
-        } else {
-            for (int i = 0; i < n; ++i) { mw[i] = 0.0; aw[i] = 0; }
-        }
-        for (int i = 0; i < n; ++i) {
-            mout[b * n + i] = mw[i];
-            aout[b * n + i] = aw[i] != 0;
-        }
-        sout[b] = st;
-        iout[b] = it;
-        cout[b] = cd;
+        for (int i = 0; i < n; ++i) uw[i] = u[b * n + i] ? 1 : 0;
+        int st = 0, it = 0, ok = 0;
+        ss_dual_qp(n, cols, dim, G.typed_data() + b * n * cols, r.typed_data() + b * n,
+                   w0.typed_data() + b * dim, uw.data(), max_iter.typed_data()[b],
+                   slack.typed_data() + b * k, static_cast<int>(slack_row), add, dep, cert, eps,
+                   work.data(), iwork.data(), w->typed_data() + b * dim,
+                   mult->typed_data() + b * n, aw.data(), &st, &it, cond->typed_data() + b, &ok);
+        for (int i = 0; i < n; ++i) aout[b * n + i] = aw[i] != 0;
+        status->typed_data()[b] = st;
+        iters->typed_data()[b] = it;
         okout[b] = ok != 0;
     }
     return ffi::Error::Success();
@@ -128,10 +104,8 @@ def _sources() -> tuple[str, str]:
     """The solver's C (an exported function, not static) and the C++ handler."""
     solver = source("ss_dual_qp", "double", True, None)
     solver = "#include <math.h>\n" + solver.replace("static void ss_dual_qp(", "void ss_dual_qp(")
-    # the work arrays' sizes, as C++ expressions of n and dim
-    handler = _HANDLER.replace("WORK_REALS", "2 * dim * dim + 9 * dim + 3 * n").replace(
-        "WORK_INTS", "dim + 2 * n"
-    )
+    reals, ints = c_work_sizes()  # C++ expressions of n and dim
+    handler = _HANDLER.replace("WORK_REALS", reals).replace("WORK_INTS", ints)
     return solver, handler
 
 
@@ -182,28 +156,18 @@ def _load() -> Any:
     cc, cxx = find_compiler(None), find_cxx_compiler(None)
     c_flags = [*native_flags(cc), "-fPIC"]
     solver, handler = _sources()
-    folder = native_cache_dir()
     key = build_key([solver, handler], [cc, cxx], [*c_flags, "|", *CXX_FLAGS])
-    cached = None if folder is None else lookup(folder, key)
-    if cached is not None:
-        try:
-            lib = ctypes.CDLL(str(cached))
-            getattr(lib, _SYMBOL)
-            return lib
-        except (OSError, AttributeError):
-            pass  # unreadable: built again below
-    with tempfile.TemporaryDirectory(prefix="safestab-solver-") as tmp:
-        build = Path(tmp)
-        (build / "solver.c").write_text(solver)
-        (build / "handler.cc").write_text(handler)
-        run_tool([cc, *c_flags, "-c", "solver.c", "-o", "solver.o"], build)
-        lib_path = build / "libsafestab_solver.so"
+
+    def build(folder: Path) -> Path:
+        (folder / "solver.c").write_text(solver)
+        (folder / "handler.cc").write_text(handler)
+        run_tool([cc, *c_flags, "-c", "solver.c", "-o", "solver.o"], folder)
+        lib_path = folder / "libsafestab_solver.so"
         run_tool(
             [cxx, *CXX_FLAGS, "-shared", f"-I{jax.ffi.include_dir()}", "handler.cc",
              "solver.o", "-lm", "-o", str(lib_path)],
-            build,
+            folder,
         )  # fmt: skip
-        stored = None if folder is None else store(folder, key, lib_path)
-        lib = ctypes.CDLL(str(stored if stored is not None else lib_path))
-        getattr(lib, _SYMBOL)
-        return lib
+        return lib_path
+
+    return load_or_build(key, _SYMBOL, build)

@@ -955,25 +955,29 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
     """The filter's QP solver as one call of its C function per problem.
 
     :data:`~safestab.formulas._dual_active_set.dual_qp_p`, written by
-    :mod:`safestab.export._dual_qp`; the rows are copied by columns into its work array.
+    :mod:`safestab.export._dual_qp` (which lays the rows out for the solver itself).
     """
     G, r, w0, use, max_iter, slack = ins
     outs = [p.new(var.aval) for var in eqn.outvars]
     w, mult, active, status, iters, cond, certified = outs
     n_rows, cols = G.shape[-2:]
     dim = w0.shape[-1]  # cols + the slacks' coordinates
-    k, first = dim - cols, int(eqn.params["slack_row"])
+    k = dim - cols
     batch = math.prod(G.shape[:-2])
     tols = eqn.params["tols"]
     real, i32 = G.dtype, np.dtype(np.int32)
-    gw, rw, ww = Val((n_rows * dim,), real), Val((n_rows,), real), Val((dim,), real)
-    mw, uw, aw = Val((n_rows,), real), Val((n_rows,), i32), Val((n_rows,), i32)
-    work = Val((work_size(n_rows, dim),), real)
-    iwork = Val((int_work_size(n_rows, dim),), i32)
+    # one problem's inputs and outputs, staged; the work arrays
+    arr = lambda size, dtype=real: Val((size,), dtype)  # noqa: E731
+    gs, rs, w0s, ss = arr(n_rows * cols), arr(n_rows), arr(dim), arr(max(k, 1))
+    us, ws, ms, acts = arr(n_rows, i32), arr(dim), arr(n_rows), arr(n_rows, i32)
+    work, iwork = arr(work_size(n_rows, dim)), arr(int_work_size(n_rows, dim), i32)
+    # the rows are read in place where they are a run-time array, else staged
+    in_place = G.const is None and G.root().size > 1 and G.root().param is None
+    staged = [rs, w0s, ss, us, ws, ms, acts, work, iwork] + ([] if in_place else [gs])
 
     def gen(e: Emitter) -> list[str]:
         fn = e.helper("dual_qp", real)
-        ct, n = e.ctype(real), e.name
+        n = e.name
         lit = lambda x: e.lit(x, real)  # noqa: E731
         copy = lambda dst, src, size: (  # noqa: E731
             f"    for (int i = 0; i < {size}; ++i) {n(dst)}[i] = "
@@ -981,39 +985,26 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
         )
         put = lambda dst, src, size: (  # noqa: E731
             f"    for (int i = 0; i < {size}; ++i) "
-            f"{e.target(dst, f'dq_b * {size} + i')} = {src}[i];"
+            f"{e.target(dst, f'dq_b * {size} + i')} = {n(src)}[i];"
         )
-        # the rows by columns; then a column per slack, its entry in row first + j
-        rows = [
-            f"    for (int i = 0; i < {n_rows}; ++i) for (int j = 0; j < {cols}; ++j) "
-            f"{n(gw)}[j * {n_rows} + i] = {e.ref(G, f'dq_b * {n_rows * cols} + i * {cols} + j')};"
-        ]
-        if k:
-            rows += [
-                f"    for (int i = {cols * n_rows}; i < {dim * n_rows}; ++i) "
-                f"{n(gw)}[i] = {lit(0)};",
-                f"    for (int j = 0; j < {k}; ++j) {n(gw)}[({cols} + j) * {n_rows} + {first} + j]"
-                f" = {e.ref(slack, f'dq_b * {k} + j')};",
-            ]
+        rows = f"{n(G)} + dq_b * {n_rows * cols}" if in_place else n(gs)
+        decl = [f"    {e.ctype(v.dtype)} {n(v)}[{v.size}];" for v in staged]
         return [
             *(e.declare(v) for v in outs),
             f"for (int dq_b = 0; dq_b < {batch}; ++dq_b) {{",
-            f"    {ct} {n(gw)}[{gw.size}], {n(rw)}[{n_rows}], {n(ww)}[{dim}], "
-            f"{n(mw)}[{n_rows}], {n(work)}[{work.size}], dq_cond;",
-            f"    int {n(uw)}[{n_rows}], {n(aw)}[{n_rows}], {n(iwork)}[{iwork.size}], "
-            "dq_status, dq_iters, dq_cert;",
-            f"    const int dq_max = {e.ref(max_iter, 'dq_b')};",
-            copy(ww, w0, dim),
-            "    if (dq_max > 0) {",
-            *rows, copy(rw, r, n_rows), copy(uw, use, n_rows),
-            f"    {fn}({n_rows}, {dim}, {n(gw)}, {n(rw)}, {n(ww)}, {n(uw)}, dq_max, "
+            *decl,
+            "    int dq_status, dq_iters, dq_cert;",
+            f"    {e.ctype(real)} dq_cond;",
+            *([] if in_place else [copy(gs, G, n_rows * cols)]),
+            copy(rs, r, n_rows), copy(w0s, w0, dim),
+            copy(us, use, n_rows),
+            copy(ss, slack, k) if k else f"    {n(ss)}[0] = {lit(0)};  /* no slacks */",
+            f"    {fn}({n_rows}, {cols}, {dim}, {rows}, {n(rs)}, {n(w0s)}, {n(us)}, "
+            f"{e.ref(max_iter, 'dq_b')}, {n(ss)}, {int(eqn.params['slack_row'])}, "
             f"{lit(tols.add)}, {lit(tols.dep)}, {lit(tols.cert)}, {lit(tols.eps)}, {n(work)}, "
-            f"{n(iwork)}, {n(mw)}, {n(aw)}, &dq_status, &dq_iters, &dq_cond, &dq_cert);",
-            "    } else {  /* not run: w0, as solve_dual answers */",
-            f"    for (int i = 0; i < {n_rows}; ++i) {{ {n(mw)}[i] = {lit(0)}; {n(aw)}[i] = 0; }}",
-            f"    dq_status = 2; dq_iters = 0; dq_cond = {lit(1)}; dq_cert = 0;",
-            "    }",
-            put(w, n(ww), dim), put(mult, n(mw), n_rows), put(active, n(aw), n_rows),
+            f"{n(iwork)}, {n(ws)}, {n(ms)}, {n(acts)}, &dq_status, &dq_iters, &dq_cond, "
+            "&dq_cert);",
+            put(w, ws, dim), put(mult, ms, n_rows), put(active, acts, n_rows),
             f"    {e.target(status, 'dq_b')} = dq_status;",
             f"    {e.target(iters, 'dq_b')} = dq_iters;",
             f"    {e.target(cond, 'dq_b')} = dq_cond;",
@@ -1021,7 +1012,7 @@ def _dual_qp(p: Program, eqn: Any, ins: list[Val]) -> list[Val]:
             "}",
         ]  # fmt: skip
 
-    p.stmt(outs, ins, gen, scratch=[gw, rw, ww, mw, uw, aw, work, iwork])
+    p.stmt(outs, ins, gen, scratch=staged)
     return outs
 
 

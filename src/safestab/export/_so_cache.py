@@ -24,16 +24,23 @@ of all of that and loaded by the next process that asks for the same build:
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import os
 import platform
 import shutil
+import tempfile
 import time
 import uuid
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import Any
 
-__all__ = ["MAX_ENTRIES", "SUBFOLDER", "build_key", "lookup", "native_cache_dir", "store"]
+__all__ = [
+    "MAX_ENTRIES", "SUBFOLDER", "build_key", "load_or_build", "lookup", "native_cache_dir",
+    "store",
+]  # fmt: skip
 
 #: The folder under the compilation cache's that holds the objects.
 SUBFOLDER = "native"
@@ -127,6 +134,46 @@ def store(folder: Path, key: str, built: Path) -> Path | None:
         temporary.unlink(missing_ok=True)  # only if the rename did not happen
     _prune(folder)
     return final
+
+
+def load_or_build(key: str, symbol: str, build: Callable[[Path], Path]) -> Any:
+    """The loaded library of ``key`` that has ``symbol``: from the cache, else built and stored.
+
+    ``build(folder)`` writes the shared object in a temporary folder and returns its path. An
+    object in the cache that cannot be loaded, or lacks ``symbol``, is built again. A built
+    object stays mapped after its temporary file is removed (where the cache is off or its
+    folder cannot be written).
+
+    Raises
+    ------
+    AttributeError
+        If the built object lacks ``symbol``.
+    CompilationError, OSError
+        From ``build``, or if the built object cannot be loaded.
+    """
+    folder = native_cache_dir()
+    cached = None if folder is None else lookup(folder, key)
+    lib = None if cached is None else _open(cached, symbol)
+    if lib is not None:
+        return lib
+    with tempfile.TemporaryDirectory(prefix="safestab-native-") as tmp:
+        built = build(Path(tmp))
+        stored = None if folder is None else store(folder, key, built)
+        lib = None if stored is None else _open(stored, symbol)
+        if lib is None:
+            lib = ctypes.CDLL(str(built))
+            getattr(lib, symbol)
+        return lib
+
+
+def _open(path: Path, symbol: str) -> Any:
+    """The library at ``path`` if it loads and has ``symbol``, else None."""
+    try:
+        lib = ctypes.CDLL(str(path))
+        getattr(lib, symbol)
+    except (OSError, AttributeError):
+        return None
+    return lib
 
 
 def _prune(folder: Path, max_entries: int = MAX_ENTRIES) -> int:

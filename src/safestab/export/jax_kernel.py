@@ -13,9 +13,7 @@ instead of compiling.
 
 from __future__ import annotations
 
-import ctypes
 import hashlib
-import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ParameterError
-from ._so_cache import build_key, lookup, native_cache_dir, store
+from ._so_cache import build_key, load_or_build
 from .exporter import ExportedC
 from .native import compile_object, find_compiler, find_tool, requested_flags, run_tool
 
@@ -113,45 +111,28 @@ def _build(exported: ExportedC, cc: str, cxx: str, march_native: bool) -> tuple[
     with _LOCK:
         if digest in _LOADED:
             return _LOADED[digest][0], symbol, used
-        folder = native_cache_dir()
         key = build_key(
             [exported.source, exported.header, handler], [cc, cxx],
             [*requested_flags(march_native=march_native), "|", *HANDLER_FLAGS],
         )  # fmt: skip
-        lib = None
-        cached = None if folder is None else lookup(folder, key)
-        if cached is not None:
-            lib = _open(cached, symbol)  # None: unreadable, built again below
-        if lib is None:
-            with tempfile.TemporaryDirectory(prefix="safestab-ffi-") as tmp:
-                build = Path(tmp)
-                exported.write(build)
-                obj = compile_object(exported, cc, build, march_native=march_native)
-                src = build / "handler.cc"
-                src.write_text(handler)
-                lib_path = build / f"lib{symbol}.so"
-                run_tool(
-                    [cxx, *HANDLER_FLAGS, f"-I{jax.ffi.include_dir()}", str(src), str(obj),
-                     "-lm", "-o", str(lib_path)],
-                    build,
-                )  # fmt: skip
-                stored = None if folder is None else store(folder, key, lib_path)
-                lib = _open(stored, symbol) if stored is not None else None
-                if lib is None:
-                    lib = ctypes.CDLL(str(lib_path))  # stays mapped after the file is removed
+
+        def build(folder: Path) -> Path:
+            exported.write(folder)
+            obj = compile_object(exported, cc, folder, march_native=march_native)
+            src = folder / "handler.cc"
+            src.write_text(handler)
+            lib_path = folder / f"lib{symbol}.so"
+            run_tool(
+                [cxx, *HANDLER_FLAGS, f"-I{jax.ffi.include_dir()}", str(src), str(obj),
+                 "-lm", "-o", str(lib_path)],
+                folder,
+            )  # fmt: skip
+            return lib_path
+
+        lib = load_or_build(key, symbol, build)
         jax.ffi.register_ffi_target(symbol, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
         _LOADED[digest] = (lib, symbol)
     return lib, symbol, used
-
-
-def _open(path: Path, symbol: str) -> Any:
-    """The library at ``path`` if it loads and has ``symbol``, else None."""
-    try:
-        lib = ctypes.CDLL(str(path))
-        getattr(lib, symbol)
-    except (OSError, AttributeError):
-        return None
-    return lib
 
 
 def jax_function(

@@ -205,9 +205,8 @@ def solve_dual(
     them where it runs). ``max_iter <= 0`` means not run: the answer is ``w0`` with status
     ``ITERATION_LIMIT``, no iteration and no active row.
     """
-    if slack is None:
-        slack = jnp.zeros(0, jnp.asarray(G).dtype)
-    G, slack = jnp.asarray(G), jnp.asarray(slack, jnp.asarray(G).dtype)
+    G = jnp.asarray(G)
+    slack = jnp.zeros(0, G.dtype) if slack is None else jnp.asarray(slack, G.dtype)
     G_full = _with_slack_columns(G, slack, slack_row)
     n_rows = G.shape[0]
     if n_rows == 0:  # nothing to satisfy: the unconstrained minimiser
